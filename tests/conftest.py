@@ -1,0 +1,28 @@
+"""Shared fixtures. Tests never need ../shared/data; those that use it skip."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = (REPO.parent / "shared" / "data").resolve()
+
+# Tests share the repository's cache (compiled kernels, LPIPS weights).
+os.environ.setdefault("MOGAF_CACHE_DIR", str(REPO / ".cache" / "mogaf"))
+
+
+def shared_path(*parts: str) -> Path:
+    """A path under ../shared/data, or skip the test with a clear reason."""
+    path = SHARED_DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"needs {path} (the read-only shared data folder beside the clone); absent here")
+    return path
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(0)
