@@ -1,0 +1,209 @@
+"""Configuration: datasets, per-stage parameters, ablation variants, artefact paths.
+
+Pure Python so that the Snakefile, the CLI and the tests share one logic.
+
+Variants. An ablation or run-time-sweep variant is a named set of config
+overrides (config/ablations.yaml). Its artefacts live under
+`results/{dataset}/{scene}/ratio{r}/ablation/{variant}/` — but only for the
+stages whose parameters (or whose upstream stages' parameters) the variant
+changes; every other artefact is shared with the default pipeline, so a
+sweep computes shared stages once.
+"""
+
+from __future__ import annotations
+
+import copy
+import fnmatch
+import os
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from .artefact import config_digest
+from .errors import MogafError
+
+RESULTS = "results"
+
+# Which config sections determine each stage's artefact (before upstream).
+STAGE_SECTIONS: dict[str, tuple[str, ...]] = {
+    "priors": ("seed", "priors"),
+    "recon": ("seed", "device", "recon"),
+    "group": ("grouping",),
+    "rigid_init": ("rigid_init",),
+    "refine": ("seed", "device", "refine"),
+    "evaluate": ("evaluate", "forecast.methods"),
+}
+# Upstream stages of each stage (forecast depends on the method, see below).
+STAGE_UPSTREAM: dict[str, tuple[str, ...]] = {
+    "priors": (),
+    "recon": ("priors",),
+    "group": ("recon", "priors"),
+    "rigid_init": ("group",),
+    "refine": ("recon", "group", "rigid_init"),
+}
+ARTEFACT_FILES = {
+    "priors": "priors.h5",
+    "recon": "recon.h5",
+    "group": "groups.h5",
+    "rigid_init": "rigid.h5",
+    "refine": "refined.h5",
+    "evaluate": "metrics.json",
+}
+FORECAST_METHODS = ("mogaf", "gcn", "ode", "constant_velocity", "frozen")
+VARIANT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+
+
+def deep_merge(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
+    """Recursive merge; `override` wins; lists are replaced, not merged."""
+    out = copy.deepcopy(dict(base))
+    for key, value in override.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def _get(config: Mapping[str, Any], dotted: str) -> Any:
+    node: Any = config
+    for part in dotted.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+# ------------------------------------------------------------------ datasets
+def dataset_config(config: Mapping[str, Any], dataset: str) -> Mapping[str, Any]:
+    datasets = config.get("datasets", {})
+    if dataset not in datasets:
+        known = ", ".join(sorted(datasets)) or "none"
+        raise MogafError(f"unknown dataset '{dataset}' (config/config.yaml datasets: {known})")
+    return datasets[dataset]
+
+
+def check_scene(config: Mapping[str, Any], dataset: str, scene: str) -> None:
+    ds = dataset_config(config, dataset)
+    scenes = ds.get("scenes")
+    if scenes is not None and scene not in scenes:
+        raise MogafError(f"unknown scene '{scene}' of dataset '{dataset}' (config/config.yaml lists: {', '.join(scenes)})")
+
+
+def scene_dir(config: Mapping[str, Any], dataset: str, scene: str) -> str:
+    """Folder holding the scene's files (a template with {scene} in config)."""
+    check_scene(config, dataset, scene)
+    return dataset_config(config, dataset)["path"].format(scene=scene, dataset=dataset)
+
+
+def dataset_layout(config: Mapping[str, Any], dataset: str) -> str:
+    return dataset_config(config, dataset)["layout"]
+
+
+def scene_config(config: Mapping[str, Any], dataset: str, scene: str) -> dict[str, Any]:
+    """Config with the dataset's and the scene's overrides applied.
+
+    datasets.<d>.overrides applies to every scene of the dataset and
+    datasets.<d>.scene_overrides.<scene> to one scene; both may set any
+    stage section (recon, priors, ...), e.g. fewer iterations for big grids.
+    """
+    ds = dataset_config(config, dataset)
+    merged = deep_merge(config, ds.get("overrides") or {})
+    return deep_merge(merged, (ds.get("scene_overrides") or {}).get(scene) or {})
+
+
+def ingest_options(config: Mapping[str, Any], dataset: str, scene: str) -> dict[str, Any]:
+    ds = dataset_config(config, dataset)
+    options = dict(ds.get("options") or {})
+    options.setdefault("rigidity", dict(config.get("rigidity") or {}))
+    return options
+
+
+def rigidity_of(name: str, table: Mapping[str, str]) -> int:
+    """1 rigid, 0 non-rigid, -1 unknown: first fnmatch pattern that matches."""
+    for pattern, kind in table.items():
+        if fnmatch.fnmatch(name.lower(), pattern.lower()):
+            return {"rigid": 1, "nonrigid": 0}.get(kind, -1)
+    return -1
+
+
+# ------------------------------------------------------------------ variants
+def variant_config(config: Mapping[str, Any], variants: Mapping[str, Any], variant: str | None) -> dict[str, Any]:
+    if not variant:
+        return copy.deepcopy(dict(config))
+    if variant not in variants:
+        known = ", ".join(sorted(variants)) or "none"
+        raise MogafError(f"unknown ablation variant '{variant}' (config/ablations.yaml defines: {known})")
+    return deep_merge(config, variants[variant].get("overrides") or {})
+
+
+def forecast_input_stage(config: Mapping[str, Any]) -> str:
+    return "refine" if _get(config, "forecast.input") == "refined" else "recon"
+
+
+def _sections(stage: str, config: Mapping[str, Any]) -> tuple[str, ...]:
+    if stage.startswith("forecast:"):
+        method = stage.split(":", 1)[1]
+        return ("seed", "forecast.input", "forecast.groupwise", "forecast.common", f"forecast.{method}")
+    return STAGE_SECTIONS[stage]
+
+
+def _upstream(stage: str, config: Mapping[str, Any]) -> tuple[str, ...]:
+    if stage.startswith("forecast:"):
+        return (forecast_input_stage(config), "group")
+    if stage == "evaluate":
+        return tuple(f"forecast:{m}" for m in config["forecast"]["methods"]) + (forecast_input_stage(config),)
+    return STAGE_UPSTREAM[stage]
+
+
+def stage_differs(stage: str, base: Mapping[str, Any], other: Mapping[str, Any]) -> bool:
+    """Whether `other` changes the stage's parameters or any upstream stage's."""
+    seen: set[str] = set()
+    todo = [stage]
+    while todo:
+        s = todo.pop()
+        if s in seen:
+            continue
+        seen.add(s)
+        if any(_get(base, key) != _get(other, key) for key in _sections(s, other)):
+            return True
+        # Upstream stages follow the variant's own wiring (e.g. forecast.input).
+        todo.extend(_upstream(s, other))
+        todo.extend(_upstream(s, base))
+    return False
+
+
+def artefact_prefix(stage: str, base: Mapping[str, Any], variant_cfg: Mapping[str, Any], variant: str | None) -> str:
+    """'' for artefacts shared with the default pipeline, else 'ablation/<v>/'."""
+    if not variant or not stage_differs(stage, base, variant_cfg):
+        return ""
+    return f"ablation/{variant}/"
+
+
+def ratio_dir(dataset: str, scene: str, ratio: str) -> str:
+    return f"{RESULTS}/{dataset}/{scene}/ratio{ratio}"
+
+
+def stage_params_digest(params: Mapping[str, Any]) -> str:
+    return config_digest(params)
+
+
+def check_variant_name(name: str) -> None:
+    if not VARIANT_NAME.match(name):
+        raise MogafError(f"ablation variant name '{name}' must be letters, digits, '_', '-' or '.'")
+
+
+def load_yaml(path: str | os.PathLike) -> dict[str, Any]:
+    import yaml
+
+    p = Path(path)
+    try:
+        with open(p) as fh:
+            data = yaml.safe_load(fh) or {}
+    except FileNotFoundError:
+        raise MogafError(f"{p}: missing") from None
+    except yaml.YAMLError as exc:
+        raise MogafError(f"{p}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise MogafError(f"{p}: expected a mapping at the top level")
+    return data

@@ -1,0 +1,408 @@
+"""Shared input helpers for the dataset readers: strict JSON, typed fields,
+options, time grids and PLY point clouds.
+
+Every problem with an input file is raised as one `MogafError` line naming the
+file (see mogaf.errors.input_error); no other exception type escapes these
+helpers for any content of the file.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import math
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import MogafError, input_error
+
+# Largest image side accepted from any JSON or image header. Checked before
+# anything is allocated, so a corrupt size never triggers a huge allocation.
+MAX_IMAGE_SIDE = 1 << 15
+MAX_IMAGE_PIXELS = 1 << 28
+
+
+# ---------------------------------------------------------------- JSON
+def _reject_constant(name: str) -> Any:
+    raise ValueError(f"non-finite number {name} is not valid JSON")
+
+
+def load_json(path: str | os.PathLike, *, what: str = "file", expect: type = dict) -> Any:
+    """Read a JSON file strictly: missing, unreadable, malformed -> one line."""
+    p = Path(path)
+    if not p.is_file():
+        raise input_error(p, f"missing ({what})" if not p.exists() else f"is not a file ({what})")
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise input_error(p, f"cannot be read ({exc.strerror or exc.__class__.__name__})") from None
+    try:
+        obj = json.loads(raw, parse_constant=_reject_constant)
+    except json.JSONDecodeError as exc:
+        raise input_error(p, f"malformed JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise input_error(p, f"malformed JSON: {exc}") from None
+    except RecursionError:
+        raise input_error(p, "malformed JSON: nested too deeply") from None
+    if expect is not None and not isinstance(obj, expect):
+        kind = {dict: "an object", list: "an array"}.get(expect, expect.__name__)
+        raise input_error(p, f"must hold a JSON {kind}, got {_kind(obj)}")
+    return obj
+
+
+def _kind(value: Any) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, (int, float)):
+        return "a number"
+    if isinstance(value, str):
+        return "a string"
+    if isinstance(value, list):
+        return "an array"
+    if isinstance(value, dict):
+        return "an object"
+    return type(value).__name__
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    try:
+        text = json.dumps(value)
+    except (TypeError, ValueError, OverflowError, RecursionError):
+        text = repr(type(value))
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def require(obj: Mapping, key: str, path: str | os.PathLike, where: str = "") -> Any:
+    if not isinstance(obj, Mapping) or key not in obj:
+        raise input_error(path, f"{where}missing key '{key}'")
+    return obj[key]
+
+
+def as_float(value: Any, path: str | os.PathLike, name: str, *, positive: bool = False,
+             lo: float | None = None, hi: float | None = None) -> float:
+    """A finite JSON number (not a boolean)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise input_error(path, f"{name} must be a number, got {_kind(value)} {_short(value)}")
+    try:
+        out = float(value)
+    except OverflowError:
+        raise input_error(path, f"{name} is too large ({_short(value)})") from None
+    if not math.isfinite(out):
+        raise input_error(path, f"{name} is not finite")
+    if positive and out <= 0:
+        raise input_error(path, f"{name} must be positive, got {out:g}")
+    if lo is not None and out < lo:
+        raise input_error(path, f"{name} must be >= {lo:g}, got {out:g}")
+    if hi is not None and out > hi:
+        raise input_error(path, f"{name} must be <= {hi:g}, got {out:g}")
+    return out
+
+
+def as_int(value: Any, path: str | os.PathLike, name: str, *, lo: int | None = None, hi: int | None = None) -> int:
+    """A JSON integer (floats with an integral value are accepted)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise input_error(path, f"{name} must be an integer, got {_kind(value)} {_short(value)}")
+    if isinstance(value, float):
+        if not math.isfinite(value) or value != int(value):
+            raise input_error(path, f"{name} must be an integer, got {value!r}")
+        value = int(value)
+    if lo is not None and value < lo:
+        raise input_error(path, f"{name} must be >= {lo}, got {_short(value)}")
+    if hi is not None and value > hi:
+        raise input_error(path, f"{name} must be <= {hi}, got {_short(value)}")
+    return int(value)
+
+
+def as_image_side(value: Any, path: str | os.PathLike, name: str) -> int:
+    """An image width or height from a JSON: positive and plausible."""
+    return as_int(value, path, name, lo=1, hi=MAX_IMAGE_SIDE)
+
+
+def as_array(value: Any, shape: tuple[int, ...], path: str | os.PathLike, name: str) -> np.ndarray:
+    """A finite float64 array of exactly `shape` from nested JSON lists."""
+    def check(v: Any, dims: tuple[int, ...]) -> None:
+        if not dims:
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise input_error(path, f"{name} must hold numbers, found {_kind(v)}")
+            return
+        if not isinstance(v, list) or len(v) != dims[0]:
+            got = f"{len(v)} entries" if isinstance(v, list) else _kind(v)
+            raise input_error(path, f"{name} must be a {'x'.join(map(str, shape))} array of numbers ({got} where {dims[0]} expected)")
+        for item in v:
+            check(item, dims[1:])
+
+    check(value, shape)
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (OverflowError, ValueError, TypeError):
+        raise input_error(path, f"{name} has numbers too large for float64") from None
+    if not np.all(np.isfinite(arr)):
+        raise input_error(path, f"{name} has non-finite values")
+    return arr
+
+
+def as_str(value: Any, path: str | os.PathLike, name: str) -> str:
+    if not isinstance(value, str) or not value:
+        raise input_error(path, f"{name} must be a non-empty string, got {_kind(value)} {_short(value)}")
+    if "\x00" in value:
+        raise input_error(path, f"{name} contains a NUL character")
+    return value
+
+
+def as_list(value: Any, path: str | os.PathLike, name: str) -> list:
+    if not isinstance(value, list):
+        raise input_error(path, f"{name} must be an array, got {_kind(value)}")
+    return value
+
+
+# ---------------------------------------------------------------- options
+def option_int(options: Mapping, key: str, default: int, *, lo: int = 1, hi: int = 1 << 20, where: str = "dataset options") -> int:
+    value = options.get(key, default) if options else default
+    if value is None:
+        value = default
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not (lo <= int(value) <= hi):
+        raise MogafError(f"{where}: '{key}' must be an integer in [{lo}, {hi}], got {value!r}")
+    return int(value)
+
+
+def option_bool(options: Mapping, key: str, default: bool, *, where: str = "dataset options") -> bool:
+    value = options.get(key, default) if options else default
+    if value is None:
+        return default
+    if not isinstance(value, (bool, np.bool_)):
+        raise MogafError(f"{where}: '{key}' must be true or false, got {value!r}")
+    return bool(value)
+
+
+def option_background(options: Mapping, default: Sequence[float] = (1.0, 1.0, 1.0), *, where: str = "dataset options") -> np.ndarray:
+    value = options.get("background", default) if options else default
+    if value is None:
+        value = default
+    try:
+        arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise MogafError(f"{where}: 'background' must be three numbers in [0, 1], got {value!r}") from None
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)) or np.any(arr < 0) or np.any(arr > 1):
+        raise MogafError(f"{where}: 'background' must be three numbers in [0, 1], got {value!r}")
+    return arr
+
+
+RIGIDITY_VALUES = {"rigid": 1, "nonrigid": 0, "non-rigid": 0, "unknown": -1}
+
+
+def rigidity_rules(options: Mapping, *, where: str = "dataset options") -> list[tuple[str, int]]:
+    """options['rigidity']: ordered mapping (or list of pairs) pattern -> rigid|nonrigid."""
+    value = options.get("rigidity") if options else None
+    if value is None:
+        return []
+    if isinstance(value, Mapping):
+        items = list(value.items())
+    elif isinstance(value, (list, tuple)):
+        items = []
+        for item in value:
+            if isinstance(item, Mapping) and len(item) == 1:
+                items.extend(item.items())
+            elif isinstance(item, (list, tuple)) and len(item) == 2:
+                items.append(tuple(item))
+            else:
+                raise MogafError(f"{where}: 'rigidity' entries must be pattern: rigid|nonrigid pairs, got {item!r}")
+    else:
+        raise MogafError(f"{where}: 'rigidity' must map name patterns to rigid|nonrigid, got {value!r}")
+    rules = []
+    for pattern, kind in items:
+        if not isinstance(pattern, str) or not isinstance(kind, str) or kind.lower() not in RIGIDITY_VALUES:
+            raise MogafError(f"{where}: 'rigidity' maps {pattern!r} to {kind!r}; expected rigid, nonrigid or unknown")
+        rules.append((pattern, RIGIDITY_VALUES[kind.lower()]))
+    return rules
+
+
+def rigidity_of(name: str, rules: list[tuple[str, int]]) -> int:
+    """First matching fnmatch pattern wins; unmatched names are unknown (-1)."""
+    for pattern, flag in rules:
+        if fnmatch.fnmatchcase(name, pattern):
+            return flag
+    return -1
+
+
+# ---------------------------------------------------------------- time grid
+def time_grid(times: np.ndarray, path: str | os.PathLike, num_timesteps: int | None = None,
+              tol: float = 1e-3) -> tuple[np.ndarray, int, float]:
+    """Map normalised times in [0, 1] to indices of a uniform grid.
+
+    Returns (time_index, num_timesteps, max_snap_error in grid steps).
+    With `num_timesteps` given, times are snapped to that grid. Otherwise the
+    grid has as many steps as there are distinct times when they lie on it;
+    failing that, a grid whose step is the smallest gap between distinct times
+    is tried (times missing from the grid are allowed). Else: one-line error.
+    """
+    t = np.asarray(times, dtype=np.float64)
+    if t.size == 0:
+        raise input_error(path, "no frame times")
+    if not np.all(np.isfinite(t)) or np.any(t < 0) or np.any(t > 1):
+        raise input_error(path, "frame times must be finite and lie in [0, 1]")
+
+    def on_grid(T: int) -> tuple[np.ndarray, float]:
+        scaled = t * (T - 1)
+        idx = np.rint(scaled)
+        return idx.astype(np.int64), float(np.max(np.abs(scaled - idx))) if t.size else 0.0
+
+    if num_timesteps is not None:
+        T = int(num_timesteps)
+        idx, err = on_grid(T)
+        return idx, T, err
+    distinct = np.unique(t)
+    if distinct.size == 1:
+        return np.zeros(t.shape, np.int64), 1, 0.0
+    T = int(distinct.size)
+    idx, err = on_grid(T)
+    if err <= tol:
+        return idx, T, err
+    gap = float(np.min(np.diff(distinct)))
+    if gap > 0 and 1.0 / gap < 1e6:
+        T2 = int(round(1.0 / gap)) + 1
+        idx, err = on_grid(T2)
+        if err <= tol:
+            return idx, T2, err
+    raise input_error(path, f"the {T} distinct frame times do not lie on a uniform grid; set the dataset option 'num_timesteps' to snap them to one")
+
+
+# ---------------------------------------------------------------- PLY
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+MAX_PLY_HEADER = 1 << 16
+
+
+def read_ply_points(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
+    """Vertices of a PLY file as (P, 6) float32 xyz + rgb in [0, 1].
+
+    Supports ascii, binary_little_endian and binary_big_endian files whose
+    vertex element comes first or after elements without list properties.
+    Returns (points, has_colour); without red/green/blue the colour is 0.5.
+    """
+    p = Path(path)
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(MAX_PLY_HEADER)
+            size = os.fstat(fh.fileno()).st_size
+    except OSError as exc:
+        raise input_error(p, f"cannot be read ({exc.strerror or exc.__class__.__name__})") from None
+    if not head.startswith(b"ply"):
+        raise input_error(p, "not a PLY file (no 'ply' magic)")
+    end = head.find(b"end_header")
+    if end < 0:
+        raise input_error(p, "PLY header has no end_header line (or is longer than 64 KiB)")
+    nl = head.find(b"\n", end)
+    if nl < 0:
+        raise input_error(p, "PLY header is truncated")
+    body_start = nl + 1
+    try:
+        lines = head[:end].decode("ascii").splitlines()
+    except UnicodeDecodeError:
+        raise input_error(p, "PLY header is not ASCII") from None
+    fmt = None
+    elements: list[dict[str, Any]] = []
+    for line in lines[1:]:
+        parts = line.split()
+        if not parts or parts[0] in ("comment", "obj_info"):
+            continue
+        if parts[0] == "format" and len(parts) >= 2:
+            fmt = parts[1]
+        elif parts[0] == "element" and len(parts) == 3:
+            try:
+                count = int(parts[2])
+            except ValueError:
+                raise input_error(p, f"PLY element '{parts[1]}' has a bad count {parts[2]!r}") from None
+            if count < 0:
+                raise input_error(p, f"PLY element '{parts[1]}' has a negative count")
+            elements.append({"name": parts[1], "count": count, "props": [], "has_list": False})
+        elif parts[0] == "property" and elements:
+            if len(parts) >= 2 and parts[1] == "list":
+                elements[-1]["has_list"] = True
+                elements[-1]["props"].append(("__list__", None))
+            elif len(parts) == 3 and parts[1] in _PLY_TYPES:
+                elements[-1]["props"].append((parts[2], _PLY_TYPES[parts[1]]))
+            else:
+                raise input_error(p, f"PLY header has an unsupported property line {line.strip()!r}")
+        elif parts[0] not in ("ply",):
+            raise input_error(p, f"PLY header has an unexpected line {line.strip()!r}")
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise input_error(p, f"PLY format {fmt!r} is not supported (ascii or binary)")
+    names = [e["name"] for e in elements]
+    if "vertex" not in names:
+        raise input_error(p, "PLY file has no vertex element")
+    vi = names.index("vertex")
+    vertex = elements[vi]
+    if vertex["has_list"]:
+        raise input_error(p, "PLY vertex element has list properties")
+    props = [name for name, _ in vertex["props"]]
+    for axis in ("x", "y", "z"):
+        if axis not in props:
+            raise input_error(p, f"PLY vertex element has no '{axis}' property")
+    n = vertex["count"]
+    if fmt == "ascii":
+        if any(e["has_list"] for e in elements[:vi]):
+            raise input_error(p, "PLY elements before 'vertex' have list properties (unsupported)")
+        skip = sum(e["count"] for e in elements[:vi])
+        # Every value is at least 2 bytes ("0 "): a header count larger than
+        # the file allows is refused before reading.
+        if (skip + n) * 2 > size:
+            raise input_error(p, f"PLY header announces {n} vertices, more than the file holds")
+        with open(p, "rb") as fh:
+            fh.seek(body_start)
+            text = fh.read().decode("ascii", errors="replace").splitlines()
+        rows = [ln for ln in text if ln.strip()]
+        if len(rows) < skip + n:
+            raise input_error(p, f"PLY file is truncated: {len(rows) - skip} of {n} vertex lines")
+        try:
+            data = np.array([ln.split() for ln in rows[skip:skip + n]], dtype=np.float64)
+        except ValueError:
+            raise input_error(p, "PLY vertex lines are malformed (not numbers or wrong count)") from None
+        if data.size == 0:
+            data = data.reshape(0, len(props))
+        if data.ndim != 2 or data.shape[1] != len(props):
+            raise input_error(p, f"PLY vertex lines must have {len(props)} values each")
+        cols = {name: data[:, i] for i, name in enumerate(props)}
+        dtypes = dict(vertex["props"])
+    else:
+        order = "<" if fmt == "binary_little_endian" else ">"
+        offset = body_start
+        for e in elements[:vi]:
+            if e["has_list"]:
+                raise input_error(p, f"PLY element '{e['name']}' before 'vertex' has list properties (unsupported)")
+            offset += e["count"] * sum(np.dtype(t).itemsize for _, t in e["props"])
+        dtype = np.dtype([(name, order + t) for name, t in vertex["props"]])
+        if offset + n * dtype.itemsize > size:
+            raise input_error(p, f"PLY file is truncated: header announces {n} vertices of {dtype.itemsize} bytes")
+        with open(p, "rb") as fh:
+            fh.seek(offset)
+            buf = fh.read(n * dtype.itemsize)
+        rec = np.frombuffer(buf, dtype=dtype, count=n)
+        cols = {name: rec[name].astype(np.float64) for name in props}
+        dtypes = dict(vertex["props"])
+    xyz = np.stack([cols["x"], cols["y"], cols["z"]], axis=1)
+    if not np.all(np.isfinite(xyz)):
+        raise input_error(p, "PLY vertices have non-finite coordinates")
+    has_colour = all(c in cols for c in ("red", "green", "blue"))
+    if has_colour:
+        rgb = np.stack([cols["red"], cols["green"], cols["blue"]], axis=1)
+        kind = np.dtype(dtypes["red"]).kind
+        if kind in "ui":
+            rgb = rgb / float(np.iinfo(np.dtype(dtypes["red"])).max)
+        elif rgb.size and np.nanmax(rgb) > 1.0:
+            rgb = rgb / 255.0
+        if not np.all(np.isfinite(rgb)):
+            raise input_error(p, "PLY vertex colours are not finite")
+        rgb = np.clip(rgb, 0.0, 1.0)
+    else:
+        rgb = np.full_like(xyz, 0.5)
+    return np.concatenate([xyz, rgb], axis=1).astype(np.float32), has_colour

@@ -1,0 +1,166 @@
+"""Shared pieces of the forecasters: the result type, the base class, input
+checks, parameter merging and the determinism context."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import time
+from collections.abc import Iterator, Mapping
+from typing import Any
+
+import numpy as np
+
+from mogaf.errors import MogafError
+from mogaf.forecast import quat
+
+POSE_DIM = 7  # [mu (3), q (4, wxyz)]
+
+
+@dataclasses.dataclass
+class ForecastResult:
+    """Poses at the next n_steps timesteps and what happened while fitting.
+
+    poses: (G, n_steps, 7) float64, unit quaternions (wxyz) whose signs follow
+        continuity from the (sign-canonicalised) observation.
+    info: train_time_s, rollout_time_s, final_loss, epochs, iterations, and
+        method-specific flags (e.g. ode_step_cap_hit).
+    """
+
+    poses: np.ndarray
+    info: dict[str, Any]
+
+
+def merge_params(method: str, defaults: Mapping[str, Any], params: Mapping[str, Any] | None) -> dict[str, Any]:
+    """defaults updated with params; unknown keys are a one-line MogafError."""
+    merged = dict(defaults)
+    if params is None:
+        return merged
+    if not isinstance(params, Mapping):
+        raise MogafError(f"forecast.{method}: params must be a mapping, got {type(params).__name__}")
+    unknown = sorted(set(params) - set(defaults))
+    if unknown:
+        raise MogafError(
+            f"forecast.{method}: unknown parameter(s) {', '.join(unknown)} (known: {', '.join(sorted(defaults))})"
+        )
+    for key, value in params.items():
+        default = defaults[key]
+        if isinstance(default, bool) and not isinstance(value, bool):
+            raise MogafError(f"forecast.{method}: parameter '{key}' must be true or false, got {value!r}")
+        if isinstance(default, (int, float)) and not isinstance(default, bool) and value is not None:
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise MogafError(f"forecast.{method}: parameter '{key}' must be a number, got {value!r}")
+            if isinstance(default, int) and not isinstance(default, bool) and float(value) != int(value):
+                raise MogafError(f"forecast.{method}: parameter '{key}' must be an integer, got {value!r}")
+            value = type(default)(value)
+        merged[key] = value
+    return merged
+
+
+def check_observed(observed: Any, method: str, min_frames: int) -> np.ndarray:
+    """Validate (G, T, 7), finite, non-zero quaternions; return a float64 copy
+    with unit, sign-continuous quaternions (see quat.make_continuous)."""
+    try:
+        arr = np.array(observed, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise MogafError(f"forecast.{method}: observed is not a numeric array ({exc})") from None
+    if arr.ndim != 3 or arr.shape[2] != POSE_DIM:
+        raise MogafError(f"forecast.{method}: observed must have shape (G, T, 7), got {arr.shape}")
+    g, t, _ = arr.shape
+    if g < 1:
+        raise MogafError(f"forecast.{method}: observed holds no Gaussians")
+    if t < min_frames:
+        raise MogafError(f"forecast.{method}: needs at least {min_frames} observed frames, got {t}")
+    if not np.isfinite(arr).all():
+        raise MogafError(f"forecast.{method}: observed contains NaN or infinite values")
+    norms = np.linalg.norm(arr[..., 3:], axis=-1)
+    if (norms < 1e-8).any():
+        raise MogafError(f"forecast.{method}: observed contains zero-length quaternions")
+    arr[..., 3:] = quat.make_continuous(arr[..., 3:] / norms[..., None], axis=1)
+    return arr
+
+
+def check_steps(n_steps: Any, method: str) -> int:
+    if isinstance(n_steps, bool) or not isinstance(n_steps, (int, np.integer)) or n_steps < 1:
+        raise MogafError(f"forecast.{method}: n_steps must be a positive integer, got {n_steps!r}")
+    return int(n_steps)
+
+
+def finish_poses(poses: np.ndarray, last_q: np.ndarray) -> np.ndarray:
+    """Float64 copy with unit quaternions, sign-continuous from last_q (G, 4)."""
+    out = np.array(poses, dtype=np.float64, copy=True)
+    q = quat.normalize(out[..., 3:])
+    prev = last_q
+    for k in range(q.shape[1]):
+        q[:, k] = quat.align_to(q[:, k], prev)
+        prev = q[:, k]
+    out[..., 3:] = q
+    return out
+
+
+@contextlib.contextmanager
+def torch_determinism(seed: int, num_threads: int | None) -> Iterator[None]:
+    """Seed torch inside a forked RNG state (the caller's global RNG is left as
+    it was), optionally pin the intra-op thread count, and ask for
+    deterministic kernels. Restores everything on exit."""
+    import torch
+
+    old_threads = torch.get_num_threads()
+    old_det = torch.are_deterministic_algorithms_enabled()
+    old_warn = torch.is_deterministic_algorithms_warn_only_enabled()
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(seed))
+        if num_threads:
+            torch.set_num_threads(int(num_threads))
+        torch.use_deterministic_algorithms(True, warn_only=True)
+        try:
+            yield
+        finally:
+            torch.use_deterministic_algorithms(old_det, warn_only=old_warn)
+            torch.set_num_threads(old_threads)
+
+
+class Forecaster:
+    """fit(observed) then rollout(n_steps). Subclasses set NAME, DEFAULTS and
+    MIN_FRAMES and implement _fit / _rollout on the checked float64 array."""
+
+    NAME = "base"
+    DEFAULTS: Mapping[str, Any] = {}
+    MIN_FRAMES = 1
+
+    def __init__(self, params: Mapping[str, Any] | None = None, seed: int = 0):
+        self.params = merge_params(self.NAME, self.DEFAULTS, params)
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+            raise MogafError(f"forecast.{self.NAME}: seed must be an integer, got {seed!r}")
+        self.seed = int(seed)
+        self.info: dict[str, Any] = {"method": self.NAME}
+        self._obs: np.ndarray | None = None
+
+    def fit(self, observed: np.ndarray) -> "Forecaster":
+        obs = check_observed(observed, self.NAME, self.MIN_FRAMES)
+        self._obs = obs
+        t0 = time.perf_counter()
+        self._fit(obs)
+        self.info["train_time_s"] = time.perf_counter() - t0
+        self.info.setdefault("final_loss", None)
+        self.info.setdefault("epochs", 0)
+        return self
+
+    def rollout(self, n_steps: int) -> np.ndarray:
+        if self._obs is None:
+            raise MogafError(f"forecast.{self.NAME}: rollout called before fit")
+        n = check_steps(n_steps, self.NAME)
+        t0 = time.perf_counter()
+        poses = self._rollout(n)
+        poses = finish_poses(poses, self._obs[:, -1, 3:])
+        self.info["rollout_time_s"] = time.perf_counter() - t0
+        if not np.isfinite(poses).all():
+            # Never hand out NaNs: this is a bug or an unrecoverable blow-up.
+            raise MogafError(f"forecast.{self.NAME}: rollout produced non-finite poses")
+        return poses
+
+    def _fit(self, obs: np.ndarray) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _rollout(self, n_steps: int) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError

@@ -1,0 +1,115 @@
+"""Float64 quaternion helpers (scalar-first, wxyz) for the forecasters.
+
+Everything works on numpy arrays with the quaternion on the last axis and
+broadcasts over leading axes. Rotations are exact (Hamilton product, rotation
+of a vector by q v q*); results are renormalised where they are fed back.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def normalize(q: np.ndarray) -> np.ndarray:
+    q = np.asarray(q, dtype=np.float64)
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    return q / np.where(n > 0.0, n, 1.0)
+
+
+def conj(q: np.ndarray) -> np.ndarray:
+    q = np.asarray(q, dtype=np.float64)
+    return np.concatenate([q[..., :1], -q[..., 1:]], axis=-1)
+
+
+def mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a * b (apply b first, then a)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
+
+
+def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate vectors v (..., 3) by unit quaternions q (..., 4)."""
+    q = np.asarray(q, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    w = q[..., :1]
+    u = q[..., 1:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def to_matrix(q: np.ndarray) -> np.ndarray:
+    q = normalize(q)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    m = np.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        axis=-1,
+    )
+    return m.reshape(q.shape[:-1] + (3, 3))
+
+
+def from_axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    axis = np.asarray(axis, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis, axis=-1, keepdims=True)
+    half = 0.5 * np.asarray(angle, dtype=np.float64)[..., None]
+    return np.concatenate([np.cos(half), np.sin(half) * axis], axis=-1)
+
+
+def canonical_sign(q: np.ndarray) -> np.ndarray:
+    """Pick the representative of {q, -q} with w > 0 (ties broken on x, y, z)."""
+    q = np.asarray(q, dtype=np.float64)
+    sign = np.zeros(q.shape[:-1])
+    for k in range(4):
+        comp = q[..., k]
+        undecided = sign == 0
+        sign = np.where(undecided & (comp > 0), 1.0, sign)
+        sign = np.where(undecided & (comp < 0), -1.0, sign)
+    sign = np.where(sign == 0, 1.0, sign)
+    return q * sign[..., None]
+
+
+def make_continuous(q: np.ndarray, axis: int = -2) -> np.ndarray:
+    """Sign continuity along time: the first quaternion gets the canonical sign,
+    each later one is flipped when dot(q_t, q_{t-1}) < 0.
+
+    Negating any subset of the input quaternions gives a bit-identical result,
+    so every method built on this is invariant to q -> -q in its input.
+    """
+    q = np.moveaxis(np.array(q, dtype=np.float64, copy=True), axis, 0)
+    q[0] = canonical_sign(q[0])
+    for t in range(1, q.shape[0]):
+        d = np.sum(q[t] * q[t - 1], axis=-1)
+        # dot == 0 exactly is ambiguous; fall back to the canonical sign there so
+        # the choice still does not depend on the input's sign.
+        flip = d < 0
+        tie = d == 0
+        cur = np.where(flip[..., None], -q[t], q[t])
+        cur = np.where(tie[..., None], canonical_sign(q[t]), cur)
+        q[t] = cur
+    return np.moveaxis(q, 0, axis)
+
+
+def align_to(q: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Flip q where dot(q, ref) < 0 (continuity with a reference)."""
+    d = np.sum(q * ref, axis=-1, keepdims=True)
+    return np.where(d < 0, -q, q)
+
+
+def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Geodesic angle (radians) between rotations a and b, sign-invariant."""
+    d = np.abs(np.sum(normalize(a) * normalize(b), axis=-1))
+    return 2.0 * np.arccos(np.clip(d, 0.0, 1.0))

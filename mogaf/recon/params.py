@@ -1,0 +1,135 @@
+"""Parameters of the reconstruction stage (Shape-of-Motion style 4D Gaussians).
+
+Every key has a default in DEFAULT_PARAMS. Values come from the official
+Shape-of-Motion (SoM) implementation (vye16/shape-of-motion, flow3d/configs.py,
+run_training.py, trainer.py, init_utils.py) where it has one; the comments
+mark "SoM" for those and "CPU" where this package uses a smaller value so a
+run fits a CPU budget (SoM trains on a GPU for ~25k steps of 8 frames with
+40k fg + 100k bg Gaussians; the default synthetic scene here must finish in
+about 4 minutes on 2 cores).
+
+Knobs that trade quality for time: iterations, max_gaussians, num_fg_init,
+num_bg_init, downscale, num_bases, batch_size, track_targets.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from ..errors import MogafError
+
+DEFAULT_PARAMS: dict[str, Any] = {
+    # ---- budget (quality vs time)
+    "iterations": 1500,  # CPU (SoM: 500 epochs, ~25k steps of 8 frames)
+    "batch_size": 1,  # frames per step; CPU (SoM: 8)
+    "downscale": 1,  # integer image downscale applied at training time
+    "max_gaussians": 30000,  # cap on fg + bg after densification; CPU (SoM: uncapped)
+    "num_fg_init": 6000,  # CPU (SoM: num_fg 40000)
+    "num_bg_init": 6000,  # CPU (SoM: num_bg 100000)
+    "num_bases": 10,  # SoM num_motion_bases
+    "sh_degree": 0,  # SoM uses plain RGB colours (degree 0)
+    "background_gaussians": "auto",  # "auto" (monocular/iphone: yes, dnerf: no), "yes", "no"
+    # ---- initialisation
+    "init_min_cluster_fraction": 0.01,  # drop k-means clusters smaller than this share of tracks (SoM: 100 tracks)
+    "init_coef_scale": 10.0,  # SoM: logits = 10 * exp(-d); d here in units of init_coef_length * fg extent
+    "init_coef_length": 0.1,  # CPU/units: SoM uses metres directly
+    "init_opacity": 0.7,  # SoM
+    "init_optim_iters": 300,  # SoM run_initial_optim: 1000 (track-only fit, no rendering)
+    "init_fg_dense_fraction": 0.5,  # share of fg Gaussians lifted from canonical-frame fg pixels (rest: tracks)
+    "carve_window": 6,  # multi-view without depth: frames either side of the canonical time used to carve
+    "carve_min_fraction": 0.75,  # a candidate point must fall in the (dilated) fg mask in this share of them
+    "carve_dilate": 3,  # pixels of mask dilation for carving
+    "carve_candidates": 400000,  # uniform candidates sampled in the volume
+    # ---- learning rates (SoM configs.py)
+    "lr_means": 1.6e-4,
+    "lr_opacities_fg": 1e-2,
+    "lr_opacities_bg": 5e-2,
+    "lr_scales": 5e-3,  # decays x0.1 exponentially over training (SoM)
+    "lr_quats": 1e-3,
+    "lr_colors": 1e-2,
+    "lr_motion_coefs": 1e-2,
+    "lr_rots": 1.6e-4,
+    "lr_transls": 1.6e-4,
+    "lr_scene_scaled": True,  # means / translation LRs multiplied by scene extent (SoM scenes are ~unit scale)
+    "lr_boost": 4.0,  # CPU: all LRs x this (far fewer steps than SoM); scales get it too
+    # ---- losses (SoM LossesConfig)
+    "w_rgb": 1.0,
+    "ssim_weight": 0.2,  # rgb = 0.8 L1 + 0.2 (1 - SSIM)
+    "w_mask": 1.0,
+    "w_depth": 0.5,  # SoM w_depth_reg (disparity L1, 0.98 quantile)
+    "w_depth_grad": 1.0,  # SoM w_depth_grad
+    "w_track": 2.0,  # SoM w_track
+    "w_smooth_bases": 0.1,  # SoM w_smooth_bases
+    "w_smooth_tracks": 2.0,  # SoM w_smooth_tracks
+    "w_z_accel": 1.0,  # SoM w_z_accel
+    "w_scale_var": 0.01,  # SoM w_scale_var
+    "track_targets": 2,  # target frames per source frame for the 2D track loss; CPU (SoM: 4)
+    "loss_quantile": 0.98,  # SoM: robust trimming of mask / depth / track losses
+    # ---- temporal curriculum (multi-view scenes without depth / tracks)
+    "curriculum": "auto",  # "auto" (on when bases start at identity), "on", "off"
+    "curriculum_fraction": 0.5,  # share of iterations over which the time window grows to all frames
+    "curriculum_start": 3,  # initial half-window, in observed time steps
+    # ---- adaptive density control (SoM OptimizerConfig), in iterations
+    "warmup_steps": 100,  # SoM 200
+    "control_every": 100,  # SoM
+    "reset_opacity_every": 0,  # 0 = never; CPU (SoM: every 30 controls = 3000 steps, after our run ends)
+    "stop_control_fraction": 0.8,  # SoM stops at 4000 / 5000 steps
+    "densify_grad_threshold": 0.0002,  # SoM densify_xys_grad_threshold (NDC units)
+    "densify_scale_threshold": 0.01,  # SoM, x scene extent
+    "densify_screen_threshold": 0.05,  # SoM
+    "cull_opacity_threshold": 0.1,  # SoM
+    "cull_scale_threshold": 0.5,  # SoM, x scene extent
+    "cull_screen_threshold": 0.15,  # SoM
+    # ---- bookkeeping
+    "log_every": 25,
+    "checkpoint_every": 200,
+    "eval_every": 100,  # training-curve PSNR on one fixed observed frame
+    "backend": "auto",  # rasterizer backend
+}
+
+CHOICES = {
+    "background_gaussians": ("auto", "yes", "no"),
+    "curriculum": ("auto", "on", "off"),
+}
+INT_KEYS = {
+    "iterations", "batch_size", "downscale", "max_gaussians", "num_fg_init", "num_bg_init", "num_bases",
+    "sh_degree", "init_optim_iters", "carve_window", "carve_dilate", "carve_candidates", "track_targets",
+    "curriculum_start", "warmup_steps", "control_every", "reset_opacity_every", "log_every", "checkpoint_every",
+    "eval_every",
+}
+
+
+def resolve_params(params: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Defaults <- params, type-checked; unknown keys are refused."""
+    params = dict(params or {})
+    unknown = sorted(set(params) - set(DEFAULT_PARAMS))
+    if unknown:
+        raise MogafError(f"unknown recon param(s) {', '.join(unknown)} (known: {', '.join(sorted(DEFAULT_PARAMS))})")
+    out = dict(DEFAULT_PARAMS)
+    out.update(params)
+    for key, default in DEFAULT_PARAMS.items():
+        value = out[key]
+        if key in CHOICES:
+            if value not in CHOICES[key]:
+                raise MogafError(f"recon param '{key}' must be one of {', '.join(CHOICES[key])}, got {value!r}")
+        elif isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise MogafError(f"recon param '{key}' must be true or false, got {value!r}")
+        elif key in INT_KEYS:
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value:
+                raise MogafError(f"recon param '{key}' must be an integer, got {value!r}")
+            out[key] = int(value)
+            if out[key] < 0:
+                raise MogafError(f"recon param '{key}' must be non-negative, got {value!r}")
+        elif isinstance(default, float):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise MogafError(f"recon param '{key}' must be a number, got {value!r}")
+            out[key] = float(value)
+    for key in ("iterations", "batch_size", "downscale", "num_bases", "max_gaussians", "num_fg_init", "control_every",
+                "log_every", "checkpoint_every", "eval_every"):
+        if out[key] < 1:
+            raise MogafError(f"recon param '{key}' must be at least 1, got {out[key]}")
+    if out["sh_degree"] > 3:
+        raise MogafError(f"recon param 'sh_degree' must be 0..3, got {out['sh_degree']}")
+    return out

@@ -1,0 +1,152 @@
+"""Stage entry points: explicit paths in, artefact out.
+
+The Snakemake scripts in workflow/scripts/ and the CLI (`python -m mogaf`)
+call these and nothing else. Each writes its artefact atomically; a bad input
+raises MogafError, which `run_stage` turns into one line and exit status 1.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+from .artefact import config_digest
+from .errors import MogafError
+
+log = logging.getLogger("mogaf")
+
+
+# ------------------------------------------------------------------ running
+def _setup_logging(log_path: str | os.PathLike | None) -> None:
+    root = logging.getLogger()
+    root.setLevel(logging.INFO)
+    for handler in list(root.handlers):
+        root.removeHandler(handler)
+    fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if log_path:
+        Path(log_path).parent.mkdir(parents=True, exist_ok=True)
+        handler: logging.Handler = logging.FileHandler(log_path, mode="w")
+    else:
+        handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(fmt)
+    root.addHandler(handler)
+
+
+def set_threads(threads: int | None) -> None:
+    if threads:
+        import torch
+
+        torch.set_num_threads(int(threads))
+
+
+def run_stage(fn: Callable[..., Any], log_path: str | os.PathLike | None = None, *, threads: int | None = None, **kwargs: Any) -> Any:
+    """Run one stage; a MogafError becomes one line on stderr and exit 1."""
+    _setup_logging(log_path)
+    set_threads(threads)
+    start = time.perf_counter()
+    try:
+        result = fn(**kwargs)
+    except MogafError as exc:
+        log.error("%s", exc)
+        print(f"mogaf: error: {exc}", file=sys.stderr, flush=True)
+        sys.exit(1)
+    log.info("%s finished in %.1f s", fn.__name__, time.perf_counter() - start)
+    return result
+
+
+def _digest(stage: str, params: Any, **extra: Any) -> str:
+    return config_digest({"stage": stage, "params": params, **extra})
+
+
+# ------------------------------------------------------------------ stages
+def synthesize(out_dir: str, params: Mapping[str, Any]) -> Path:
+    from .synth import generate_scene
+
+    return generate_scene(Path(out_dir), dict(params))
+
+
+def ingest(folder: str, out: str, layout: str, options: Mapping[str, Any], dataset: str, scene: str) -> Path:
+    from .datasets import read_scene
+    from .scene import save_scene
+
+    scene_model = read_scene(layout, Path(folder), dataset=dataset, scene=scene, options=dict(options))
+    return save_scene(out, scene_model, config_digest=_digest("ingest", options, layout=layout, dataset=dataset, scene=scene))
+
+
+def split(scene: str, out: str, ratio: str | float) -> Path:
+    from .split import check_ratio, split_scene, write_split
+
+    try:
+        r = float(ratio)
+    except ValueError:
+        raise MogafError(f"observation ratio '{ratio}' is not a number (target folder ratio<r> needs r in (0, 1))") from None
+    check_ratio(r)
+    return write_split(out, split_scene(scene, r))
+
+
+def priors(scene: str, split: str, out: str, params: Mapping[str, Any], seed: int) -> Path:
+    from .priors import run_priors_stage
+
+    return run_priors_stage(scene, split, out, {**params, "seed": seed})
+
+
+def recon(scene: str, split: str, priors: str, out: str, params: Mapping[str, Any], seed: int, device: str = "auto", checkpoint: str | None = None) -> Path:
+    from .recon import run_recon_stage
+
+    return run_recon_stage(scene, split, priors, out, {**params, "device": device}, seed=seed, checkpoint=checkpoint, progress=False)
+
+
+def group(model: str, priors: str, scene: str, split: str, out: str, params: Mapping[str, Any]) -> Path:
+    from .grouping import run_group_stage
+
+    return run_group_stage(model, priors, scene, split, out, dict(params))
+
+
+def rigid_init(model: str, groups: str, out: str, params: Mapping[str, Any]) -> Path:
+    from .grouping import run_rigid_init_stage
+
+    return run_rigid_init_stage(model, groups, out, dict(params))
+
+
+def refine(model: str, groups: str, rigid: str | None, priors: str, scene: str, split: str, out: str, params: Mapping[str, Any], seed: int, device: str = "auto", checkpoint: str | None = None) -> Path:
+    from .refine import run_refine_stage
+
+    return run_refine_stage(model, groups, rigid, priors, scene, split, out, {**params, "device": device}, seed=seed, checkpoint=checkpoint, progress=False)
+
+
+def forecast_group(model: str, groups: str, split: str, out: str, params: Mapping[str, Any], method: str, group: str, seed: int) -> Path:
+    from .forecast.stage import run_forecast_group
+
+    return run_forecast_group(model, groups, split, out, dict(params), method=method, job=group, seed=seed)
+
+
+def forecast_merge(model: str, groups: str, split: str, scene: str, parts: list[str], out: str, params: Mapping[str, Any], method: str) -> Path:
+    from .forecast.stage import run_forecast_merge
+
+    return run_forecast_merge(model, groups, split, scene, parts, out, dict(params), method=method)
+
+
+def evaluate(scene: str, split: str, model: str, groups: str, forecasts: Mapping[str, str], benchmarks: Mapping[str, str], out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str, ids: Mapping[str, str]) -> Path:
+    from .evaluate import run_evaluate_stage
+
+    return run_evaluate_stage(
+        scene=scene, split=split, model=model, groups=groups, forecasts=dict(forecasts), benchmarks=dict(benchmarks),
+        out_metrics=out_metrics, out_renders=out_renders, params=dict(params), variant=variant, ids=dict(ids),
+    )
+
+
+def tables(metrics_files: list[str], out_files: list[str], params: Mapping[str, Any], ablations: Mapping[str, Any]) -> list[Path]:
+    from .report.tables import write_tables
+
+    return write_tables(metrics_files, out_files, dict(params), dict(ablations))
+
+
+def runtime_report(metrics_files: list[str], out_csv: str, out_md: str, out_png: str, params: Mapping[str, Any]) -> list[Path]:
+    from .report.runtime import write_runtime_report
+
+    return write_runtime_report(metrics_files, out_csv, out_md, out_png, dict(params))

@@ -1,0 +1,275 @@
+"""Shared setup: config validation, wildcards, artefact paths and input functions."""
+
+import functools
+import os
+from pathlib import Path
+
+from snakemake.exceptions import WorkflowError
+from snakemake.utils import validate
+
+import mogaf.config as mcfg
+from mogaf.errors import MogafError
+
+SCHEMA = "../../config/schema.yaml"
+ABLATION_SCHEMA = "../../config/ablations.schema.yaml"
+
+validate(config, schema=SCHEMA)
+
+# Every pipeline write goes to results/ or the cache folder (kernels, LPIPS).
+os.environ.setdefault("MOGAF_CACHE_DIR", str(Path(config["cache_dir"]).resolve()))
+
+
+def _load_ablations():
+    try:
+        data = mcfg.load_yaml(config["ablations_file"])
+    except MogafError as exc:
+        raise WorkflowError(str(exc))
+    validate(data, schema=ABLATION_SCHEMA)
+    for name in data.get("variants", {}):
+        try:
+            mcfg.check_variant_name(name)
+        except MogafError as exc:
+            raise WorkflowError(str(exc))
+        # A variant's merged config must satisfy the same schema.
+        validate(mcfg.variant_config(config, data["variants"], name), schema=SCHEMA)
+    return data
+
+
+ABLATIONS = _load_ablations()
+VARIANTS = ABLATIONS.get("variants", {})
+
+
+wildcard_constraints:
+    dataset=r"[A-Za-z0-9_.-]+",
+    scene=r"[A-Za-z0-9_.-]+",
+    # Any text: the split stage rejects ratios outside (0, 1) with one line.
+    ratio=r"[^/]+",
+    prefix=r"(ablation/[A-Za-z0-9_.-]+/)?",
+    method="|".join(mcfg.FORECAST_METHODS),
+    group=r"all|[0-9]+",
+
+
+def _workflow_error(fn):
+    """Report MogafError from input functions as a one-line WorkflowError."""
+
+    @functools.wraps(fn)  # Snakemake reads the signature to pass arguments
+    def wrapped(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except MogafError as exc:
+            raise WorkflowError(str(exc))
+
+    return wrapped
+
+
+# ------------------------------------------------------------------ configs
+def variant_of(wildcards):
+    prefix = getattr(wildcards, "prefix", "")
+    return prefix.split("/")[1] if prefix else None
+
+
+@_workflow_error
+def scene_cfg(wildcards, variant=None):
+    """Config for this dataset/scene (and variant), overrides applied."""
+    variant = variant if variant is not None else variant_of(wildcards)
+    merged = mcfg.variant_config(config, VARIANTS, variant)
+    return mcfg.scene_config(merged, wildcards.dataset, wildcards.scene)
+
+
+def base_cfg(wildcards):
+    return scene_cfg(wildcards, variant="")
+
+
+def stage_prefix(stage, wildcards):
+    """Where this variant's artefact of `stage` lives ('' = shared)."""
+    variant = variant_of(wildcards)
+    return mcfg.artefact_prefix(stage, base_cfg(wildcards), scene_cfg(wildcards), variant)
+
+
+def ratio_path(wildcards, name):
+    return f"{mcfg.ratio_dir(wildcards.dataset, wildcards.scene, wildcards.ratio)}/{name}"
+
+
+def stage_path(stage, wildcards):
+    return ratio_path(wildcards, f"{stage_prefix(stage, wildcards)}{mcfg.ARTEFACT_FILES[stage]}")
+
+
+def scene_h5(wildcards):
+    return f"results/{wildcards.dataset}/{wildcards.scene}/scene.h5"
+
+
+def split_h5(wildcards):
+    return ratio_path(wildcards, "split.h5")
+
+
+def params_for(section):
+    """Rule params: one config section for this scene/variant."""
+    return lambda wildcards: scene_cfg(wildcards)[section]
+
+
+def seed(wildcards):
+    return scene_cfg(wildcards)["seed"]
+
+
+def device(wildcards):
+    return scene_cfg(wildcards)["device"]
+
+
+def benchmark_tsv(stage):
+    return f"results/{{dataset}}/{{scene}}/ratio{{ratio}}/{{prefix}}benchmarks/{stage}.tsv"
+
+
+def log_file(stage):
+    return f"results/{{dataset}}/{{scene}}/ratio{{ratio}}/{{prefix}}logs/{stage}.log"
+
+
+# ------------------------------------------------------------------ datasets
+@_workflow_error
+def dataset_folder(wildcards):
+    """The scene's folder; a missing folder fails the DAG with one line."""
+    layout = mcfg.dataset_layout(config, wildcards.dataset)
+    folder = mcfg.scene_dir(config, wildcards.dataset, wildcards.scene)
+    if layout == "synthetic" or Path(folder).is_dir():
+        return folder
+    from mogaf.datasets import describe_missing
+
+    raise MogafError(describe_missing(layout, Path(folder), wildcards.dataset, wildcards.scene))
+
+
+def synthetic_datasets():
+    return [name for name, ds in config["datasets"].items() if ds["layout"] == "synthetic"] or ["none"]
+
+
+# ------------------------------------------------------------------ targets
+def _ratio_str(value):
+    return f"{float(value):g}"
+
+
+def grid_targets():
+    out = []
+    for entry in config["grid"]:
+        for scene in entry["scenes"]:
+            for ratio in entry["ratios"]:
+                out.append(f"{mcfg.ratio_dir(entry['dataset'], scene, _ratio_str(ratio))}/metrics.json")
+    return out
+
+
+def sweep_targets(name):
+    sweep = ABLATIONS.get("sweeps", {}).get(name)
+    if sweep is None:
+        raise WorkflowError(f"unknown sweep '{name}' (config/ablations.yaml sweeps: {', '.join(ABLATIONS.get('sweeps', {}))})")
+    scopes = sweep.get("targets") or [{"dataset": config["demo"]["dataset"], "scenes": [config["demo"]["scene"]], "ratios": [config["demo"]["ratio"]]}]
+    out = []
+    for scope in scopes:
+        for scene in scope["scenes"]:
+            for ratio in scope["ratios"]:
+                base = mcfg.ratio_dir(scope["dataset"], scene, _ratio_str(ratio))
+                out.append(f"{base}/metrics.json")
+                out += [f"{base}/ablation/{v}/metrics.json" for v in sweep["variants"]]
+    return out
+
+
+def demo_targets():
+    demo = config["demo"]
+    base = mcfg.ratio_dir(demo["dataset"], demo["scene"], _ratio_str(demo["ratio"]))
+    out = [f"{base}/metrics.json", "results/tables/table_forecast.md", "results/tables/error_vs_runtime.png"]
+    for name in demo.get("sweeps", []):
+        out += sweep_targets(name)
+    return out
+
+
+# ------------------------------------------------------------------ groups (checkpoint)
+def groups_h5(wildcards):
+    """groups.h5 of this variant, after the checkpoint has run."""
+    prefix = stage_prefix("group", wildcards)
+    return checkpoints.group.get(
+        dataset=wildcards.dataset, scene=wildcards.scene, ratio=wildcards.ratio, prefix=prefix
+    ).output[0]
+
+
+def refine_inputs(wildcards):
+    inputs = {
+        "model": stage_path("recon", wildcards),
+        "groups": groups_h5(wildcards),
+        "priors": stage_path("priors", wildcards),
+        "scene": scene_h5(wildcards),
+        "split": split_h5(wildcards),
+    }
+    from mogaf.grouping import has_rigid_groups
+
+    if has_rigid_groups(inputs["groups"]):
+        inputs["rigid"] = stage_path("rigid_init", wildcards)
+    return inputs
+
+
+# ------------------------------------------------------------------ forecasts
+def forecast_prefix(wildcards):
+    return stage_prefix(f"forecast:{wildcards.method}", wildcards)
+
+
+def forecast_model(wildcards):
+    """refined.h5, or recon.h5 for the ablation without group-wise optimisation."""
+    return stage_path(mcfg.forecast_input_stage(scene_cfg(wildcards)), wildcards)
+
+
+def forecast_part_files(wildcards):
+    from mogaf.forecast.stage import forecast_jobs
+
+    cfg = scene_cfg(wildcards)
+    jobs = forecast_jobs(groups_h5(wildcards), groupwise=cfg["forecast"]["groupwise"])
+    base = ratio_path(wildcards, forecast_prefix(wildcards))
+    return [f"{base}forecast/{wildcards.method}/group{job}.h5" for job in jobs]
+
+
+# ------------------------------------------------------------------ evaluation and reports
+def forecast_h5(wildcards, method):
+    prefix = stage_prefix(f"forecast:{method}", wildcards)
+    return ratio_path(wildcards, f"{prefix}forecast/{method}.h5")
+
+
+def _benchmarks_of(wildcards):
+    """Benchmark TSVs of every stage in this result's lineage."""
+    cfg = scene_cfg(wildcards)
+    out = {"bench_ingest": f"results/{wildcards.dataset}/{wildcards.scene}/benchmarks/ingest.tsv"}
+    stages = ["priors", "recon", "group"]
+    model_stage = mcfg.forecast_input_stage(cfg)
+    if model_stage == "refine":
+        stages.append("refine")
+        from mogaf.grouping import has_rigid_groups
+
+        if has_rigid_groups(groups_h5(wildcards)):
+            stages.append("rigid_init")
+    for stage in stages:
+        out[f"bench_{stage}"] = ratio_path(wildcards, f"{stage_prefix(stage, wildcards)}benchmarks/{stage}.tsv")
+    from mogaf.forecast.stage import forecast_jobs
+
+    jobs = forecast_jobs(groups_h5(wildcards), groupwise=cfg["forecast"]["groupwise"])
+    for method in cfg["forecast"]["methods"]:
+        base = ratio_path(wildcards, stage_prefix(f"forecast:{method}", wildcards))
+        out[f"bench_forecast_{method}"] = f"{base}benchmarks/forecast_{method}.tsv"
+        for job in jobs:
+            out[f"bench_forecast_{method}_group{job}"] = f"{base}benchmarks/forecast_{method}_group{job}.tsv"
+    return out
+
+
+def evaluate_inputs(wildcards):
+    cfg = scene_cfg(wildcards)
+    inputs = {
+        "scene": scene_h5(wildcards),
+        "split": split_h5(wildcards),
+        "model": forecast_model(wildcards),
+        "groups": groups_h5(wildcards),
+    }
+    for method in cfg["forecast"]["methods"]:
+        inputs[f"forecast_{method}"] = forecast_h5(wildcards, method)
+    inputs.update(_benchmarks_of(wildcards))
+    return inputs
+
+
+def existing_metrics(wildcards=None):
+    found = {str(p) for p in Path("results").glob("**/metrics.json")}
+    return sorted(found | set(demo_targets_metrics()) | set(grid_targets()))
+
+
+def demo_targets_metrics():
+    return [t for t in demo_targets() if t.endswith("metrics.json")]

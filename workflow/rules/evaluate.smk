@@ -1,0 +1,26 @@
+# Render forecasts at the evaluation views; image, tracking and grouping metrics,
+# wall time and memory of every stage that produced them.
+
+
+rule evaluate:
+    input:
+        unpack(evaluate_inputs),
+    output:
+        metrics="results/{dataset}/{scene}/ratio{ratio}/{prefix}metrics.json",
+        renders=report(
+            directory("results/{dataset}/{scene}/ratio{ratio}/{prefix}renders"),
+            patterns=["{name}.mp4"],
+            caption="../report/renders.rst",
+            category="Forecast videos",
+        ),
+    params:
+        evaluate=params_for("evaluate"),
+        methods=lambda wildcards: scene_cfg(wildcards)["forecast"]["methods"],
+        variant=lambda wildcards: variant_of(wildcards) or "default",
+    threads: 2
+    log:
+        log_file("evaluate"),
+    conda:
+        "../../envs/mogaf.yaml"
+    script:
+        "../scripts/evaluate.py"

@@ -1,0 +1,47 @@
+# Group-wise motion forecasting (paper Sec. 4.3): one job per dynamic group and
+# method, merged into forecast/{method}.h5. Static groups keep their last pose.
+
+
+rule forecast_group:
+    input:
+        model=forecast_model,
+        groups=groups_h5,
+        split=split_h5,
+    output:
+        "results/{dataset}/{scene}/ratio{ratio}/{prefix}forecast/{method}/group{group}.h5",
+    params:
+        forecast=params_for("forecast"),
+        seed=seed,
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=30,
+    log:
+        "results/{dataset}/{scene}/ratio{ratio}/{prefix}logs/forecast_{method}_group{group}.log",
+    benchmark:
+        "results/{dataset}/{scene}/ratio{ratio}/{prefix}benchmarks/forecast_{method}_group{group}.tsv"
+    conda:
+        "../../envs/mogaf.yaml"
+    script:
+        "../scripts/forecast_group.py"
+
+
+rule forecast:
+    input:
+        model=forecast_model,
+        groups=groups_h5,
+        split=split_h5,
+        scene=scene_h5,
+        parts=forecast_part_files,
+    output:
+        "results/{dataset}/{scene}/ratio{ratio}/{prefix}forecast/{method}.h5",
+    params:
+        forecast=params_for("forecast"),
+    log:
+        "results/{dataset}/{scene}/ratio{ratio}/{prefix}logs/forecast_{method}.log",
+    benchmark:
+        "results/{dataset}/{scene}/ratio{ratio}/{prefix}benchmarks/forecast_{method}.tsv"
+    conda:
+        "../../envs/mogaf.yaml"
+    script:
+        "../scripts/forecast_merge.py"

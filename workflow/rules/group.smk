@@ -1,0 +1,23 @@
+# Motion-aware Gaussian grouping (paper Sec. 4.1, Algorithm 3; Gaga-4D baseline).
+# A checkpoint: which rigid/dynamic groups exist decides the jobs downstream.
+
+
+checkpoint group:
+    input:
+        model=lambda wildcards: stage_path("recon", wildcards),
+        priors=lambda wildcards: stage_path("priors", wildcards),
+        scene=scene_h5,
+        split=split_h5,
+    output:
+        "results/{dataset}/{scene}/ratio{ratio}/{prefix}groups.h5",
+    params:
+        grouping=params_for("grouping"),
+    threads: 2
+    log:
+        log_file("group"),
+    benchmark:
+        benchmark_tsv("group")
+    conda:
+        "../../envs/mogaf.yaml"
+    script:
+        "../scripts/group.py"

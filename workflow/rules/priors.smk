@@ -1,0 +1,20 @@
+# Depth / track / mask priors on observed frames only (each only if the scene needs it).
+
+
+rule priors:
+    input:
+        scene=scene_h5,
+        split=split_h5,
+    output:
+        "results/{dataset}/{scene}/ratio{ratio}/{prefix}priors.h5",
+    params:
+        priors=params_for("priors"),
+        seed=seed,
+    log:
+        log_file("priors"),
+    benchmark:
+        benchmark_tsv("priors")
+    conda:
+        "../../envs/mogaf.yaml"
+    script:
+        "../scripts/priors.py"

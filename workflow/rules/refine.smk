@@ -1,0 +1,26 @@
+# Group-wise refinement: L_recon + lambda_rigid L_rigid + lambda_nr L_nr (paper Sec. 4.2).
+
+
+rule refine:
+    input:
+        unpack(refine_inputs),
+    output:
+        "results/{dataset}/{scene}/ratio{ratio}/{prefix}refined.h5",
+    params:
+        refine=params_for("refine"),
+        seed=seed,
+        device=device,
+        checkpoint="results/{dataset}/{scene}/ratio{ratio}/{prefix}checkpoints/refine.pt",
+    threads: 2
+    resources:
+        mem_mb=8000,
+        runtime=120,
+        gpu=lambda wildcards: 1 if device(wildcards) == "cuda" else 0,
+    log:
+        log_file("refine"),
+    benchmark:
+        benchmark_tsv("refine")
+    conda:
+        "../../envs/mogaf.yaml"
+    script:
+        "../scripts/refine.py"

@@ -1,0 +1,53 @@
+# Tables in the layout of the paper (Markdown, LaTeX, CSV) and error against run
+# time, regenerated from whatever metrics.json files exist (plus the demo's and
+# the grid's, which are computed first when missing).
+
+
+rule tables:
+    input:
+        existing_metrics,
+    output:
+        report(
+            multiext("results/tables/table_", "forecast.md", "iphone.md", "dnerf.md", "grouping.md", "groupwise.md", "masking.md"),
+            caption="../report/tables.rst",
+            category="Tables",
+        ),
+        multiext("results/tables/table_", "forecast.tex", "iphone.tex", "dnerf.tex", "grouping.tex", "groupwise.tex", "masking.tex"),
+        multiext("results/tables/table_", "forecast.csv", "iphone.csv", "dnerf.csv", "grouping.csv", "groupwise.csv", "masking.csv"),
+    params:
+        report=config["report"],
+        ablations=ABLATIONS,
+    log:
+        "results/tables/logs/tables.log",
+    conda:
+        "../../envs/mogaf.yaml"
+    script:
+        "../scripts/tables.py"
+
+
+rule runtime_report:
+    input:
+        existing_metrics,
+    output:
+        csv="results/tables/error_vs_runtime.csv",
+        md="results/tables/error_vs_runtime.md",
+        png=report("results/tables/error_vs_runtime.png", caption="../report/runtime.rst", category="Error vs run time"),
+    params:
+        report=config["report"],
+    log:
+        "results/tables/logs/runtime_report.log",
+    conda:
+        "../../envs/mogaf.yaml"
+    script:
+        "../scripts/runtime_report.py"
+
+
+# One target per sweep of config/ablations.yaml: `snakemake -c2 sweep_<name>`.
+for _sweep in ABLATIONS.get("sweeps", {}):
+
+    rule:
+        name:
+            f"sweep_{_sweep}"
+        input:
+            sweep_targets(_sweep),
+        localrule: True

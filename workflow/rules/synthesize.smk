@@ -1,0 +1,17 @@
+# The embedded synthetic scene, written in the DyCheck iPhone layout with
+# ground truth, so the pipeline runs from an empty results/ folder.
+
+
+rule synthesize:
+    output:
+        directory("results/{dataset}/{scene}/source"),
+    params:
+        synthetic=lambda wildcards: config["synthetic"][wildcards.scene],
+    log:
+        "results/{dataset}/{scene}/logs/synthesize.log",
+    wildcard_constraints:
+        dataset="|".join(synthetic_datasets()),
+    conda:
+        "../../envs/mogaf.yaml"
+    script:
+        "../scripts/synthesize.py"
