@@ -52,7 +52,8 @@ def run_stage(fn: Callable[..., Any], log_path: str | os.PathLike | None = None,
     try:
         result = fn(**kwargs)
     except MogafError as exc:
-        log.error("%s", exc)
+        if log_path:
+            log.error("%s", exc)
         print(f"mogaf: error: {exc}", file=sys.stderr, flush=True)
         sys.exit(1)
     log.info("%s finished in %.1f s", fn.__name__, time.perf_counter() - start)

@@ -93,7 +93,7 @@ def read_image(path: str | os.PathLike, *, expect_size: tuple[int, int] | None =
 
 
 def read_label_image(path: str | os.PathLike, *, expect_size: tuple[int, int] | None = None, what: str = "mask") -> np.ndarray:
-    """Decode an id mask (8 or 16 bit, single channel or equal channels) to int32."""
+    """Decode an id mask (8 or 16 bit, single channel or equal channels); dtype kept."""
     p = Path(path)
     header = png_size(p)
     if header is not None and expect_size is not None and (header[0], header[1]) != tuple(expect_size):
@@ -112,7 +112,7 @@ def read_label_image(path: str | os.PathLike, *, expect_size: tuple[int, int] | 
         img = chans[..., 0]
     if expect_size is not None and (img.shape[1], img.shape[0]) != tuple(expect_size):
         raise input_error(p, f"{what} is {img.shape[1]}x{img.shape[0]}, expected {expect_size[0]}x{expect_size[1]}")
-    return img.astype(np.int32)
+    return img
 
 
 def _crop(img: np.ndarray, s: int) -> np.ndarray:
@@ -166,15 +166,14 @@ def composite_downscale(rgba: np.ndarray, background: np.ndarray, s: int) -> tup
     mean(rgb*a) + bg*(1 - mean(a)); premultiplied colours are averaged in
     16 bit. Returns (rgb uint8 (h, w, 3), alpha uint8 (h, w)).
     """
-    a = np.ascontiguousarray(rgba[..., 3])
-    if int(a.min()) == 255:
-        return downscale_area(np.ascontiguousarray(rgba[..., :3]), s), downscale_area(a, s)
-    a16 = a.astype(np.uint16)
-    premult = cv2.multiply(np.ascontiguousarray(rgba[..., :3]).astype(np.uint16), cv2.merge([a16, a16, a16]))
-    pm = downscale_area(premult, s).astype(np.float32) * (1.0 / 255.0)
-    a_small = downscale_area(a16 * np.uint16(257), s).astype(np.float32) * (1.0 / 65535.0)
+    work = rgba.astype(np.uint16)
+    a = work[..., 3:4].copy()
+    work[..., 3] = 255
+    np.multiply(work, a, out=work)  # (rgb*a, 255*a), at most 65025
+    small = downscale_area(work, s).astype(np.float32) * (1.0 / 255.0)
+    a_small = small[..., 3] * (1.0 / 255.0)
     bg = (np.asarray(background, dtype=np.float32) * 255.0).reshape(1, 1, 3)
-    rgb = pm + bg * (1.0 - a_small[..., None])
+    rgb = small[..., :3] + bg * (1.0 - a_small[..., None])
     return to_uint8(rgb), to_uint8(a_small * 255.0)
 
 

@@ -33,7 +33,7 @@ DEFAULT_PARAMS: dict[str, Any] = {
     "speed": 1.0,  # multiplies all object motion (motion time tau = speed * t)
     "spin": 1.0,  # extra multiplier on rotation rates
     "max_travel": 0.9,  # metres: clamp on the total travel of translating objects
-    "box_velocity": [0.3, 0.08, -0.05],  # m/s of motion time
+    "box_velocity": [0.3, -0.06, -0.05],  # m/s of motion time
     "box_spin": 1.2,  # rad/s of motion time
     "sphere_velocity": [-0.3, 0.05],  # horizontal (x, y) m/s of motion time
     "sphere_launch_vz": 1.6,  # vertical launch speed, m/s

