@@ -273,3 +273,8 @@ def existing_metrics(wildcards=None):
 
 def demo_targets_metrics():
     return [t for t in demo_targets() if t.endswith("metrics.json")]
+
+
+def runtime_report_params():
+    sweep = ABLATIONS.get("sweeps", {}).get(config["report"]["runtime_sweep"], {})
+    return {**config["report"], "runtime_variants": list(sweep.get("variants", []))}

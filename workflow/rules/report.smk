@@ -33,7 +33,7 @@ rule runtime_report:
         md="results/tables/error_vs_runtime.md",
         png=report("results/tables/error_vs_runtime.png", caption="../report/runtime.rst", category="Error vs run time"),
     params:
-        report=config["report"],
+        report=runtime_report_params(),
     log:
         "results/tables/logs/runtime_report.log",
     conda:
