@@ -1,0 +1,344 @@
+"""Evaluation stage: render forecasts at the evaluation views and measure them.
+
+For each enabled method it renders the forecast poses of the dynamic
+Gaussians plus the static background at every evaluation view (held-out
+cameras at forecast times), writes PNGs and a GT | forecast | error video,
+and computes
+- image metrics: PSNR, SSIM (11-px Gaussian window, sigma 1.5), LPIPS (AlexNet);
+  for the iPhone protocol also mPSNR, mSSIM, mLPIPS with the covisibility
+  masks when the dataset has them (DyCheck's protocol);
+- tracking metrics where ground-truth tracks exist (synthetic scenes): GT
+  surface points are attached to their nearest Gaussians at the last
+  observed step (in each Gaussian's local frame) and carried by the
+  forecast poses; 3D EPE, delta_3D, and on the train camera 2D AJ,
+  delta_avg and occlusion accuracy (visibility from the rendered depth).
+metrics.json also carries reconstruction quality at held-out views at
+observed times, the grouping quality, and the wall time and peak memory of
+every stage that produced each method's result (Snakemake benchmark files).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shutil
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import __version__
+from .artefact import read_artefact, write_json
+from .errors import MogafError, input_error
+from .representation import Model4D, load_model
+from .rendering import observed_pose, render_model_at, to_uint8
+from .split import Split, load_frames, load_ground_truth, read_split
+
+log = logging.getLogger(__name__)
+
+FORECAST_STAGE = "forecast"
+DEFAULT_PARAMS: dict[str, Any] = {
+    "lpips": True,                       # AlexNet LPIPS (paper Tables 1-2)
+    "save_renders": True,                # PNG per evaluation view and method
+    "video": True,                       # GT | forecast | error video per method
+    "video_fps": 8,
+    "max_reconstruction_frames": 24,     # held-out views at observed times rendered for reconstruction PSNR
+    "tracking_neighbors": 4,             # Gaussians a GT point is attached to
+    "tracking_scale": 1.0,               # scene units -> metres for delta_3D (SoM evaluates in metres)
+    "aj_thresholds": [4, 8, 16, 32, 64],     # px; SoM's evaluation (paper follows SoM's protocol)
+    "delta_thresholds": [4, 8, 16, 32, 64],  # px, issue/SoM delta_avg
+    "visibility_tolerance": 0.03,        # relative depth slack for predicted visibility
+    "runtime_in_metrics": True,          # wall time / memory in metrics.json (off: byte-identical reruns)
+}
+
+
+# ------------------------------------------------------------------ inputs
+def read_forecast(path: str | os.PathLike) -> dict[str, Any]:
+    art = read_artefact(path, FORECAST_STAGE, required=["timesteps", "means", "quats"])
+    return {"timesteps": np.asarray(art["timesteps"], np.int64), "means": art["means"], "quats": art["quats"],
+            "attrs": art.attrs, "path": str(path), "epe_3d_quick": art.attrs.get("epe_3d_quick")}
+
+
+def _check_forecast(fc: dict[str, Any], model: Model4D, split: Split) -> None:
+    n = len(model.fg)
+    if fc["means"].shape[:1] != (n,) or fc["quats"].shape[:1] != (n,):
+        raise input_error(fc["path"], f"forecast has {fc['means'].shape[0]} Gaussians, the model has {n}")
+    if not np.array_equal(fc["timesteps"], split.forecast_timesteps):
+        raise input_error(fc["path"], "forecast time steps differ from the split's forecast time steps")
+
+
+def read_benchmark(path: str | os.PathLike) -> dict[str, float]:
+    """Wall seconds and peak RSS (MB) from a Snakemake benchmark TSV."""
+    import pandas as pd
+
+    p = Path(path)
+    try:
+        df = pd.read_csv(p, sep="\t")
+    except (OSError, ValueError) as exc:
+        raise input_error(p, f"not a readable benchmark TSV ({exc.__class__.__name__})") from None
+    if "s" not in df.columns or df.empty:
+        raise input_error(p, "benchmark TSV lacks the 's' column")
+    wall = float(pd.to_numeric(df["s"], errors="coerce").fillna(0).sum())
+    rss = pd.to_numeric(df.get("max_rss", pd.Series([np.nan])), errors="coerce").max()
+    return {"wall_s": round(wall, 3), "max_rss_mb": None if not np.isfinite(rss) else round(float(rss), 1)}
+
+
+# ------------------------------------------------------------------ images
+def _frame_masks(frames) -> np.ndarray | None:
+    if frames.covisible is None:
+        return None
+    return (np.asarray(frames.covisible) > 0).astype(np.float32)
+
+
+def image_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None, masked: bool, use_lpips: bool) -> dict[str, float]:
+    from . import metrics as M
+
+    out = {"psnr": M.psnr(pred, gt), "ssim": M.ssim(pred, gt)}
+    if use_lpips:
+        out["lpips"] = M.lpips(pred, gt)
+    if masked:
+        m = np.ones(gt.shape[:2], np.float32) if mask is None else mask
+        if m.sum() > 0:
+            out["mpsnr"] = M.mpsnr(pred, gt, m)
+            out["mssim"] = M.mssim(pred, gt, m)
+            if use_lpips:
+                out["mlpips"] = M.mlpips(pred, gt, m)
+    return {k: float(v) for k, v in out.items()}
+
+
+def _mean_metrics(per_frame: list[dict[str, float]]) -> dict[str, float]:
+    keys = sorted({k for d in per_frame for k in d})
+    out = {}
+    for k in keys:
+        vals = [d[k] for d in per_frame if k in d and math.isfinite(d[k])]
+        if vals:
+            out[k] = float(np.mean(vals))
+    return out
+
+
+def _round(obj: Any, digits: int = 6) -> Any:
+    if isinstance(obj, float):
+        return round(obj, digits) if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _round(v, digits) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_round(v, digits) for v in obj]
+    if isinstance(obj, (np.floating,)):
+        return _round(float(obj), digits)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    return obj
+
+
+def _save_png(path: Path, img: np.ndarray) -> None:
+    import imageio.v3 as iio
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(path, to_uint8(img))
+
+
+def _write_video(path: Path, panels: list[np.ndarray], fps: int) -> None:
+    """GT | forecast | error panels as mp4 (gif when ffmpeg is unavailable)."""
+    import imageio.v2 as iio2
+
+    frames = []
+    for p in panels:
+        img = to_uint8(p)
+        h, w = img.shape[:2]
+        img = np.pad(img, ((0, h % 2), (0, w % 2), (0, 0)))  # even sizes for yuv420p
+        frames.append(img)
+    try:
+        with iio2.get_writer(path, fps=fps, codec="libx264", quality=8, macro_block_size=2, ffmpeg_log_level="error") as writer:
+            for f in frames:
+                writer.append_data(f)
+    except (ImportError, RuntimeError, OSError):
+        gif = path.with_suffix(".gif")
+        iio2.mimsave(gif, frames, duration=1.0 / max(fps, 1))
+
+
+def render_forecast_views(model: Model4D, fc: dict[str, Any], frames, params: Mapping[str, Any]) -> list[np.ndarray]:
+    index = {int(t): i for i, t in enumerate(fc["timesteps"])}
+    renders = []
+    for f in range(frames.num_frames):
+        i = index[int(frames.time_index[f])]
+        out = render_model_at(model, fc["means"][:, i], fc["quats"][:, i], frames.K[f], frames.w2c[f], frames.width, frames.height)
+        renders.append(np.clip(out.features[..., :3].detach().cpu().numpy().astype(np.float64), 0.0, 1.0))
+    return renders
+
+
+# ------------------------------------------------------------------ tracking
+def attach_points(points: np.ndarray, means: np.ndarray, quats: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Attach points (P,3) to their k nearest Gaussians at one time.
+
+    Returns neighbour ids (P,k), inverse-distance weights (P,k) summing to 1,
+    and each point's offset in each neighbour's local frame (P,k,3).
+    """
+    from scipy.spatial import cKDTree
+
+    from .representation import quat_to_matrix
+    import torch
+
+    k = max(1, min(int(k), means.shape[0]))
+    dist, idx = cKDTree(means).query(points, k=k)
+    dist = dist.reshape(len(points), k)
+    idx = idx.reshape(len(points), k)
+    w = 1.0 / np.maximum(dist, 1e-9)
+    w /= w.sum(axis=1, keepdims=True)
+    R = quat_to_matrix(torch.as_tensor(quats, dtype=torch.float64)).numpy()  # (N,3,3)
+    rel = points[:, None, :] - means[idx]
+    offsets = np.einsum("pkji,pkj->pki", R[idx], rel)  # R^T (p - mu)
+    return idx, w, offsets
+
+
+def carry_points(idx: np.ndarray, weights: np.ndarray, offsets: np.ndarray, means: np.ndarray, quats: np.ndarray) -> np.ndarray:
+    """Positions (P,T,3) of attached points under per-Gaussian poses (N,T,3/4)."""
+    import torch
+
+    from .representation import quat_to_matrix
+
+    R = quat_to_matrix(torch.as_tensor(quats[idx], dtype=torch.float64)).numpy()  # (P,k,T,3,3)
+    pos = np.einsum("pktij,pkj->pkti", R, offsets) + means[idx]  # (P,k,T,3)
+    return np.einsum("pk,pkti->pti", weights, pos)
+
+
+def predicted_gt_tracks(model: Model4D, fc: dict[str, Any], gt_observed: Mapping[str, Any], k: int) -> np.ndarray:
+    """Forecast positions (P, T_fc, 3) of the ground-truth surface points."""
+    last = model.trajectory_means.shape[1] - 1
+    points_last = np.asarray(gt_observed["points3d"], np.float64)[:, -1]
+    idx, w, off = attach_points(points_last, np.asarray(model.trajectory_means[:, last], np.float64),
+                                np.asarray(model.trajectory_quats[:, last], np.float64), k)
+    return carry_points(idx, w, off, np.asarray(fc["means"], np.float64), np.asarray(fc["quats"], np.float64))
+
+
+def tracking_section(model: Model4D, fc: dict[str, Any], scene_h5: str, split: Split, params: Mapping[str, Any]) -> dict[str, Any] | None:
+    from . import metrics as M
+    from .camera import project
+
+    gt_obs = load_ground_truth(scene_h5, split, "observed")
+    if "points3d" not in gt_obs:
+        return None
+    gt_fc = load_ground_truth(scene_h5, split, "forecast")
+    pred3d = predicted_gt_tracks(model, fc, gt_obs, int(params["tracking_neighbors"]))
+    gt3d = np.asarray(gt_fc["points3d"], np.float64)
+    P, T = gt3d.shape[:2]
+    gt_vis = np.asarray(gt_fc.get("visible", np.ones((P, T), bool)), bool)
+    pred2d = gt2d = pred_vis = None
+    if "tracks2d" in gt_fc and split.frame_ids["train_future"].size:
+        frames = load_frames(scene_h5, split, "train_future")
+        by_t = {int(t): f for f, t in enumerate(frames.time_index)}
+        pred2d = np.zeros((P, T, 2))
+        pred_vis = np.zeros((P, T), bool)
+        for i, t in enumerate(split.forecast_timesteps):
+            f = by_t.get(int(t))
+            if f is None:
+                continue
+            uv, z = project(pred3d[:, i], frames.K[f], frames.w2c[f])
+            pred2d[:, i] = uv
+            out = render_model_at(model, fc["means"][:, i], fc["quats"][:, i], frames.K[f], frames.w2c[f], frames.width, frames.height)
+            depth = out.depth[..., 0].detach().cpu().numpy()
+            col = np.clip(np.floor(uv[:, 0]).astype(int), 0, frames.width - 1)
+            row = np.clip(np.floor(uv[:, 1]).astype(int), 0, frames.height - 1)
+            inside = (uv[:, 0] >= 0) & (uv[:, 0] < frames.width) & (uv[:, 1] >= 0) & (uv[:, 1] < frames.height) & (z > 0)
+            surface = depth[row, col]
+            pred_vis[:, i] = inside & (z <= surface * (1.0 + float(params["visibility_tolerance"])))
+        gt2d = np.asarray(gt_fc["tracks2d"], np.float64)
+    res = M.tracking_metrics(
+        gt_vis=gt_vis, pred_vis=pred_vis, pred_3d=pred3d, gt_3d=gt3d, pred_2d=pred2d, gt_2d=gt2d,
+        scale=float(params["tracking_scale"]), aj_thresholds=tuple(params["aj_thresholds"]),
+        pck_thresholds=tuple(params["delta_thresholds"]), strict=False,
+    )
+    return {k: (None if v is None else float(v)) for k, v in res.items()}
+
+
+# ------------------------------------------------------------------ stage
+def reconstruction_section(model: Model4D, scene_h5: str, split: Split, params: Mapping[str, Any], masked: bool) -> dict[str, Any]:
+    """Quality of the 4D model itself at held-out views at observed times."""
+    ids = split.frame_ids["evaluation_observed"]
+    if ids.size == 0:
+        return {}
+    limit = int(params["max_reconstruction_frames"])
+    pick = np.linspace(0, ids.size - 1, min(limit, ids.size)).round().astype(int)
+    sub = Split(split.ratio, split.protocol, split.num_timesteps, split.observed_timesteps, split.forecast_timesteps,
+                {**split.frame_ids, "evaluation_observed": ids[np.unique(pick)]})
+    frames = load_frames(scene_h5, sub, "evaluation_observed")
+    masks = _frame_masks(frames)
+    per = []
+    for f in range(frames.num_frames):
+        means, quats = observed_pose(model, int(frames.time_index[f]))
+        out = render_model_at(model, means, quats, frames.K[f], frames.w2c[f], frames.width, frames.height)
+        pred = np.clip(out.features[..., :3].detach().cpu().numpy().astype(np.float64), 0, 1)
+        per.append(image_metrics(pred, frames.images[f] / 255.0, None if masks is None else masks[f], masked, use_lpips=False))
+    return {"heldout_observed": _mean_metrics(per), "num_frames": int(frames.num_frames)}
+
+
+def runtime_section(benchmarks: Mapping[str, str], methods: list[str]) -> dict[str, Any]:
+    stages = {name: read_benchmark(path) for name, path in sorted(benchmarks.items())}
+    shared = sum(v["wall_s"] for k, v in stages.items() if not k.startswith("forecast_"))
+    per_method = {}
+    for m in methods:
+        own = sum(v["wall_s"] for k, v in stages.items() if k == f"forecast_{m}" or k.startswith(f"forecast_{m}_group"))
+        per_method[m] = round(shared + own, 3)
+    return {"stages": stages, "total_wall_s": per_method}
+
+
+def run_evaluate_stage(*, scene: str, split: str, model: str, groups: str, forecasts: Mapping[str, str], benchmarks: Mapping[str, str],
+                       out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str, ids: Mapping[str, str]) -> Path:
+    p = {**DEFAULT_PARAMS, **dict(params)}
+    unknown = set(params) - set(DEFAULT_PARAMS)
+    if unknown:
+        raise MogafError(f"evaluate: unknown parameter(s) {', '.join(sorted(unknown))}")
+    start = time.perf_counter()
+    sp = read_split(split)
+    m4 = load_model(model)
+    frames = load_frames(scene, sp, "evaluation")
+    masked = sp.protocol == "iphone"
+    masks = _frame_masks(frames)
+    methods = sorted(forecasts)
+    renders_tmp = Path(out_renders).with_name(f".{Path(out_renders).name}.tmp-{os.getpid()}")
+    shutil.rmtree(renders_tmp, ignore_errors=True)
+    renders_tmp.mkdir(parents=True)
+    gts = [frames.images[f] / 255.0 for f in range(frames.num_frames)]
+    result: dict[str, Any] = {
+        "mogaf_version": __version__,
+        "dataset": ids.get("dataset"), "scene": ids.get("scene"), "ratio": sp.ratio, "variant": variant,
+        "protocol": sp.protocol, "num_evaluation_views": int(frames.num_frames),
+        "forecast_timesteps": [int(t) for t in sp.forecast_timesteps],
+        "methods": {},
+    }
+    try:
+        for method in methods:
+            fc = read_forecast(forecasts[method])
+            _check_forecast(fc, m4, sp)
+            renders = render_forecast_views(m4, fc, frames, p)
+            per = [image_metrics(renders[f], gts[f], None if masks is None else masks[f], masked, bool(p["lpips"])) for f in range(frames.num_frames)]
+            section: dict[str, Any] = {"image": _mean_metrics(per),
+                                       "per_view": [{"frame": frames.frame_names[f], "timestep": int(frames.time_index[f]), **per[f]} for f in range(frames.num_frames)]}
+            section["tracking"] = tracking_section(m4, fc, scene, sp, p)
+            section["forecast"] = {k: v for k, v in fc["attrs"].items() if k in ("method", "groupwise", "epe_3d_quick", "num_groups_trained", "flags")}
+            result["methods"][method] = section
+            if p["save_renders"]:
+                for f in range(frames.num_frames):
+                    _save_png(renders_tmp / method / f"{frames.frame_names[f]}.png", renders[f])
+            if p["video"]:
+                panels = [np.concatenate([gts[f], renders[f], np.abs(renders[f] - gts[f])], axis=1) for f in range(frames.num_frames)]
+                _write_video(renders_tmp / f"{method}.mp4", panels, int(p["video_fps"]))
+        result["reconstruction"] = reconstruction_section(m4, scene, sp, p, masked)
+        qual = read_artefact(groups, "group").attrs
+        result["grouping"] = {k: qual[k] for k in ("method", "num_groups", "ari", "mean_iou") if k in qual}
+        if p["runtime_in_metrics"]:
+            rt = runtime_section(benchmarks, methods)
+            rt["stages"]["evaluate"] = {"wall_s": round(time.perf_counter() - start, 3), "max_rss_mb": None}
+            result["runtime"] = rt
+            for method in methods:
+                result["methods"][method]["runtime"] = {"total_wall_s": rt["total_wall_s"][method]}
+        final = Path(out_renders)
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(renders_tmp, final)
+    finally:
+        shutil.rmtree(renders_tmp, ignore_errors=True)
+    return write_json(out_metrics, _round(result))
