@@ -49,8 +49,8 @@ def load_json(path: str | os.PathLike, *, what: str = "file", expect: type = dic
     except RecursionError:
         raise input_error(p, "malformed JSON: nested too deeply") from None
     if expect is not None and not isinstance(obj, expect):
-        kind = {dict: "an object", list: "an array"}.get(expect, expect.__name__)
-        raise input_error(p, f"must hold a JSON {kind}, got {_kind(obj)}")
+        kind = {dict: "a JSON object", list: "a JSON array"}.get(expect, expect.__name__)
+        raise input_error(p, f"must hold {kind}, got {_kind(obj)}")
     return obj
 
 
@@ -133,7 +133,8 @@ def as_array(value: Any, shape: tuple[int, ...], path: str | os.PathLike, name: 
             return
         if not isinstance(v, list) or len(v) != dims[0]:
             got = f"{len(v)} entries" if isinstance(v, list) else _kind(v)
-            raise input_error(path, f"{name} must be a {'x'.join(map(str, shape))} array of numbers ({got} where {dims[0]} expected)")
+            want = f"a length-{shape[0]} list" if len(shape) == 1 else f"a {'x'.join(map(str, shape))} array"
+            raise input_error(path, f"{name} must be {want} of numbers ({got} where {dims[0]} expected)")
         for item in v:
             check(item, dims[1:])
 

@@ -24,9 +24,13 @@ Stored:
 - meta: background, downscale, source_size [W, H], camera_id_rule,
   time_snap_error (in grid steps), point_cloud_has_color.
 
-Options: downscale (int, default 1), background ([r, g, b] in [0, 1],
-default white), rigidity, num_timesteps, frame_stride (read every k-th frame
-of each split; the time grid still uses all frames), workers (decode threads).
+Options: downscale (int, default 1: area mean for colours/alpha, block
+majority for ids, K scaled by 1/s exactly; sides that are not a multiple of s
+lose their last rows/columns), background ([r, g, b] in [0, 1], default
+white), rigidity (ordered mapping of fnmatch patterns to rigid | nonrigid),
+num_timesteps (snap times to this grid), masks (default true), frame_stride
+(read every k-th frame of each split; the time grid still uses all frames),
+workers (decode threads).
 """
 
 from __future__ import annotations
@@ -69,6 +73,7 @@ MAX_MASK_ID = 1 << 16
 @dataclass
 class _Frame:
     name: str
+    file_path: str
     split: str
     json_path: Path
     index: int  # position in its json
@@ -110,6 +115,8 @@ def _parse_split(scene_dir: Path, split: str) -> list[_Frame]:
         if "file_path" not in fr:
             raise input_error(path, f"{where}: missing key 'file_path'")
         file_path = as_str(fr["file_path"], path, f"{where} file_path")
+        if len(file_path) > 1024 or any(len(part) > 200 for part in file_path.split("/")):
+            raise input_error(path, f"{where}: file_path is too long")
         where = f"frame {i} ({file_path})"
         if "time" not in fr:
             raise input_error(path, f"{where}: missing key 'time'")
@@ -126,14 +133,14 @@ def _parse_split(scene_dir: Path, split: str) -> list[_Frame]:
         stem = image.stem
         rel = file_path[2:] if file_path.startswith("./") else file_path
         name = os.path.splitext(rel)[0] if Path(rel).suffix.lower() in (".png", ".jpg", ".jpeg") else rel
-        out.append(_Frame(name=name, split=split, json_path=path, index=i, image=image,
+        out.append(_Frame(name=name, file_path=file_path, split=split, json_path=path, index=i, image=image,
                           mask=image.parent / "masks" / f"{stem}.png", time=t, c2w=c2w, intr=intr))
     return out
 
 
 def _intrinsics(fr: _Frame, width: int, height: int) -> np.ndarray:
     """K at the source resolution; checks JSON w/h against the image."""
-    path, where, d = fr.json_path, f"frame {fr.index} ({fr.name})", fr.intr
+    path, where, d = fr.json_path, f"frame {fr.index} ({fr.file_path})", fr.intr
     for key, actual in (("w", width), ("h", height)):
         if key in d:
             value = as_image_side(d[key], path, f"{where} {key}")
@@ -213,7 +220,7 @@ def read_dnerf_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: str, 
     seen: dict[str, _Frame] = {}
     for fr in all_frames:
         if fr.name in seen:
-            raise input_error(fr.json_path, f"frame {fr.index} ({fr.name}) is listed twice")
+            raise input_error(fr.json_path, f"frame {fr.index} ({fr.file_path}) is listed twice")
         seen[fr.name] = fr
 
     # Time grid over every frame of every split (before any stride).
