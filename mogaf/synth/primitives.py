@@ -119,7 +119,7 @@ class HeightCloth:
     """
 
     SAMPLES = 16
-    BISECTIONS = 28
+    BISECTIONS = 16
 
     def __init__(self, origin, E, length, height, amplitude, k, phase, q, texture, inst):
         self.origin = np.asarray(origin, dtype=np.float64)

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import MogafError
 from .primitives import Box, HeightCloth, Plane, Sphere
-from .textures import BoxTexture, ClothTexture, PlaneTexture, SphereTexture, hsv_to_rgb
+from .textures import BoxTexture, ClothTexture, PlaneTexture, SphereTexture
 
 WALL_Y = 2.6
 LOOK_AT = np.array([0.0, 1.05, 0.68])
@@ -96,6 +96,10 @@ class Object:
     def bounds(self, tau: float) -> list[tuple[np.ndarray, float]]:
         return [(p.centre, p.radius) for p in self.primitives(tau)]
 
+    def shape(self) -> dict[str, Any]:
+        """Geometry in the object's own frame (written to instances.json)."""
+        return {}
+
 
 class RigidObject(Object):
     rigid = True
@@ -136,6 +140,9 @@ class RigidBox(RigidObject):
     def extent_points(self, tau):
         return self.points(_box_corners(self.half), tau)
 
+    def shape(self):
+        return {"half_extents": self.half.tolist()}
+
 
 class RigidSphere(RigidObject):
     kind = "sphere"
@@ -152,6 +159,9 @@ class RigidSphere(RigidObject):
 
     def extent_points(self, tau):
         return self.centre_fn(tau) + _box_corners(np.full(3, self.r))
+
+    def shape(self):
+        return {"radius": self.r}
 
 
 class Cloth(Object):
@@ -171,6 +181,9 @@ class Cloth(Object):
         self.omega = 2.0 * np.pi * float(frequency)
         self.q = 2.5  # wave fronts slightly slanted along the height
         self.texture = texture
+
+    def shape(self):
+        return {"length": self.L, "height": self.Hc, "amplitude": self.A, "pinned_edge_origin": self.origin.tolist(), "frame": self.E.tolist()}
 
     def surface(self, tau: float) -> HeightCloth:
         return HeightCloth(self.origin, self.E, self.L, self.Hc, self.A, self.k, self.omega * tau, self.q, self.texture, self.inst)
@@ -216,6 +229,9 @@ class Arm(Object):
         elbow = self.base + R1 @ np.array([0, 0, self.lengths[0]])
         c2 = elbow + R2 @ np.array([0, 0, self.lengths[1] / 2])
         return [(R1, c1), (R2, c2)]
+
+    def shape(self):
+        return {"base": self.base.tolist(), "segment_lengths": self.lengths, "thickness": self.thickness}
 
     def halves(self) -> list[np.ndarray]:
         h = self.thickness / 2
@@ -268,7 +284,6 @@ class Ballistic:
             v_after = -restitution * (vz - self.g * (land - t0))
             if v_after < 0.05 or len(segs) > 64:
                 segs.append((land, self.floor, 0.0))
-                self.g_last_zero = True
                 break
             segs.append((land, self.floor, v_after))
         self.segments = segs
@@ -414,7 +429,7 @@ def build_world(params: dict[str, Any]) -> World:
         )
     else:
         static.append(Box(np.eye(3), [0.7, 1.8, 0.05], [0.12, 0.12, 0.05], pole_tex, 0))  # plinth
-        objects.append(Arm(3, "arm", base=[0.7, 1.8, 0.1], lengths=[0.6, 0.5], thickness=0.1, texture=BoxTexture(rng, rng.uniform()), phase=rng.uniform(0, 2 * np.pi)))
+        objects.append(Arm(3, "arm", base=[0.7, 1.8, 0.1], lengths=[0.6, 0.5], thickness=0.13, texture=BoxTexture(rng, rng.uniform()), phase=rng.uniform(0, 2 * np.pi)))
 
     # ---- cameras
     W, H = p["width"], p["height"]
@@ -456,9 +471,9 @@ def build_world(params: dict[str, Any]) -> World:
             inst = 4 + i
             if kind == "box":
                 half = size * np.array([1.0, rng.uniform(0.6, 1.0), rng.uniform(0.6, 1.0)])
-                obj: Object = RigidBox(inst, f"extra_box_{i + 1}", half=half, texture=BoxTexture(rng, rng.uniform()), **kw)
+                obj: Object = RigidBox(inst, f"box_extra_{i + 1}", half=half, texture=BoxTexture(rng, rng.uniform()), **kw)
             else:
-                obj = RigidSphere(inst, f"extra_sphere_{i + 1}", radius=size, texture=SphereTexture(rng, rng.uniform()), **kw)
+                obj = RigidSphere(inst, f"sphere_extra_{i + 1}", radius=size, texture=SphereTexture(rng, rng.uniform()), **kw)
             world.objects.append(obj)
             if check_world(world) is None:
                 break
