@@ -83,7 +83,8 @@ def weighted_procrustes(src, dst, weights=None) -> tuple[torch.Tensor, torch.Ten
         R = torch.eye(3, dtype=torch.float64).expand(batch + (3, 3)).clone()
         t = torch.zeros(batch + (3,), dtype=torch.float64)
         # Keep the graph connected so callers can always call backward().
-        R = R + 0.0 * (x.sum() + y.sum())
+        link = x.sum() + y.sum() + (0.0 if w_t is None else w_t.to(torch.float64).sum())
+        R = R + 0.0 * link
         return R.to(out_dtype), t.to(out_dtype)
     w = normalized_weights(w_t, batch + P)
     cx = torch.einsum("...p,...pi->...i", w, x)
@@ -126,7 +127,7 @@ def rigid_fit_residual(src, dst, weights=None, R=None, t=None, *, squared: bool 
     pred, y = torch.broadcast_tensors(pred, y)
     d2 = ((pred - y) ** 2).sum(-1)
     if d2.shape[-1] == 0:
-        ms = d2.sum(-1)
+        ms = d2.sum(-1) + (0.0 if w_t is None else 0.0 * w_t.to(torch.float64).sum())
     else:
         w = normalized_weights(w_t, d2.shape)
         ms = (w * d2).sum(-1)

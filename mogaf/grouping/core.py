@@ -20,8 +20,9 @@ METHODS = ("ours", "gaga4d")
 
 # Values the paper gives are marked "paper"; values taken from Gaga's public
 # implementation (weijielyu/Gaga, associate.py / mask/projector.py) are
-# marked "Gaga"; the rest are this implementation's choices (see README of
-# the grouping package in mogaf/grouping/__init__.py).
+# marked "Gaga"; the rest are this implementation's choices (documented in
+# the docstrings of ours.py, gaga4d.py, voting.py, rigidity.py, metrics.py
+# and api.py).
 DEFAULT_PARAMS: dict[str, Any] = {
     "method": "ours",  # "ours" (supp. Algorithm 3) or "gaga4d" (supp. Algorithm 2 baseline)
     # --- ours: supp. "Motion-aware Gaussian Grouping" / "Iterative Region Growing"
@@ -50,6 +51,7 @@ DEFAULT_PARAMS: dict[str, Any] = {
     # --- grouping quality (held-out views at observed times)
     "quality_alpha": 0.5,  # a pixel is labelled where the rendered alpha exceeds this
     "quality_pixels": "foreground",  # ARI over GT-foreground U predicted-foreground pixels ("all": every pixel)
+    "quality_max_frames": 0,  # held-out frames rendered for the quality (evenly spaced); 0 = all
     "seed": 0,
 }
 

@@ -1,0 +1,202 @@
+"""Motion-aware Gaussian grouping (supplementary Algorithm 3).
+
+Stage 1  seed at the first keyframe: for every mask identity k, the front
+         Gaussians whose deformed centre projects into M_k (core.mask_gaussians,
+         closest 40 % per image cell).
+Stage 2  for every further keyframe in stride order:
+         (A) feature-space region growing until no group changes:
+             eps_k = alpha * mean over g in G_k of the mean distance from f_g
+             to its KNN_K within G_k; every unassigned g' closer than eps_k to
+             some member joins G_k (groups in identity order, the unassigned
+             set shrinking after each group as in the algorithm);
+         (B) seeding at the keyframe: the front Gaussians of each mask join
+             their identity's group.
+         A last growing pass follows the last seeding, so the seeds of the
+         last keyframe propagate too.
+Stage 3  KNN voting for the Gaussians still unassigned (voting.py).
+
+Feature: f_g = [canonical mean, pca_scale * PCA(motion coefficients)], with
+the PCA fitted on the motion coefficients (softmax of the logits) of all
+foreground (dynamic) Gaussians; the number of components is
+`pca_components`, or, if None, the fewest whose cumulative explained
+variance reaches `pca_explained_variance`. Means are used in scene units,
+as in the paper.
+
+Conflicts (memory bank as in Gaga): a Gaussian belongs to at most one group
+and keeps the first group it joins, so a Gaussian seeded by a mask at a
+later keyframe, or grown into by a second group, stays where it was. Within
+one keyframe a Gaussian projects to one pixel and hence one mask.
+
+Efficiency: one KD-tree over all features is built once (features do not
+change); every member remembers the radius it has been queried with and is
+queried again only if its group's eps_k grows beyond it, which gives the
+same result as querying every member at every iteration.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+from scipy.spatial import cKDTree
+from sklearn.decomposition import PCA
+
+from .core import MaskFrames, frames_in_time_order, mask_gaussians
+from .voting import knn_vote
+
+SEED, GROW, VOTE = 0, 1, 2
+
+
+def motion_features(model, params: dict) -> tuple[np.ndarray, dict]:
+    """f_g = [canonical mean, scale * PCA-reduced motion coefficients]."""
+    means = np.asarray(model.fg.means, dtype=np.float64)
+    N = means.shape[0]
+    info: dict = {"pca_components": 0, "pca_explained_variance": 0.0}
+    if N < 2 or model.motion_coef_logits.shape[1] < 2:
+        return means.copy(), info
+    coefs = np.asarray(model.motion_coefs(), dtype=np.float64)
+    var = coefs.var(axis=0).sum()
+    if not np.isfinite(var) or var <= 1e-20:
+        return means.copy(), info
+    max_c = min(coefs.shape[1], N)
+    pca = PCA(n_components=max_c, svd_solver="full", random_state=int(params["seed"]))
+    reduced = pca.fit_transform(coefs)
+    ratios = pca.explained_variance_ratio_
+    if params["pca_components"] is not None:
+        n = int(min(max(int(params["pca_components"]), 0), max_c))
+    else:
+        cum = np.cumsum(ratios)
+        n = int(np.searchsorted(cum, float(params["pca_explained_variance"]) - 1e-12) + 1)
+        n = min(n, max_c)
+    info = {"pca_components": n, "pca_explained_variance": float(ratios[:n].sum())}
+    feats = np.concatenate([means, float(params["pca_scale"]) * reduced[:, :n]], axis=1)
+    return feats, info
+
+
+class _Radius:
+    """eps_k = alpha * mean over members of the mean distance to KNN_K members."""
+
+    def __init__(self, features: np.ndarray, params: dict):
+        self.features = features
+        self.alpha = float(params["grow_alpha"])
+        self.k = int(params["grow_knn"])
+        self.max_sample = int(params["grow_radius_sample"])
+        # A fixed random priority per Gaussian: the sampled members change
+        # little as a group grows, so eps_k does not jitter.
+        self.priority = np.random.default_rng(int(params["seed"])).permutation(features.shape[0])
+        self.fallback = self._radius(np.arange(features.shape[0]))
+
+    def _radius(self, members: np.ndarray) -> float:
+        n = members.size
+        if n < 2:
+            return 0.0
+        k = min(self.k, n - 1)
+        pts = self.features[members]
+        tree = cKDTree(pts)
+        if n > self.max_sample:
+            sample = np.argsort(self.priority[members], kind="stable")[: self.max_sample]
+            q = pts[sample]
+        else:
+            q = pts
+        d, _ = tree.query(q, k=k + 1)
+        return self.alpha * float(d[:, 1:].mean())
+
+    def __call__(self, members: np.ndarray) -> float:
+        if members.size < 2:
+            return self.fallback
+        return self._radius(members)
+
+
+def region_grow(features: np.ndarray, tree: cKDTree, labels: np.ndarray, n_groups: int, radius: _Radius,
+                queried: np.ndarray, stage: np.ndarray, max_iters: int) -> int:
+    """Grow every group until no group changes; labels modified in place.
+
+    Returns the number of iterations.
+    """
+    it = 0
+    changed = True
+    while changed and it < max_iters:
+        changed = False
+        it += 1
+        for k in range(n_groups):
+            members = np.flatnonzero(labels == k)
+            if members.size == 0:
+                continue
+            eps = radius(members)
+            if not (eps > 0.0):
+                continue
+            need = members[queried[members] < eps]
+            if need.size == 0:
+                continue
+            queried[need] = eps
+            hits = tree.query_ball_point(features[need], r=eps)
+            flat = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.int64)
+            if flat.size == 0:
+                continue
+            cand = np.unique(flat)
+            cand = cand[labels[cand] < 0]
+            if cand.size == 0:
+                continue
+            # Strict "< eps" as in the algorithm (the ball query is inclusive).
+            d = _nearest_distance(features, need, cand)
+            cand = cand[d < eps]
+            if cand.size:
+                labels[cand] = k
+                stage[cand] = GROW
+                changed = True
+    return it
+
+
+def _nearest_distance(features: np.ndarray, sources: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    d, _ = cKDTree(features[sources]).query(features[targets], k=1)
+    return np.asarray(d)
+
+
+def seed(labels: np.ndarray, stage: np.ndarray, idx: np.ndarray, inst: np.ndarray) -> int:
+    """Unassigned front Gaussians join their mask's group (first group kept)."""
+    free = labels[idx] < 0
+    labels[idx[free]] = inst[free]
+    stage[idx[free]] = SEED
+    return int(free.sum())
+
+
+def keyframe_order(time_index: np.ndarray, stride: int) -> np.ndarray:
+    return frames_in_time_order(time_index)[:: max(int(stride), 1)]
+
+
+def group_ours(model, masks: np.ndarray, frames: MaskFrames, instance_ids: np.ndarray, params: dict,
+               frame_order: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Labels (N,) indexing instance_ids (one group per identity), assignment
+    stage per Gaussian (0 seed, 1 grow, 2 vote, -1 none) and diagnostics."""
+    N = len(model.fg)
+    J = len(instance_ids)
+    labels = np.full(N, -1, dtype=np.int64)
+    stage = np.full(N, -1, dtype=np.int8)
+    feats, info = motion_features(model, params)
+    order = keyframe_order(frames.time_index, params["keyframe_stride"]) if frame_order is None else np.asarray(frame_order)
+    traj = model.trajectory_means
+    diag: dict = {**info, "keyframes": [int(f) for f in order], "grow_iterations": [], "seeded": []}
+    if N == 0 or J == 0 or order.size == 0:
+        return labels, stage, diag
+    tree = cKDTree(feats)
+    radius = _Radius(feats, params)
+    queried = np.zeros(N)
+    max_iters = int(params["grow_max_iters"])
+
+    def seed_at(f: int) -> None:
+        idx, inst = mask_gaussians(
+            np.asarray(traj[:, frames.time_index[f]], dtype=np.float64), masks[f], frames.K[f], frames.w2c[f],
+            instance_ids, float(params["front_fraction"]), int(params["front_patches"]),
+        )
+        diag["seeded"].append(seed(labels, stage, idx, inst))
+
+    seed_at(int(order[0]))
+    for f in order[1:]:
+        diag["grow_iterations"].append(region_grow(feats, tree, labels, J, radius, queried, stage, max_iters))
+        seed_at(int(f))
+    diag["grow_iterations"].append(region_grow(feats, tree, labels, J, radius, queried, stage, max_iters))
+    before = labels < 0
+    labels, rounds = knn_vote(feats, labels, int(params["vote_knn"]), float(params["vote_fraction"]))
+    stage[before & (labels >= 0)] = VOTE
+    diag["vote_rounds"] = rounds
+    return labels, stage, diag

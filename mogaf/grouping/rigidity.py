@@ -1,0 +1,147 @@
+"""Rigidity (tau_k) and static flags of groups.
+
+Rigidity decides which motion constraint a group gets (paper Sec.
+"Group-wise Gaussian Motion Optimization"). The paper takes it from the
+grounded segmentation; here the order is:
+  1. `rigid_override` in the grouping parameters ("config");
+  2. the identity's label in priors.h5 (instances/rigid != -1), with the
+     source recorded there ("label" unless it says "config");
+  3. an estimate from the group's own observed trajectories ("estimated"):
+     the best rigid fit canonical -> deformed means at every observed time
+     (weighted Procrustes, mogaf.rigid); relative residual =
+     RMS residual over all times and members / RMS distance of the
+     deformed members to their centroid; rigid iff below
+     `rigidity_threshold`. Groups with fewer than 3 members, or that do
+     not move, come out rigid (their residual is ~0).
+
+Static groups: per-Gaussian displacement = max over observed steps of the
+distance to the first observed position; a group is static when the
+`static_quantile` quantile of its members' displacement is below
+`static_threshold` x scene extent (robust bounding-box diagonal of all
+foreground trajectories). The scene is static when no foreground Gaussian
+moves more than that (the maximum, not a quantile).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..rigid import rigid_fit_residual
+
+VALID_SOURCES = ("label", "config", "estimated")
+
+
+def scene_extent(trajectories: np.ndarray, max_points: int = 200_000, seed: int = 0) -> float:
+    """Robust bbox diagonal (1st-99th percentile per axis) of (N,T,3) positions."""
+    pts = np.asarray(trajectories, dtype=np.float64).reshape(-1, 3)
+    if pts.shape[0] == 0:
+        return 0.0
+    if pts.shape[0] > max_points:
+        rng = np.random.default_rng(seed)
+        pts = pts[rng.choice(pts.shape[0], max_points, replace=False)]
+    lo, hi = np.percentile(pts, [1.0, 99.0], axis=0)
+    return float(np.linalg.norm(hi - lo))
+
+
+def displacement(trajectories: np.ndarray) -> np.ndarray:
+    """(N,) max over time of |x_t - x_first| for (N,T,3) trajectories."""
+    tr = np.asarray(trajectories, dtype=np.float64)
+    if tr.shape[0] == 0 or tr.shape[1] == 0:
+        return np.zeros(tr.shape[0])
+    return np.linalg.norm(tr - tr[:, :1], axis=-1).max(axis=1)
+
+
+def static_threshold_abs(extent: float, params: dict) -> float:
+    return float(params["static_threshold"]) * max(float(extent), 0.0)
+
+
+def is_static_scene(disp: np.ndarray, extent: float, params: dict) -> bool:
+    if disp.size == 0:
+        return True
+    return bool(disp.max() <= static_threshold_abs(extent, params))
+
+
+def group_displacement(disp: np.ndarray, group_id: np.ndarray, num_groups: int, quantile: float) -> np.ndarray:
+    out = np.zeros(num_groups)
+    for k in range(num_groups):
+        d = disp[group_id == k]
+        if d.size:
+            out[k] = float(np.quantile(d, quantile))
+    return out
+
+
+def relative_rigid_residual(canonical: np.ndarray, trajectories: np.ndarray, max_points: int = 4096,
+                            seed: int = 0) -> float:
+    """Relative RMS residual of the best per-time rigid fit.
+
+    canonical (P,3), trajectories (P,T,3). 0 when the set is rigid.
+    """
+    x = np.asarray(canonical, dtype=np.float64)
+    y = np.asarray(trajectories, dtype=np.float64)
+    P = x.shape[0]
+    if P < 3 or y.shape[1] == 0:
+        return 0.0
+    if P > max_points:
+        rng = np.random.default_rng(seed)
+        idx = np.sort(rng.choice(P, max_points, replace=False))
+        x, y = x[idx], y[idx]
+    yt = np.transpose(y, (1, 0, 2))  # (T,P,3)
+    with torch.no_grad():
+        ms = rigid_fit_residual(torch.from_numpy(x), torch.from_numpy(yt), squared=True).numpy()  # (T,)
+    rms = float(np.sqrt(ms.mean()))
+    spread = float(np.sqrt(((yt - yt.mean(axis=1, keepdims=True)) ** 2).sum(-1).mean()))
+    if spread <= 0.0:
+        return 0.0
+    return rms / spread
+
+
+def estimate_rigid(canonical: np.ndarray, trajectories: np.ndarray, threshold: float, max_points: int = 4096,
+                   seed: int = 0) -> tuple[bool, float]:
+    """(is_rigid, relative residual) for one group's observed trajectories."""
+    r = relative_rigid_residual(canonical, trajectories, max_points, seed)
+    return bool(r < threshold), r
+
+
+def _override_for(override: dict, instance_id: int, name: str):
+    if not override:
+        return None
+    for key in (name, str(instance_id), instance_id):
+        if key in override:
+            return int(bool(override[key]))
+    return None
+
+
+def decide_rigidity(group_instance: np.ndarray, table, canonical: np.ndarray, trajectories: np.ndarray,
+                    group_id: np.ndarray, params: dict) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """Rigid flag, its source and the estimated relative residual per group.
+
+    group_instance (K,) indexes the InstanceTable (-1: no identity). The
+    residual is -1 where no estimate was needed.
+    """
+    K = group_instance.size
+    rigid = np.zeros(K, dtype=np.int8)
+    source: list[str] = []
+    residual = np.full(K, -1.0)
+    override = params.get("rigid_override") or {}
+    for k in range(K):
+        j = int(group_instance[k])
+        inst_id = int(table.ids[j]) if j >= 0 else -1
+        name = table.names[j] if j >= 0 else ""
+        flag = _override_for(override, inst_id, name)
+        if flag is not None:
+            rigid[k] = flag
+            source.append("config")
+            continue
+        if j >= 0 and int(table.rigid[j]) in (0, 1):
+            rigid[k] = int(table.rigid[j])
+            src = table.rigid_source[j] if j < len(table.rigid_source) else "label"
+            source.append(src if src in ("label", "config") else "label")
+            continue
+        members = np.flatnonzero(group_id == k)
+        ok, r = estimate_rigid(canonical[members], trajectories[members], float(params["rigidity_threshold"]),
+                               int(params["rigidity_max_points"]), int(params["seed"]))
+        rigid[k] = int(ok)
+        residual[k] = r
+        source.append("estimated")
+    return rigid, source, residual

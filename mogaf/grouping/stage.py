@@ -1,0 +1,323 @@
+"""Stage entries: group (-> groups.h5) and rigid_init (-> rigid.h5).
+
+groups.h5 (stage "group"):
+  group_id (N_fg,) int64 in [0, K)
+  group_rigid (K,) int8             tau_k: 1 rigid, 0 non-rigid
+  group_static (K,) int8            1: the group barely moves (forecasting skips it)
+  group_instance_id (K,) int64      mask identity the group came from (-1: none)
+  group_names [K str]               instance names ("name#2" for a second Gaga-4D fragment)
+  group_rigid_source [K str]        "label" | "config" | "estimated"
+  diagnostics/group_size (K,), diagnostics/group_displacement (K,) (static_quantile
+    of member displacement, scene units), diagnostics/group_rigid_residual (K,)
+    (relative residual of the rigidity estimate, -1 where a label decided),
+    diagnostics/assignment (N,) int8 (0 seeded by a mask, 1 region growing,
+    2 KNN voting, 3 single-group fallback)
+  quality/...                       only where GT instance masks exist at held-out
+                                    views: ari, mean_iou, object_ids, object_names,
+                                    per_object_iou, num_frames, num_pixels
+  attrs: method, params (JSON), num_groups, scene_extent, static_scene,
+    quality (JSON, {} when absent; numbers as text, read quality/ instead),
+    ari and mean_iou (plain floats, only with quality), method_diagnostics (JSON)
+
+rigid.h5 (stage "rigid_init"), supplementary "Rigid Motion Initialization":
+  group_ids (K_r,) int64            the rigid groups
+  rotations (K_r,T,3,3), translations (K_r,T,3)
+                                    mu_t ~= R mu_canonical + t at every observed step
+  residual_rms (K_r,T)              RMS distance of the members to the fit (scene units)
+  timesteps (T,) int64              the model's observed steps
+  attrs: params (JSON), weights
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..artefact import config_digest, open_artefact, read_artefact, read_rows, write_artefact
+from ..errors import MogafError, input_error
+from ..representation import load_model
+from ..rigid import rigid_fit_residual, weighted_procrustes
+from ..scene import SCENE_STAGE, Instances
+from .api import group_gaussians
+from .core import DEFAULT_PARAMS, Groups, MaskFrames, frames_in_time_order, resolve_params
+from .ours import keyframe_order
+
+log = logging.getLogger("mogaf.grouping")
+
+GROUP_STAGE = "group"
+RIGID_STAGE = "rigid_init"
+PRIORS_STAGE = "priors"
+
+RIGID_INIT_DEFAULTS: dict[str, Any] = {
+    # The paper's alignment (supp. "Rigid Motion Initialization") is unweighted;
+    # "opacity" weights every Gaussian by its opacity.
+    "weights": "uniform",
+    "time_chunk": 64,  # observed steps solved at once (bounds memory for big groups)
+}
+
+
+# ---------------------------------------------------------------- groups.h5
+def _strings(values: list[str]) -> Any:
+    return list(values) if values else np.zeros(0, "U1")
+
+
+def write_groups(path: str | os.PathLike, groups: Groups, *, digest: str | None = None) -> Path:
+    diag = {k: np.asarray(v) for k, v in groups.diagnostics.items()}
+    data: dict[str, Any] = {
+        "group_id": np.asarray(groups.group_id, dtype=np.int64),
+        "group_rigid": np.asarray(groups.rigid, dtype=np.int8),
+        "group_static": np.asarray(groups.static, dtype=np.int8),
+        "group_instance_id": np.asarray(groups.instance_id, dtype=np.int64),
+        "group_names": _strings(groups.names),
+        "group_rigid_source": _strings(groups.rigid_source),
+        "diagnostics": diag,
+    }
+    q = groups.quality or {}
+    if q:
+        data["quality"] = {
+            "ari": np.float64(q["ari"]),
+            "mean_iou": np.float64(q["mean_iou"]),
+            "object_ids": np.asarray(q["object_ids"], dtype=np.int64),
+            "object_names": _strings(q["object_names"]),
+            "per_object_iou": np.asarray(q["per_object_iou"], dtype=np.float64),
+            "num_frames": np.int64(q["num_frames"]),
+            "num_pixels": np.int64(q["num_pixels"]),
+        }
+    attrs = {
+        "method": groups.method,
+        "params": groups.params,
+        "num_groups": groups.num_groups,
+        "quality": q,
+        **{k: v for k, v in groups.attrs.items()},
+    }
+    if q:
+        attrs["ari"] = float(q["ari"])
+        attrs["mean_iou"] = float(q["mean_iou"])
+    digest = digest or config_digest(groups.params)
+    return write_artefact(path, GROUP_STAGE, data, config_digest=digest, attrs=attrs)
+
+
+def _str_list(x: Any) -> list[str]:
+    if isinstance(x, np.ndarray):
+        return [str(v) for v in x.tolist()] if x.dtype.kind in "USO" else []
+    if isinstance(x, (list, tuple)):
+        return [str(v) for v in x]
+    return [str(x)]
+
+
+def _typed_params(raw: dict[str, Any]) -> dict[str, Any]:
+    """Params read back from JSON attrs (floats are stored as text)."""
+    out: dict[str, Any] = {}
+    for key, value in raw.items():
+        default = DEFAULT_PARAMS.get(key, RIGID_INIT_DEFAULTS.get(key))
+        if isinstance(value, str) and not isinstance(default, str):
+            try:
+                number = float(value)
+            except ValueError:
+                out[key] = value
+                continue
+            out[key] = int(number) if isinstance(default, (int, np.integer)) and not isinstance(default, bool) else number
+        else:
+            out[key] = value
+    return out
+
+
+def _quality_from(art) -> dict[str, Any]:
+    q = art.get("quality")
+    if not q:
+        return {}
+    out = {k: v for k, v in (art.attrs.get("quality") or {}).items() if k in ("pixels",)}
+    out.update({
+        "ari": float(q["ari"]),
+        "mean_iou": float(q["mean_iou"]),
+        "object_ids": [int(i) for i in np.asarray(q["object_ids"]).reshape(-1)],
+        "object_names": _str_list(q.get("object_names", [])),
+        "per_object_iou": [float(v) for v in np.asarray(q["per_object_iou"]).reshape(-1)],
+        "num_frames": int(q["num_frames"]),
+        "num_pixels": int(q["num_pixels"]),
+    })
+    return out
+
+
+def load_groups(path: str | os.PathLike) -> Groups:
+    art = read_artefact(path, GROUP_STAGE, required=["group_id", "group_rigid", "group_static", "group_instance_id"])
+    g = Groups(
+        group_id=np.asarray(art["group_id"], dtype=np.int64),
+        rigid=np.asarray(art["group_rigid"], dtype=np.int8),
+        static=np.asarray(art["group_static"], dtype=np.int8),
+        instance_id=np.asarray(art["group_instance_id"], dtype=np.int64),
+        names=_str_list(art.get("group_names", [])),
+        rigid_source=_str_list(art.get("group_rigid_source", [])),
+        method=str(art.attrs.get("method", "")),
+        params=_typed_params(dict(art.attrs.get("params") or {})),
+        diagnostics=dict(art.get("diagnostics", {}) or {}),
+        quality=_quality_from(art),
+        attrs={k: v for k, v in art.attrs.items() if k not in ("method", "params", "quality", "ari", "mean_iou")},
+    )
+    K = g.num_groups
+    if g.static.size != K or g.instance_id.size != K:
+        raise input_error(path, "group arrays disagree in length")
+    if g.group_id.size and (g.group_id.min() < 0 or g.group_id.max() >= K):
+        raise input_error(path, f"group_id outside [0, {K})")
+    return g
+
+
+def has_rigid_groups(groups_h5: str | os.PathLike) -> bool:
+    """Whether the rigid_init stage has anything to do (for the workflow)."""
+    with open_artefact(groups_h5, GROUP_STAGE) as fh:
+        rigid = np.asarray(fh["group_rigid"][()])
+    return bool(np.any(rigid == 1))
+
+
+# ---------------------------------------------------------------- group stage
+def _decode(values) -> list[str]:
+    return [v.decode() if isinstance(v, bytes) else str(v) for v in np.asarray(values).tolist()]
+
+
+def read_priors_for_grouping(priors_h5: str | os.PathLike) -> dict[str, Any]:
+    """frame_ids, timesteps, instance table and an accessor of mask rows."""
+    with open_artefact(priors_h5, PRIORS_STAGE) as fh:
+        out: dict[str, Any] = {
+            "frame_ids": np.asarray(fh["frame_ids"][()], dtype=np.int64),
+            "timesteps": np.asarray(fh["timesteps"][()], dtype=np.int64),
+            "has_instance_masks": "masks/instance" in fh,
+            "has_foreground": "masks/foreground" in fh,
+        }
+        if "instances/ids" in fh:
+            out["instances"] = Instances(
+                ids=np.asarray(fh["instances/ids"][()]),
+                names=_decode(fh["instances/names"][()]) if "instances/names" in fh else [f"instance{int(i)}" for i in fh["instances/ids"][()]],
+                rigid=np.asarray(fh["instances/rigid"][()]) if "instances/rigid" in fh else np.full(fh["instances/ids"].shape[0], -1),
+            )
+            src = _decode(fh["instances/rigid_source"][()]) if "instances/rigid_source" in fh else []
+            out["rigid_source"] = ["config" if s == "config" else "label" for s in src]
+    return out
+
+
+def read_mask_rows(priors_h5: str | os.PathLike, rows: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Instance masks of the given priors rows, or the foreground mask as identity 1."""
+    with open_artefact(priors_h5, PRIORS_STAGE) as fh:
+        if "masks/instance" in fh:
+            return read_rows(fh, "masks/instance", rows).astype(np.int32), True
+        if "masks/foreground" in fh:
+            return (read_rows(fh, "masks/foreground", rows) > 0).astype(np.int32), False
+    raise input_error(priors_h5, "has neither masks/instance nor masks/foreground")
+
+
+def _evenly(n: int, k: int) -> np.ndarray:
+    if k <= 0 or k >= n:
+        return np.arange(n)
+    return np.unique(np.round(np.linspace(0, n - 1, k)).astype(np.int64))
+
+
+def run_group_stage(recon_h5, priors_h5, scene_h5, split_h5, out_h5, params: dict[str, Any] | None = None, *,
+                    quality_backend: str = "auto") -> Path:
+    """Group the reconstruction's Gaussians; write groups.h5 (with quality where GT exists)."""
+    p = resolve_params(params)
+    model = load_model(recon_h5)
+    pri = read_priors_for_grouping(priors_h5)
+    steps = np.asarray(model.timesteps, dtype=np.int64)
+    col_of = {int(s): i for i, s in enumerate(steps)}
+    missing = sorted({int(t) for t in pri["timesteps"]} - set(col_of))
+    if missing:
+        raise input_error(priors_h5, f"mask frames at time steps {missing[:5]} are not observed steps of {recon_h5}")
+    if p["method"] == "ours":
+        order = keyframe_order(pri["timesteps"], p["keyframe_stride"])
+    else:
+        order = frames_in_time_order(pri["timesteps"])[:: int(p["gaga_frame_stride"])]
+    rows, inverse = np.unique(order, return_inverse=True)
+    masks, from_instances = read_mask_rows(priors_h5, rows)
+    instances = pri.get("instances") if from_instances else Instances(ids=[1], names=["foreground"], rigid=[-1])
+    rigid_source = pri.get("rigid_source") if from_instances else None
+    with open_artefact(scene_h5, SCENE_STAGE) as fh:
+        K = read_rows(fh, "frames/K", pri["frame_ids"][rows])
+        w2c = read_rows(fh, "frames/w2c", pri["frame_ids"][rows])
+    frames = MaskFrames(K=K, w2c=w2c, time_index=np.array([col_of[int(t)] for t in pri["timesteps"][rows]]))
+    groups = group_gaussians(model, masks, frames, instances, p, rigid_source=rigid_source,
+                             frame_order=np.asarray(inverse).reshape(-1))
+    del masks
+    groups.quality = _quality(model, groups, scene_h5, split_h5, p, int(p["quality_max_frames"]), quality_backend)
+    log.info("grouping (%s): %d groups, sizes %s, rigid %s, static %s, quality %s", p["method"], groups.num_groups,
+             groups.sizes().tolist(), groups.rigid.tolist(), groups.static.tolist(),
+             {k: groups.quality[k] for k in ("ari", "mean_iou") if k in groups.quality})
+    return write_groups(out_h5, groups, digest=config_digest(p))
+
+
+def _quality(model, groups: Groups, scene_h5, split_h5, p: dict, max_frames: int, backend: str) -> dict[str, Any]:
+    from ..scene import load_scene
+    from ..split import read_split
+    from .metrics import grouping_quality
+
+    split = read_split(split_h5)
+    ids = split.frame_ids.get("evaluation_observed", np.zeros(0, np.int64))
+    if ids.size == 0 or groups.num_groups == 0:
+        return {}
+    with open_artefact(scene_h5, SCENE_STAGE) as fh:
+        if "frames/instance_mask" not in fh:
+            return {}
+    sel = ids[_evenly(ids.size, max_frames)]
+    frames = load_scene(scene_h5, sel)
+    return grouping_quality(model, groups, frames, p, backend=backend)
+
+
+# ---------------------------------------------------------------- rigid_init stage
+def rigid_init(model, groups: Groups, params: dict[str, Any] | None = None) -> dict[str, np.ndarray]:
+    """Per rigid group and observed step: (R, t) canonical -> deformed means."""
+    p = {**RIGID_INIT_DEFAULTS, **(params or {})}
+    if p["weights"] not in ("uniform", "opacity"):
+        raise MogafError(f"rigid_init: weights must be 'uniform' or 'opacity', got {p['weights']!r}")
+    N, T = model.trajectory_means.shape[:2]
+    if groups.group_id.size != N:
+        raise MogafError(f"rigid_init: groups cover {groups.group_id.size} Gaussians, the model has {N}")
+    rigid_ids = np.flatnonzero(np.asarray(groups.rigid) == 1).astype(np.int64)
+    Kr = rigid_ids.size
+    rot = np.tile(np.eye(3), (Kr, T, 1, 1))
+    trans = np.zeros((Kr, T, 3))
+    res = np.zeros((Kr, T))
+    chunk = max(int(p["time_chunk"]), 1)
+    canonical = np.asarray(model.fg.means, dtype=np.float64)
+    for i, k in enumerate(rigid_ids):
+        members = groups.members(int(k))
+        if members.size == 0:
+            continue
+        src = torch.from_numpy(canonical[members])
+        w = None
+        if p["weights"] == "opacity":
+            w = torch.from_numpy(1.0 / (1.0 + np.exp(-np.asarray(model.fg.opacity_logits, np.float64)[members])))
+        for t0 in range(0, T, chunk):
+            dst = torch.from_numpy(np.ascontiguousarray(
+                np.transpose(np.asarray(model.trajectory_means[members, t0:t0 + chunk], dtype=np.float64), (1, 0, 2))))
+            with torch.no_grad():
+                R, t = weighted_procrustes(src, dst, w)
+                r = rigid_fit_residual(src, dst, w, R, t)
+            rot[i, t0:t0 + chunk] = R.numpy()
+            trans[i, t0:t0 + chunk] = t.numpy()
+            res[i, t0:t0 + chunk] = r.numpy()
+    return {"group_ids": rigid_ids, "rotations": rot, "translations": trans, "residual_rms": res,
+            "timesteps": np.asarray(model.timesteps, dtype=np.int64)}
+
+
+def run_rigid_init_stage(model_h5, groups_h5, out_h5, params: dict[str, Any] | None = None) -> Path:
+    p = {**RIGID_INIT_DEFAULTS, **(params or {})}
+    unknown = sorted(set(p) - set(RIGID_INIT_DEFAULTS))
+    if unknown:
+        raise MogafError(f"rigid_init: unknown parameter(s) {', '.join(unknown)}")
+    model = load_model(model_h5)
+    groups = load_groups(groups_h5)
+    data = rigid_init(model, groups, p)
+    if data["group_ids"].size == 0:
+        log.warning("rigid_init: %s has no rigid group; writing an empty rigid.h5", groups_h5)
+    else:
+        log.info("rigid_init: %d rigid groups, mean residual %.4g", data["group_ids"].size, float(data["residual_rms"].mean()))
+    return write_artefact(out_h5, RIGID_STAGE, data, config_digest=config_digest(p),
+                          attrs={"params": p, "weights": p["weights"]})
+
+
+def read_rigid_init(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    art = read_artefact(path, RIGID_STAGE, required=["group_ids", "rotations", "translations", "residual_rms"])
+    return {k: np.asarray(art[k]) for k in ("group_ids", "rotations", "translations", "residual_rms", "timesteps") if k in art}

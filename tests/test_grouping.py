@@ -1,0 +1,288 @@
+"""Motion-aware grouping (ours), Gaga-4D, voting, rigidity and static flags."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from sklearn.metrics import adjusted_rand_score
+
+from mogaf.grouping import DEFAULT_PARAMS, MaskFrames, group_gaussians, mask_gaussians, rigid_init
+from mogaf.grouping.rigidity import decide_rigidity, estimate_rigid
+from mogaf.grouping.core import InstanceTable
+from mogaf.grouping.toy import look_at, model_from_points, two_object_scene
+from mogaf.grouping.voting import knn_vote
+from mogaf.errors import MogafError
+from mogaf.scene import Instances
+
+
+@pytest.fixture(scope="module")
+def scene_far():
+    return two_object_scene(seed=0)
+
+
+@pytest.fixture(scope="module")
+def scene_close():
+    return two_object_scene(seed=1, close=True)
+
+
+def _check_valid(groups, N):
+    K = groups.num_groups
+    assert groups.group_id.shape == (N,) and groups.group_id.dtype == np.int64
+    assert K >= 1 and groups.group_id.min() >= 0 and groups.group_id.max() < K
+    assert np.all(np.bincount(groups.group_id, minlength=K) > 0)  # no empty group kept
+    for arr in (groups.rigid, groups.static, groups.instance_id):
+        assert arr.shape == (K,)
+    assert set(np.unique(groups.rigid)) <= {0, 1} and set(np.unique(groups.static)) <= {0, 1}
+    assert len(groups.names) == K and len(groups.rigid_source) == K
+    assert set(groups.rigid_source) <= {"label", "config", "estimated"}
+
+
+@pytest.mark.parametrize("which", ["scene_far", "scene_close"])
+def test_ours_recovers_two_objects(which, request):
+    sc = request.getfixturevalue(which)
+    g = group_gaussians(sc.model, sc.masks, sc.frames, sc.instances, {"method": "ours"})
+    _check_valid(g, len(sc.labels))
+    assert adjusted_rand_score(sc.labels, g.group_id) > 0.9
+    assert g.num_groups == 2 and g.names == ["sphere", "box"]
+    assert list(g.instance_id) == [1, 2]
+    assert list(g.rigid) == [1, 1] and g.rigid_source == ["label", "label"]
+    assert list(g.static) == [0, 0]
+    # Deterministic (conflict resolution included).
+    g2 = group_gaussians(sc.model, sc.masks, sc.frames, sc.instances, {"method": "ours"})
+    assert np.array_equal(g.group_id, g2.group_id)
+
+
+def test_ours_needs_the_motion_feature_on_touching_objects():
+    """Objects in contact: space alone leaks, the motion coefficients separate."""
+    rng = np.random.default_rng(3)
+    n = 700
+    a = np.c_[rng.uniform(-1, 0, n), rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n)]
+    b = np.c_[rng.uniform(0, 1, n), rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n)]
+    T = 8
+    traj = np.zeros((2 * n, T, 3))
+    for t in range(T):
+        traj[:n, t] = a + [0, 0, 0.15 * t]
+        traj[n:, t] = b + [0, 0, -0.15 * t]
+    labels = np.r_[np.ones(n, int), np.full(n, 2)]
+    model = model_from_points(traj, labels, coef_noise=0.1)
+    # Masks only at the first step, from a camera looking at the x-z plane;
+    # exact masks (no dilation), so every seed is right.
+    K = np.array([[100.0, 0, 48], [0, 100.0, 32], [0, 0, 1]])
+    w2c = look_at(np.array([0.0, -5.0, 0.0]), np.zeros(3))
+    from mogaf.grouping.toy import splat_instance_masks
+
+    masks = splat_instance_masks(traj[:, 0], labels, K, w2c, 96, 64, radius=0)[None]
+    frames = MaskFrames(K=K[None], w2c=w2c[None], time_index=[0])
+    inst = Instances(ids=[1, 2], names=["a", "b"], rigid=[1, 1])
+    ours = group_gaussians(model, masks, frames, inst, {"method": "ours"})
+    assert adjusted_rand_score(labels, ours.group_id) > 0.99
+    flat = group_gaussians(model, masks, frames, inst, {"method": "ours", "pca_components": 0})
+    assert adjusted_rand_score(labels, flat.group_id) < 0.95
+
+
+@pytest.mark.parametrize("which", ["scene_far", "scene_close"])
+def test_gaga4d_gives_a_valid_labelling(which, request):
+    sc = request.getfixturevalue(which)
+    g = group_gaussians(sc.model, sc.masks, sc.frames, sc.instances, {"method": "gaga4d"})
+    _check_valid(g, len(sc.labels))
+    assert g.method == "gaga4d" and g.params["overlap_threshold"] == 0.1
+    assert set(g.instance_id.tolist()) <= {1, 2}
+    assert np.all(g.rigid == 1)
+    assert adjusted_rand_score(sc.labels, g.group_id) > 0.5
+
+
+def test_gaga4d_fragments_when_overlap_is_low(scene_far):
+    """A mask whose Gaussians do not overlap the memory bank opens a new group."""
+    sc = scene_far
+    masks = sc.masks.copy()
+    # Frame 0 sees only the left half of the sphere's pixels, the others only the right half.
+    cols = np.arange(masks.shape[2])
+    sphere_cols = np.flatnonzero((masks == 1).any(axis=(0, 1)))
+    mid = int(np.median(sphere_cols))
+    masks[0][(masks[0] == 1) & (cols[None, :] >= mid)] = 0
+    for f in range(1, len(masks)):
+        masks[f][(masks[f] == 1) & (cols[None, :] < mid + 3)] = 0
+    g = group_gaussians(sc.model, masks, sc.frames, sc.instances, {"method": "gaga4d", "overlap_threshold": 0.99})
+    _check_valid(g, len(sc.labels))
+    assert (g.instance_id == 1).sum() >= 2
+    assert any(name.startswith("sphere#") for name in g.names)
+
+
+def test_unknown_method_and_params_are_refused(scene_far):
+    sc = scene_far
+    with pytest.raises(MogafError):
+        group_gaussians(sc.model, sc.masks, sc.frames, sc.instances, {"method": "nope"})
+    with pytest.raises(MogafError):
+        group_gaussians(sc.model, sc.masks, sc.frames, sc.instances, {"typo_param": 1})
+
+
+def test_static_scene_gives_one_static_group(scene_far):
+    sc = scene_far
+    T = sc.model.trajectory_means.shape[1]
+    still = np.repeat(sc.model.trajectory_means[:, :1], T, axis=1)
+    model = model_from_points(still, sc.labels)
+    for method in ("ours", "gaga4d"):
+        g = group_gaussians(model, sc.masks, sc.frames, sc.instances, {"method": method})
+        _check_valid(g, len(sc.labels))
+        assert g.num_groups == 1 and g.static[0] == 1 and g.rigid[0] == 1
+        assert g.attrs["static_scene"] is True
+
+
+def test_static_group_is_flagged(scene_far):
+    sc = scene_far
+    traj = sc.model.trajectory_means.copy()
+    box = sc.labels == 2
+    traj[box] = traj[box][:, :1]  # the box stands still
+    model = model_from_points(traj, sc.labels)
+    g = group_gaussians(model, sc.masks, sc.frames, sc.instances, {})
+    assert list(g.static) == [0, 1]
+
+
+def test_single_gaussian_group_and_empty_group(scene_far):
+    sc = scene_far
+    # A lone Gaussian far from both objects with its own identity (3), and an
+    # identity (4) listed but never visible.
+    T = sc.model.trajectory_means.shape[1]
+    lone = np.zeros((1, T, 3))
+    lone[0, :, 2] = 1.6
+    lone[0, :, 0] = np.linspace(0.0, 0.2, T)
+    traj = np.concatenate([sc.model.trajectory_means, lone])
+    labels = np.r_[sc.labels, 3]
+    model = model_from_points(traj, labels)
+    masks = sc.masks.copy()
+    from mogaf.camera import project
+
+    for f in range(len(masks)):
+        uv, z = project(lone[:, int(sc.frames.time_index[f])], sc.frames.K[f], sc.frames.w2c[f])
+        c, r = np.floor(uv[0]).astype(int)
+        assert 0 <= r < masks.shape[1] and 0 <= c < masks.shape[2]
+        masks[f, r, c] = 3
+    inst = Instances(ids=[1, 2, 3, 4], names=["sphere", "box", "lone", "ghost"], rigid=[1, 1, -1, 0])
+    for method in ("ours", "gaga4d"):
+        g = group_gaussians(model, masks, sc.frames, inst, {"method": method})
+        _check_valid(g, len(labels))
+        assert 4 not in g.instance_id  # the empty group is dropped, ids compacted
+        k = int(np.flatnonzero(g.instance_id == 3)[0])
+        assert g.group_id[-1] == k
+        assert g.rigid_source[k] == "estimated" and g.rigid[k] == 1  # < 3 members: rigid
+        assert adjusted_rand_score(labels, g.group_id) > (0.9 if method == "ours" else 0.5)
+        # The one-Gaussian rigid group goes through rigid_init: a pure translation.
+        r = rigid_init(model, g)
+        i = int(np.flatnonzero(r["group_ids"] == k)[0])
+        assert np.allclose(np.linalg.det(r["rotations"][i]), 1.0) and np.all(np.isfinite(r["translations"][i]))
+        assert g.sizes()[k] == 1
+        assert np.allclose(r["translations"][i] + lone[0, 0], lone[0], atol=1e-9)
+        assert np.allclose(r["rotations"][i], np.eye(3)) and np.allclose(r["residual_rms"][i], 0.0)
+
+
+def test_rigid_init_tolerates_an_empty_group(scene_far):
+    sc = scene_far
+    g = group_gaussians(sc.model, sc.masks, sc.frames, sc.instances, {})
+    # A third, empty rigid group (as a hand-made groups.h5 could have).
+    g.rigid = np.r_[g.rigid, 1].astype(np.int8)
+    g.static = np.r_[g.static, 0].astype(np.int8)
+    r = rigid_init(sc.model, g)
+    assert list(r["group_ids"]) == [0, 1, 2]
+    assert np.allclose(r["rotations"][2], np.eye(3)) and np.allclose(r["translations"][2], 0.0)
+
+
+def test_masks_that_claim_nothing_give_one_unlabelled_group(scene_far):
+    sc = scene_far
+    g = group_gaussians(sc.model, np.zeros_like(sc.masks), sc.frames, sc.instances, {})
+    _check_valid(g, len(sc.labels))
+    assert g.num_groups == 1 and g.names == ["unlabelled"] and g.rigid_source == ["estimated"]
+    assert g.rigid[0] == 0  # two objects moving differently are not one rigid body
+
+
+def test_empty_model():
+    model = model_from_points(np.zeros((0, 4, 3)))
+    frames = MaskFrames(K=np.eye(3)[None], w2c=np.eye(4)[None], time_index=[0])
+    g = group_gaussians(model, np.zeros((1, 8, 8), np.int32), frames, None, {})
+    assert g.num_groups == 0 and g.group_id.shape == (0,)
+    assert rigid_init(model, g)["rotations"].shape == (0, 4, 3, 3)
+
+
+def test_rigidity_estimate_rigid_vs_nonrigid():
+    rng = np.random.default_rng(0)
+    P, T = 300, 10
+    pts = rng.normal(size=(P, 3)) * [1.0, 0.5, 0.2]
+    rigid_traj = np.zeros((P, T, 3))
+    wave_traj = np.zeros((P, T, 3))
+    for t in range(T):
+        a = 0.2 * t
+        R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        rigid_traj[:, t] = pts @ R.T + [0.1 * t, 0, 0] + rng.normal(scale=1e-3, size=(P, 3))
+        bend = pts.copy()
+        bend[:, 2] += 0.4 * np.sin(2.0 * pts[:, 0] + 0.5 * t) * t / T  # a travelling, growing wave
+        wave_traj[:, t] = bend @ R.T
+    ok, r = estimate_rigid(pts, rigid_traj, DEFAULT_PARAMS["rigidity_threshold"])
+    assert ok and r < 0.01
+    ok, r = estimate_rigid(pts, wave_traj, DEFAULT_PARAMS["rigidity_threshold"])
+    assert not ok and r > 0.05
+    # Sources: config override > label > estimate.
+    table = InstanceTable(ids=np.array([1, 2, 3]), names=["a", "b", "c"], rigid=np.array([0, -1, -1], np.int8),
+                          rigid_source=["label", "label", "label"])
+    traj = np.concatenate([rigid_traj, wave_traj, rigid_traj])
+    canon = np.concatenate([pts, pts, pts])
+    gid = np.repeat([0, 1, 2], P)
+    params = {**DEFAULT_PARAMS, "rigid_override": {"c": 0}}
+    flags, sources, res = decide_rigidity(np.array([0, 1, 2]), table, canon, traj, gid, params)
+    assert list(flags) == [0, 0, 0] and sources == ["label", "estimated", "config"]
+    assert res[0] == -1 and res[1] > 0.05 and res[2] == -1
+    table.rigid[:] = -1
+    flags, sources, _ = decide_rigidity(np.array([0, 1]), table, canon, traj, gid, DEFAULT_PARAMS)
+    assert list(flags) == [1, 0] and sources == ["estimated", "estimated"]
+
+
+def test_unlabelled_instances_get_estimated_rigidity(scene_far):
+    sc = scene_far
+    inst = Instances(ids=[1, 2], names=["sphere", "box"], rigid=[-1, -1])
+    g = group_gaussians(sc.model, sc.masks, sc.frames, inst, {})
+    assert list(g.rigid) == [1, 1] and g.rigid_source == ["estimated", "estimated"]
+    assert np.all(g.diagnostics["group_rigid_residual"] < 0.05)
+
+
+def test_front_gaussian_selection():
+    # 10 Gaussians on the optical axis, one pixel: the closest 40 % are kept.
+    pts = np.c_[np.zeros(10), np.zeros(10), np.linspace(5.0, 1.0, 10)]
+    K = np.array([[10.0, 0, 4], [0, 10.0, 4], [0, 0, 1]])
+    mask = np.zeros((8, 8), np.int32)
+    mask[4, 4] = 7
+    idx, inst = mask_gaussians(pts, mask, K, np.eye(4), np.array([7]), front_fraction=0.4, num_patches=1)
+    assert sorted(idx.tolist()) == [6, 7, 8, 9] and np.all(inst == 0)
+    idx, _ = mask_gaussians(pts, mask, K, np.eye(4), np.array([7]), front_fraction=1.0)
+    assert idx.size == 10
+    # Behind the camera or outside the image: never selected.
+    idx, _ = mask_gaussians(-pts, mask, K, np.eye(4), np.array([7]))
+    assert idx.size == 0
+
+
+def test_voting_assigns_everyone_deterministically():
+    rng = np.random.default_rng(0)
+    feats = rng.normal(size=(500, 3))
+    labels = np.full(500, -1)
+    labels[feats[:, 0] < -1.0] = 0
+    labels[feats[:, 0] > 1.0] = 1
+    out, rounds = knn_vote(feats, labels, k=8, fraction=0.5)
+    assert np.all(out >= 0) and rounds >= 2
+    assert np.all(out[feats[:, 0] < -1.0] == 0) and np.all(out[feats[:, 0] > 1.0] == 1)
+    assert np.mean(out[feats[:, 0] < -0.3] == 0) > 0.9 and np.mean(out[feats[:, 0] > 0.3] == 1) > 0.9
+    assert np.array_equal(out, knn_vote(feats, labels)[0])
+    none, _ = knn_vote(feats, np.full(500, -1))
+    assert np.all(none == -1)
+
+
+def test_rigid_init_recovers_toy_motion(scene_far):
+    sc = scene_far
+    g = group_gaussians(sc.model, sc.masks, sc.frames, sc.instances, {})
+    out = rigid_init(sc.model, g)
+    T = sc.model.trajectory_means.shape[1]
+    assert list(out["group_ids"]) == [0, 1]
+    assert out["rotations"].shape == (2, T, 3, 3) and out["translations"].shape == (2, T, 3)
+    assert np.allclose(np.linalg.det(out["rotations"]), 1.0, atol=1e-9)
+    assert out["residual_rms"].max() < 1e-6  # GT trajectories are exactly rigid
+    # At t = 0 the fit is the identity (canonical = first step).
+    assert np.allclose(out["rotations"][:, 0], np.eye(3), atol=1e-6)
+    # Only rigid groups are solved.
+    g.rigid[:] = [0, 1]
+    assert list(rigid_init(sc.model, g)["group_ids"]) == [1]

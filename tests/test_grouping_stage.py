@@ -1,0 +1,139 @@
+"""Stage entries: groups.h5 (with quality at held-out views) and rigid.h5."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from sklearn.metrics import adjusted_rand_score
+
+from mogaf.artefact import read_artefact, write_artefact
+from mogaf.grouping import (
+    has_rigid_groups,
+    load_groups,
+    read_rigid_init,
+    run_group_stage,
+    run_rigid_init_stage,
+)
+from mogaf.grouping.core import DEFAULT_PARAMS, Groups
+from mogaf.grouping.metrics import adjusted_rand_index, grouping_quality, per_object_iou
+from mogaf.grouping.toy import look_at, model_from_points, splat_instance_masks, two_object_scene
+from mogaf.representation import save_model
+from mogaf.scene import Instances, Scene, load_scene, save_scene
+from mogaf.split import read_split, split_scene, write_split
+
+T_ALL, T_OBS, W, H = 16, 12, 64, 48
+
+
+@pytest.fixture(scope="module")
+def toy_files(tmp_path_factory):
+    """scene.h5 / split.h5 / priors.h5 / recon.h5 of the two-object toy scene."""
+    root = tmp_path_factory.mktemp("toy")
+    sc = two_object_scene(T=T_ALL, width=W, height=H, seed=2)
+    traj = sc.model.trajectory_means
+    K = sc.frames.K[0]
+    held_out = look_at(np.array([1.5, -3.5, 2.5]), np.zeros(3))
+    images, Ks, w2cs, times, tidx, cams, splits, masks, names = [], [], [], [], [], [], [], [], []
+    for t in range(T_ALL):
+        for cam, w2c in ((0, sc.frames.w2c[t]), (1, held_out)):
+            images.append(np.zeros((H, W, 3), np.uint8))
+            Ks.append(K)
+            w2cs.append(w2c)
+            times.append(t / (T_ALL - 1))
+            tidx.append(t)
+            cams.append(cam)
+            splits.append(cam)  # camera 0 = train, camera 1 = val (held out)
+            masks.append(splat_instance_masks(traj[:, t], sc.labels, K, w2c, W, H, radius=1))
+            names.append(f"{cam}_{t:03d}")
+    scene = Scene(
+        dataset="toy", name="two_objects", layout="iphone", frame_names=names, images=np.stack(images),
+        K=np.stack(Ks), w2c=np.stack(w2cs), time=np.array(times), time_index=np.array(tidx), num_timesteps=T_ALL,
+        camera_id=np.array(cams), source_split=np.array(splits, np.int8), instance_mask=np.stack(masks).astype(np.int32),
+        instances=Instances(ids=[1, 2], names=["sphere", "box"], rigid=[1, -1]),
+    )
+    scene_h5 = save_scene(root / "scene.h5", scene, config_digest="test")
+    split = split_scene(scene_h5, T_OBS / T_ALL)
+    assert split.num_observed_timesteps == T_OBS
+    split_h5 = write_split(root / "split.h5", split)
+    obs = split.frame_ids["observed"]
+    priors_h5 = write_artefact(root / "priors.h5", "priors", {
+        "frame_ids": obs,
+        "timesteps": scene.time_index[obs],
+        "masks": {"instance": scene.instance_mask[obs], "foreground": (scene.instance_mask[obs] > 0).astype(np.uint8)},
+        "instances": {"ids": np.array([1, 2]), "names": ["sphere", "box"], "rigid": np.array([1, -1], np.int8),
+                      "rigid_source": ["dataset", "unknown"]},
+    }, config_digest="test")
+    model = model_from_points(traj[:, :T_OBS], sc.labels, seed=2)
+    recon_h5 = save_model(root / "recon.h5", "recon", model, config_digest="test")
+    return {"root": root, "scene": scene_h5, "split": split_h5, "priors": priors_h5, "recon": recon_h5,
+            "labels": sc.labels, "model": model}
+
+
+@pytest.mark.parametrize("method", ["ours", "gaga4d"])
+def test_group_stage_writes_groups_h5_with_quality(toy_files, method):
+    out = toy_files["root"] / f"groups_{method}.h5"
+    run_group_stage(toy_files["recon"], toy_files["priors"], toy_files["scene"], toy_files["split"], out,
+                    {"method": method, "quality_max_frames": 4}, quality_backend="torch")
+    art = read_artefact(out, "group")
+    K = int(art.attrs["num_groups"])
+    assert art["group_id"].dtype == np.int64 and art["group_id"].shape == (len(toy_files["labels"]),)
+    assert art["group_rigid"].dtype == np.int8 and art["group_rigid"].shape == (K,)
+    assert art["group_static"].dtype == np.int8 and art["group_instance_id"].shape == (K,)
+    assert len(art["group_names"]) == K and len(art["group_rigid_source"]) == K
+    assert art.attrs["method"] == method and art.attrs["params"]["method"] == method
+    g = load_groups(out)
+    assert g.num_groups == K and g.method == method
+    assert g.params["overlap_threshold"] == 0.1 and g.params["keyframe_stride"] == 5
+    if method == "ours":
+        assert adjusted_rand_score(toy_files["labels"], g.group_id) > 0.9
+        assert g.names == ["sphere", "box"]
+        # sphere: label from the dataset; box: unknown -> estimated (rigid motion).
+        assert g.rigid_source == ["label", "estimated"] and list(g.rigid) == [1, 1]
+        q = g.quality
+        assert q["ari"] > 0.6 and min(q["per_object_iou"]) > 0.6 and q["num_frames"] == 4
+        assert float(art["quality/ari"]) == pytest.approx(q["ari"])
+        assert isinstance(art.attrs["ari"], float) and art.attrs["ari"] == pytest.approx(q["ari"])
+        assert art.attrs["mean_iou"] == pytest.approx(q["mean_iou"])
+        assert list(art["quality/object_ids"]) == [1, 2]
+    assert has_rigid_groups(out) == bool(np.any(g.rigid == 1))
+
+
+def test_rigid_init_stage(toy_files):
+    groups_h5 = toy_files["root"] / "groups_for_rigid.h5"
+    run_group_stage(toy_files["recon"], toy_files["priors"], toy_files["scene"], toy_files["split"], groups_h5,
+                    {"quality_max_frames": 2}, quality_backend="torch")
+    assert has_rigid_groups(groups_h5)
+    out = run_rigid_init_stage(toy_files["recon"], groups_h5, toy_files["root"] / "rigid.h5", {})
+    r = read_rigid_init(out)
+    assert list(r["group_ids"]) == [0, 1]
+    assert r["rotations"].shape == (2, T_OBS, 3, 3) and r["residual_rms"].shape == (2, T_OBS)
+    assert np.allclose(np.linalg.det(r["rotations"]), 1.0, atol=1e-9)
+    # Groups are not perfectly clean (mask edges), but the fit is close.
+    model = toy_files["model"]
+    g = load_groups(groups_h5)
+    for i, k in enumerate(r["group_ids"]):
+        m = g.members(int(k))
+        pred = np.einsum("tij,pj->pti", r["rotations"][i], model.fg.means[m]) + r["translations"][i][None]
+        rms = np.sqrt(((pred - model.trajectory_means[m]) ** 2).sum(-1).mean(0))
+        assert np.allclose(rms, r["residual_rms"][i], atol=1e-6)
+
+
+def test_quality_metric_parts(toy_files):
+    gt = np.array([[0, 1, 1], [2, 2, 0]])
+    pred = np.array([[0, 1, 0], [2, 2, 2]])
+    inter, union = per_object_iou(gt, pred, np.array([1, 2]))
+    assert list(inter) == [1, 2] and list(union) == [2, 3]
+    assert adjusted_rand_index(gt, gt + 5) == pytest.approx(1.0)
+    # Perfect groups (= GT instances) render close to the GT masks.
+    labels = toy_files["labels"]
+    perfect = Groups(group_id=labels - 1, rigid=np.ones(2, np.int8), static=np.zeros(2, np.int8),
+                     instance_id=np.array([1, 2]), names=["sphere", "box"], rigid_source=["label"] * 2,
+                     method="ours", params=dict(DEFAULT_PARAMS))
+    frames = load_scene(toy_files["scene"], read_split(toy_files["split"]).frame_ids["evaluation_observed"][::4])
+    q = grouping_quality(toy_files["model"], perfect, frames, {"quality_pixels": "all"}, backend="torch")
+    assert q["num_frames"] == 3 and q["ari"] > 0.85 and min(q["per_object_iou"]) > 0.7
+    q_fg = grouping_quality(toy_files["model"], perfect, frames, {}, backend="torch")
+    assert q_fg["pixels"] == "foreground" and q_fg["num_pixels"] < q["num_pixels"]
+    # Swapping the two groups' identities destroys the IoU, not the ARI.
+    swapped = Groups(**{**perfect.__dict__, "instance_id": np.array([2, 1])})
+    q2 = grouping_quality(toy_files["model"], swapped, frames, {}, backend="torch")
+    assert max(q2["per_object_iou"]) < 0.2 and q2["ari"] == pytest.approx(q_fg["ari"])

@@ -1,0 +1,174 @@
+"""Weighted Procrustes and rigid-fit residuals (mogaf.rigid)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import roma
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mogaf.rigid import apply_rigid, procrustes_numpy, rigid_fit_residual, weighted_procrustes
+
+
+def _rot(axis, angle) -> torch.Tensor:
+    a = torch.as_tensor(axis, dtype=torch.float64)
+    return roma.rotvec_to_rotmat(a / a.norm() * angle)
+
+
+def _check_rotation(R: torch.Tensor, tol: float = 1e-9) -> None:
+    R = R.detach().double()
+    assert torch.isfinite(R).all()
+    eye = torch.eye(3, dtype=torch.float64).expand_as(R)
+    assert torch.allclose(R @ R.transpose(-1, -2), eye, atol=tol)
+    assert torch.allclose(torch.det(R), torch.ones(R.shape[:-2], dtype=torch.float64), atol=tol)
+
+
+def test_recovers_known_transform_with_noise():
+    g = torch.Generator().manual_seed(1)
+    T, P = 6, 200
+    R_true = roma.random_rotmat(T, dtype=torch.float64)
+    t_true = torch.randn(T, 3, dtype=torch.float64, generator=g)
+    src = torch.randn(P, 3, dtype=torch.float64, generator=g)
+    noise = 1e-3 * torch.randn(T, P, 3, dtype=torch.float64, generator=g)
+    dst = apply_rigid(R_true, t_true, src) + noise
+    R, t = weighted_procrustes(src, dst)  # src broadcast over time
+    assert R.shape == (T, 3, 3) and t.shape == (T, 3)
+    _check_rotation(R)
+    angle_err = roma.rotmat_geodesic_distance(R, R_true)
+    assert float(angle_err.max()) < 1e-3
+    assert float((t - t_true).abs().max()) < 1e-3
+    rms = rigid_fit_residual(src, dst, R=R, t=t)
+    assert torch.allclose(rms, torch.full((T,), 1e-3 * math.sqrt(3), dtype=torch.float64), rtol=0.2)
+
+
+def test_exact_recovery_float64_and_float32():
+    g = torch.Generator().manual_seed(2)
+    R_true = roma.random_rotmat(1, dtype=torch.float64)[0]
+    t_true = torch.tensor([0.3, -2.0, 5.0], dtype=torch.float64)
+    src = torch.randn(50, 3, dtype=torch.float64, generator=g)
+    dst = src @ R_true.T + t_true
+    R, t = weighted_procrustes(src, dst)
+    assert float((R - R_true).abs().max()) < 1e-9 and float((t - t_true).abs().max()) < 1e-9
+    R32, t32 = weighted_procrustes(src.float(), dst.float())
+    assert R32.dtype == torch.float32 and t32.dtype == torch.float32
+    assert float((R32.double() - R_true).abs().max()) < 1e-5
+
+
+def test_weights_ignore_outliers():
+    g = torch.Generator().manual_seed(3)
+    R_true = _rot([1.0, 2.0, 3.0], 0.7)
+    src = torch.randn(40, 3, dtype=torch.float64, generator=g)
+    dst = src @ R_true.T
+    dst[:5] += 10.0  # outliers
+    w = torch.ones(40, dtype=torch.float64)
+    w[:5] = 0.0
+    R, t = weighted_procrustes(src, dst, w)
+    assert float((R - R_true).abs().max()) < 1e-9 and float(t.abs().max()) < 1e-9
+    assert float(rigid_fit_residual(src, dst, w)) < 1e-9
+    # All-zero weights fall back to uniform weights: finite, a rotation.
+    R0, t0 = weighted_procrustes(src, dst, torch.zeros(40, dtype=torch.float64))
+    _check_rotation(R0)
+    assert torch.isfinite(t0).all()
+
+
+def _degenerate_sets():
+    g = torch.Generator().manual_seed(4)
+    d = torch.float64
+    line = torch.linspace(-1, 1, 7, dtype=d)[:, None] * torch.tensor([1.0, 2.0, -0.5], dtype=d)
+    plane = torch.cat([torch.randn(8, 2, dtype=d, generator=g), torch.zeros(8, 1, dtype=d)], 1)
+    cloud = torch.randn(10, 3, dtype=d, generator=g)
+    reflect = torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=d))
+    return {
+        "one_point": (torch.randn(1, 3, dtype=d, generator=g), torch.randn(1, 3, dtype=d, generator=g)),
+        "two_points": (torch.randn(2, 3, dtype=d, generator=g), torch.randn(2, 3, dtype=d, generator=g)),
+        "three_points": (torch.randn(3, 3, dtype=d, generator=g), torch.randn(3, 3, dtype=d, generator=g)),
+        "all_identical": (torch.ones(6, 3, dtype=d), torch.full((6, 3), 2.0, dtype=d)),
+        "collinear": (line, line @ _rot([0.0, 1.0, 1.0], 0.9).T + 1.0),
+        "coplanar": (plane, plane @ _rot([1.0, 0.0, 0.3], 2.0).T),
+        "reflected": (cloud, cloud @ reflect.T),
+        "coplanar_reflected": (plane, plane @ reflect.T),
+        "collinear_to_identical": (line, torch.zeros_like(line)),
+        "empty": (torch.zeros(0, 3, dtype=d), torch.zeros(0, 3, dtype=d)),
+    }
+
+
+@pytest.mark.parametrize("name", list(_degenerate_sets()))
+def test_degenerate_sets_are_finite_with_finite_gradients(name):
+    src0, dst0 = _degenerate_sets()[name]
+    src = src0.clone().requires_grad_(True)
+    dst = dst0.clone().requires_grad_(True)
+    w = torch.linspace(0.5, 1.5, src0.shape[0], dtype=torch.float64).requires_grad_(True)
+    R, t = weighted_procrustes(src, dst, w)
+    _check_rotation(R)
+    assert torch.isfinite(t).all()
+    g = torch.Generator().manual_seed(5)
+    loss = (R * torch.randn(3, 3, dtype=torch.float64, generator=g)).sum() + t.sum()
+    loss = loss + rigid_fit_residual(src, dst, w) + rigid_fit_residual(src, dst, w, squared=True)
+    loss.backward()
+    for x in (src, dst, w):
+        assert x.grad is not None and torch.isfinite(x.grad).all(), name
+    # Deterministic: the same input gives the same rotation.
+    R2, _ = weighted_procrustes(src0, dst0, w.detach())
+    assert torch.equal(R.detach(), R2)
+
+
+def test_no_information_gives_identity():
+    R, t = weighted_procrustes(torch.ones(4, 3, dtype=torch.float64), torch.full((4, 3), 3.0, dtype=torch.float64))
+    assert torch.allclose(R, torch.eye(3, dtype=torch.float64))
+    assert torch.allclose(t, torch.full((3,), 2.0, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("delta", [0.0, 1e-9, 1e-7, 1e-6])
+def test_rotation_near_pi(delta):
+    g = torch.Generator().manual_seed(6)
+    axis = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
+    R_true = _rot(axis, math.pi - delta)
+    src = torch.randn(30, 3, dtype=torch.float64, generator=g).requires_grad_(True)
+    dst = (src.detach() @ R_true.T + torch.tensor([1.0, 0.0, -1.0], dtype=torch.float64)).requires_grad_(True)
+    R, t = weighted_procrustes(src, dst)
+    _check_rotation(R)
+    assert float((R.detach() - R_true).abs().max()) < 1e-8
+    (R.sum() + t.sum()).backward()
+    assert torch.isfinite(src.grad).all() and torch.isfinite(dst.grad).all()
+    # Batched with float32 inputs too.
+    R32, _ = weighted_procrustes(src.detach().float()[None].expand(3, -1, -1), dst.detach().float())
+    _check_rotation(R32.double(), tol=1e-5)
+    assert float((R32.double() - R_true).abs().max()) < 1e-4
+
+
+def test_gradcheck_well_posed():
+    g = torch.Generator().manual_seed(7)
+    src = torch.randn(6, 3, dtype=torch.float64, generator=g, requires_grad=True)
+    dst = (src.detach() @ _rot([1.0, 1.0, 0.0], 0.4).T + 0.05 * torch.randn(6, 3, dtype=torch.float64, generator=g)).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda a, b: weighted_procrustes(a, b)[0], (src, dst), atol=1e-5)
+
+
+def test_numpy_wrapper():
+    src = np.random.default_rng(8).normal(size=(20, 3))
+    R_true = _rot([0.0, 0.0, 1.0], 1.0).numpy()
+    R, t = procrustes_numpy(src, src @ R_true.T + 2.0)
+    assert np.allclose(R, R_true, atol=1e-9) and np.allclose(t, 2.0, atol=1e-9)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n=st.integers(4, 40),
+    angle=st.floats(0.0, math.pi),
+    shift=st.floats(-100.0, 100.0),
+    log_scale=st.floats(-4.0, 3.0),
+)
+def test_property_recovers_rigid_transform(seed, n, angle, shift, log_scale):
+    rng = np.random.default_rng(seed)
+    axis = rng.normal(size=3)
+    R_true = _rot(axis / np.linalg.norm(axis), angle)
+    src = torch.as_tensor(rng.normal(size=(n, 3)) * 10.0**log_scale)
+    dst = src @ R_true.T + shift
+    R, t = weighted_procrustes(src, dst)
+    _check_rotation(R)
+    assert float((R - R_true).abs().max()) < 1e-6
+    assert float(rigid_fit_residual(src, dst, R=R, t=t)) < 1e-6 * (1.0 + abs(shift) + 10.0**log_scale)
