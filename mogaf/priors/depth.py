@@ -2,7 +2,8 @@
 
 Sources, in the order of `depth_sources`:
 - "shipped": scene.h5 shipped/depth or shipped/disparity (for example
-  Shape-of-Motion's aligned Depth-Anything disparity), per observed frame;
+  Shape-of-Motion's aligned Depth-Anything disparity), per observed frame
+  (frames without a shipped map are invalid);
 - "scene": the scene's own depth (DyCheck lidar depth, synthetic GT depth).
 Values are kept as shipped; `depth_kind` says whether they are depth or
 disparity. valid = value > 0 (and the shipped valid mask when there is one).
@@ -33,19 +34,14 @@ def _as_hw(arr: np.ndarray, H: int, W: int, interp: int) -> np.ndarray:
 def _shipped_depth(shipped: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray | None, str] | None:
     for kind in ("depth", "disparity"):
         entry = shipped.get(kind)
-        if entry is None:
-            continue
-        if isinstance(entry, Mapping):
-            if "values" not in entry:
-                continue
-            return np.asarray(entry["values"]), entry.get("valid"), kind
-        return np.asarray(entry), None, kind
+        if isinstance(entry, Mapping) and "values" in entry:
+            return np.asarray(entry["values"]), entry.get("present"), kind
     return None
 
 
 def missing_depth_message(scene_h5: str | os.PathLike, meta: Mapping[str, Any], name: str) -> str:
     where = meta.get("scene_dir") or meta.get("source_dir") or meta.get("data_dir") or "<scene_dir>"
-    factor = meta.get("downscale") or meta.get("factor") or "<S>"
+    factor = meta.get("scale") or meta.get("downscale") or meta.get("factor") or "<S>"
     return (f"monocular scene '{name}' has no depth prior: provide {where}/depth/{factor}x/<frame>.npy (metric depth) "
             f"or {where}/flow3d_preprocessed/aligned_depth_anything_colmap/{factor}x/<frame>.npy "
             f"(Shape-of-Motion's aligned disparity), then re-run ingest")
@@ -76,7 +72,8 @@ def select_depth(scene_h5: str | os.PathLike, scene, shipped: Mapping[str, Any],
         values = _as_hw(values, H, W, cv2.INTER_NEAREST)
         ok = np.isfinite(values) & (values > 0)
         if valid is not None:
-            ok &= _as_hw(np.asarray(valid).astype(np.uint8), H, W, cv2.INTER_NEAREST) > 0
+            valid = np.asarray(valid).astype(bool)
+            ok &= valid.reshape(valid.shape + (1,) * (3 - valid.ndim))  # per-frame "present" flags
         values = np.where(ok, values, 0.0).astype(np.float32)
         return values, ok.astype(np.uint8), kind, name
     raise input_error(scene_h5, missing_depth_message(scene_h5, scene.meta, scene.name))

@@ -36,6 +36,8 @@ class FlowEstimator:
             if preset not in DIS_PRESETS:
                 raise MogafError(f"priors: dis_preset {preset!r} is not one of {tuple(DIS_PRESETS)}")
             self._dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])
+            # Finest pyramid level: 0 = full resolution (presets stop at 1 or 2).
+            self._dis.setFinestScale(int(params.get("dis_finest_scale", 0)))
             # Variational refinement keeps sub-pixel accuracy on smooth motion.
             self._dis.setUseSpatialPropagation(True)
         elif not hasattr(cv2, "optflow") or not hasattr(cv2.optflow, "calcOpticalFlowDenseRLOF"):
@@ -74,7 +76,6 @@ def sample(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
         return np.zeros((0,) + image.shape[2:], np.float32)
     mx = np.ascontiguousarray(xy[:, 0], dtype=np.float32).reshape(1, n)
     my = np.ascontiguousarray(xy[:, 1], dtype=np.float32).reshape(1, n)
-    out = np.empty((0,), np.float32)
     # cv2.remap handles at most 4 channels and rows of at most 32767 columns.
     chunks = []
     for s in range(0, n, 32000):
@@ -82,3 +83,10 @@ def sample(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
                                 borderMode=cv2.BORDER_REPLICATE))
     out = np.concatenate(chunks, axis=1)[0]
     return out.reshape((n,) + image.shape[2:]).astype(np.float32, copy=False)
+
+
+def sample_patches(image: np.ndarray, xy: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Bilinear patches (N, K, C) of `image` around xy (N, 2) at `offsets` (K, 2)."""
+    pts = (xy[:, None, :] + offsets[None]).reshape(-1, 2)
+    out = sample(image, pts)
+    return out.reshape(xy.shape[0], offsets.shape[0], -1)

@@ -1,22 +1,24 @@
-"""Instances from motion: spectral clustering of 2D tracks, then pixel labels.
+"""Instances from motion: clustering of 2D tracks, then pixel labels.
 
 Used when the dataset ships no instance masks. Tracks are compared pairwise
 on the frames where both are visible (positions sampled every
-`cluster_time_stride` frames):
-  d_motion = max over common steps |v_a - v_b|   (velocities, px per frame)
+`cluster_time_stride` frames, or sparser so that at most 64 samples remain):
+  d_motion = RMS over common steps of |v_a - v_b| (velocities, px per frame)
   d_space  = mean over common frames |x_a - x_b| (px)
-  affinity = exp(-(d_motion / cluster_motion_sigma_px)^2
-                 -(d_space / (cluster_spatial_sigma * image diagonal))^2),
-0 for pairs sharing fewer than 2 steps. The number of clusters is
-`num_instances`, or (0) the largest eigengap of the normalised graph
-Laplacian up to `max_instances`; embeddings are clustered with k-means.
-At most `cluster_max_tracks` tracks (a seeded subsample) enter the
-eigenproblem; the others join the cluster of their most similar clustered
-track. Clusters holding fewer than `cluster_min_fraction` of the tracks are
-merged into their most similar neighbour cluster. Cluster ids are 1..K by
-decreasing size.
+(pairs sharing fewer than 2 steps are unrelated). Tracks are grouped by
+average-linkage agglomerative clustering on d_motion, merging only spatial
+neighbours (each track linked to those of its `cluster_knn` nearest tracks
+by d_space that lie within `cluster_link_radius_px`), until groups differ by more than `cluster_motion_threshold_px`
+(or into `num_instances` groups when that is > 0). So an instance is a
+spatially connected set of tracks that move alike; two separate objects
+moving alike stay apart. At most `cluster_max_tracks` tracks (a seeded
+subsample) are clustered; each other track joins the group of the nearest
+clustered track that moves like it. Groups with fewer than
+`cluster_min_fraction` of the tracks are merged into the neighbouring group
+that moves most alike, and at most `max_instances` groups are kept (the
+closest are merged). Ids are 1..K by decreasing size.
 
-Each observed frame's foreground pixels take the cluster of the nearest track
+Each observed frame's foreground pixels take the group of the nearest track
 visible in that frame (nearest track at its last known position when none is
 visible). Rigidity of such instances is unknown (-1).
 """
@@ -27,16 +29,18 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-from scipy.linalg import eigh
 from scipy.spatial import cKDTree
-from sklearn.cluster import KMeans
 
 from .tracks import Tracks
 
 
+MAX_TIME_SAMPLES = 64  # the stride grows on long videos to bound the pairwise cost
+
+
 def _features(tracks: Tracks, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     T = tracks.xy.shape[1]
-    ts = np.arange(0, T, max(1, int(stride)))
+    stride = max(1, int(stride), int(np.ceil(T / MAX_TIME_SAMPLES)))
+    ts = np.arange(0, T, stride)
     X = tracks.xy[:, ts].astype(np.float64)
     V = tracks.visible[:, ts]
     dt = np.diff(ts).astype(np.float64)
@@ -45,90 +49,149 @@ def _features(tracks: Tracks, stride: int) -> tuple[np.ndarray, np.ndarray, np.n
     return X, V, D, DV
 
 
-def _affinity(rows: np.ndarray, cols: np.ndarray, feats, sig_m: float, sig_s: float, chunk: int = 64) -> np.ndarray:
+def _distances(rows: np.ndarray, cols: np.ndarray, feats, chunk: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """(d_motion, d_space) between tracks `rows` and `cols`; inf where unrelated."""
     X, V, D, DV = feats
-    out = np.zeros((len(rows), len(cols)), np.float64)
+    dm_out = np.full((len(rows), len(cols)), np.inf)
+    ds_out = np.full((len(rows), len(cols)), np.inf)
     Xc, Vc, Dc, DVc = X[cols], V[cols], D[cols], DV[cols]
     for s in range(0, len(rows), chunk):
         r = rows[s : s + chunk]
         common = DV[r][:, None, :] & DVc[None]  # (m, n, S-1)
         nstep = common.sum(-1)
-        dv = np.linalg.norm(D[r][:, None] - Dc[None], axis=-1)
-        dm = np.where(common, dv, 0.0).max(-1) if dv.shape[-1] else np.zeros(nstep.shape)
+        if D.shape[1]:
+            dv = np.linalg.norm(D[r][:, None] - Dc[None], axis=-1)
+            dm = np.sqrt(np.where(common, dv**2, 0.0).sum(-1) / np.maximum(nstep, 1))
+        else:
+            dm = np.zeros(nstep.shape)
         cf = V[r][:, None, :] & Vc[None]
-        nf = cf.sum(-1)
         dx = np.linalg.norm(X[r][:, None] - Xc[None], axis=-1)
-        ds = np.where(cf, dx, 0.0).sum(-1) / np.maximum(nf, 1)
-        w = np.exp(-((dm / sig_m) ** 2) - (ds / sig_s) ** 2)
-        w[nstep < 2] = 0.0
-        out[s : s + chunk] = w
-    return out
+        ds = np.where(cf, dx, 0.0).sum(-1) / np.maximum(cf.sum(-1), 1)
+        ok = nstep >= 2
+        dm_out[s : s + chunk] = np.where(ok, dm, np.inf)
+        ds_out[s : s + chunk] = np.where(ok, ds, np.inf)
+    return dm_out, ds_out
+
+
+def _agglomerate(dm: np.ndarray, ds: np.ndarray, knn: int, radius: float, threshold: float, n_clusters: int) -> np.ndarray:
+    from scipy.sparse import csr_matrix
+    from sklearn.cluster import AgglomerativeClustering
+
+    n = dm.shape[0]
+    if n == 1:
+        return np.zeros(1, np.int64)
+    k = max(1, min(int(knn), n - 1))
+    dsn = ds.copy()
+    np.fill_diagonal(dsn, np.inf)
+    nearest = np.argpartition(dsn, k - 1, axis=1)[:, :k]
+    rows = np.repeat(np.arange(n), k)
+    cols = nearest.ravel()
+    finite = dsn[rows, cols] <= radius  # (inf for tracks never visible together)
+    conn = csr_matrix((np.ones(finite.sum()), (rows[finite], cols[finite])), shape=(n, n))
+    conn = ((conn + conn.T) > 0).astype(np.float64)
+    big = 1e6  # unrelated pairs (no common frames)
+    dist = np.where(np.isfinite(dm), dm, big)
+    dist = 0.5 * (dist + dist.T)
+    np.fill_diagonal(dist, 0.0)
+    if n_clusters > 0:
+        import warnings
+
+        with warnings.catch_warnings():
+            # sklearn links disconnected components itself (with a warning).
+            warnings.simplefilter("ignore")
+            model = AgglomerativeClustering(n_clusters=int(n_clusters), metric="precomputed", linkage="average",
+                                            connectivity=conn)
+            return model.fit_predict(dist).astype(np.int64)
+    # Spatially separate components never merge: cluster each on its own.
+    from scipy.sparse.csgraph import connected_components
+
+    ncomp, comp = connected_components(conn, directed=False)
+    labels = np.zeros(n, np.int64)
+    next_id = 0
+    for c in range(ncomp):
+        idx = np.flatnonzero(comp == c)
+        if idx.size == 1:
+            sub = np.zeros(1, np.int64)
+        else:
+            model = AgglomerativeClustering(n_clusters=None, distance_threshold=float(threshold), metric="precomputed",
+                                            linkage="average", connectivity=conn[idx][:, idx])
+            sub = model.fit_predict(dist[np.ix_(idx, idx)]).astype(np.int64)
+        labels[idx] = sub + next_id
+        next_id += int(sub.max()) + 1
+    return labels
+
+
+def _merge_small(labels: np.ndarray, dm: np.ndarray, min_size: int, max_groups: int) -> np.ndarray:
+    """Merge groups below min_size, then the closest groups above max_groups."""
+    labels = labels.copy()
+    fin = np.where(np.isfinite(dm), dm, np.nan)
+    while True:
+        ids, counts = np.unique(labels, return_counts=True)
+        if len(ids) <= 1:
+            return labels
+        small = counts.min() < min_size
+        if not small and len(ids) <= max_groups:
+            return labels
+        if small:
+            a = ids[np.argmin(counts)]
+            cand = [c for c in ids if c != a]
+        else:
+            # Merge the pair of groups with the smallest mean motion difference.
+            a, cand = None, None
+        if a is not None:
+            scores = []
+            for c in cand:
+                block = fin[np.ix_(labels == a, labels == c)]
+                scores.append(np.nanmean(block) if np.isfinite(block).any() else np.inf)
+            labels[labels == a] = cand[int(np.argmin(scores))]
+        else:
+            best, pair = np.inf, (ids[0], ids[1])
+            for i, x in enumerate(ids):
+                for y in ids[i + 1 :]:
+                    block = fin[np.ix_(labels == x, labels == y)]
+                    v = np.nanmean(block) if np.isfinite(block).any() else np.inf
+                    if v < best:
+                        best, pair = v, (x, y)
+            labels[labels == pair[1]] = pair[0]
 
 
 def cluster_tracks(tracks: Tracks, image_hw: tuple[int, int], params: Mapping[str, Any]) -> np.ndarray:
-    """Cluster ids 1..K (P,) int64 for the tracks; empty input -> empty output."""
+    """Instance ids 1..K (P,) int64 for the tracks; empty input -> empty output."""
     P = tracks.num_tracks
     if P == 0:
         return np.zeros(0, np.int64)
-    H, W = image_hw
-    sig_m = max(float(params["cluster_motion_sigma_px"]), 1e-6)
-    sig_s = max(float(params["cluster_spatial_sigma"]) * float(np.hypot(H, W)), 1e-6)
+    thr = max(float(params["cluster_motion_threshold_px"]), 1e-6)
     feats = _features(tracks, int(params["cluster_time_stride"]))
     rng = np.random.default_rng(int(params["seed"]))
     cap = max(2, int(params["cluster_max_tracks"]))
     core = np.sort(rng.choice(P, cap, replace=False)) if P > cap else np.arange(P)
-    A = _affinity(core, core, feats, sig_m, sig_s)
-    A = 0.5 * (A + A.T)
-    np.fill_diagonal(A, 1.0)
-    n = len(core)
-    deg = A.sum(1)
-    Dm = 1.0 / np.sqrt(deg)
-    M = Dm[:, None] * A * Dm[None, :]  # normalised affinity; Laplacian = I - M
-    kmax = int(min(max(1, int(params["max_instances"])), n))
-    evals, evecs = eigh(M, subset_by_index=[n - min(kmax + 1, n), n - 1])
-    evals, evecs = evals[::-1], evecs[:, ::-1]  # largest first = smallest Laplacian eigenvalues
-    k = int(params["num_instances"])
-    if k <= 0:
-        lap = 1.0 - evals
-        gaps = np.diff(lap)[:kmax] if len(lap) > 1 else np.zeros(0)
-        k = int(np.argmax(gaps)) + 1 if gaps.size and gaps.max() > 1e-3 else 1
-    k = max(1, min(k, kmax))
-    if k == 1:
-        core_lab = np.zeros(n, np.int64)
-    else:
-        emb = evecs[:, :k]
-        emb = emb / np.maximum(np.linalg.norm(emb, axis=1, keepdims=True), 1e-12)
-        core_lab = KMeans(k, n_init=10, random_state=int(params["seed"])).fit_predict(emb).astype(np.int64)
-    # Merge clusters that are too small into their most similar neighbour.
-    min_size = max(1, int(np.ceil(float(params["cluster_min_fraction"]) * n)))
-    while True:
-        ids, counts = np.unique(core_lab, return_counts=True)
-        if len(ids) <= 1 or counts.min() >= min_size:
-            break
-        small = ids[np.argmin(counts)]
-        members = core_lab == small
-        others = [c for c in ids if c != small]
-        score = [A[np.ix_(members, core_lab == c)].sum() for c in others]
-        core_lab[members] = others[int(np.argmax(score))]
+    dm, ds = _distances(core, core, feats)
+    core_lab = _agglomerate(dm, ds, int(params["cluster_knn"]), float(params["cluster_link_radius_px"]), thr,
+                            int(params["num_instances"]))
+    min_size = max(1, int(np.ceil(float(params["cluster_min_fraction"]) * len(core))))
+    max_groups = int(params["num_instances"]) if int(params["num_instances"]) > 0 else max(1, int(params["max_instances"]))
+    core_lab = _merge_small(core_lab, dm, min_size, max_groups)
     labels = np.zeros(P, np.int64)
     labels[core] = core_lab
     rest = np.setdiff1d(np.arange(P), core)
-    if rest.size:
-        Ar = _affinity(rest, core, feats, sig_m, sig_s)
-        best = Ar.argmax(1)
-        labels[rest] = core_lab[best]
-        # No shared frames with any clustered track: nearest at the query frame.
-        lonely = Ar.max(1) <= 0
-        if lonely.any():
-            for i in np.flatnonzero(lonely):
-                q = tracks.query_index[rest[i]]
-                d = np.linalg.norm(tracks.xy[core, q] - tracks.xy[rest[i], q], axis=1)
-                labels[rest[i]] = core_lab[int(np.argmin(d))]
+    for s in range(0, rest.size, 256):
+        r = rest[s : s + 256]
+        dmr, dsr = _distances(r, core, feats)
+        # Nearest clustered track among those moving alike, else the most alike.
+        alike = np.where(dmr <= thr, dsr, np.inf)
+        best = np.where(np.isfinite(alike).any(1), np.argmin(alike, 1), np.argmin(dmr, 1))
+        labels[r] = core_lab[best]
+        lonely = ~np.isfinite(dmr).any(1)
+        for i in np.flatnonzero(lonely):
+            q = tracks.query_index[r[i]]
+            d = np.linalg.norm(tracks.xy[core, q] - tracks.xy[r[i], q], axis=1)
+            labels[r[i]] = core_lab[int(np.argmin(d))]
     # Ids 1..K by decreasing size (ties: smaller old id first).
     ids, counts = np.unique(labels, return_counts=True)
     order = ids[np.lexsort((ids, -counts))]
-    remap = {int(old): new + 1 for new, old in enumerate(order)}
-    return np.array([remap[int(v)] for v in labels], np.int64)
+    remap = np.zeros(int(ids.max()) + 1, np.int64)
+    remap[order] = np.arange(1, len(order) + 1)
+    return remap[labels]
 
 
 def label_pixels(tracks: Tracks, labels: np.ndarray, fg: np.ndarray) -> np.ndarray:

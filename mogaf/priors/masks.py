@@ -9,6 +9,9 @@
   of the video); the mask is cleaned with an opening, small components
   (< `motion_min_area` of the image) are dropped, holes are filled and it is
   dilated by `motion_dilate_px`. An object that stops moving disappears.
+  `static_tracks` then tells which tracks inside such a mask do not move
+  beyond the camera motion (the mask bleeds around moving objects): the
+  stage drops them from the instances and the mask.
 - `background_colour_mask`: for composited synthetic renders (D-NeRF without
   alpha), pixels that differ from the known background colour.
 """
@@ -16,6 +19,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -26,35 +30,58 @@ from ..errors import MogafError
 CAMERA_MODELS = ("homography", "fundamental", "none")
 
 
-def _camera_residual(flow: np.ndarray, model: str, stride: int = 4) -> np.ndarray:
-    """Per-pixel residual (px) of `flow` after removing the camera motion."""
-    H, W = flow.shape[:2]
-    mag = np.linalg.norm(flow, axis=-1)
+@dataclass
+class CameraMotion:
+    """Camera-induced motion between two frames: a fitted model or none."""
+
+    kind: str  # "homography" | "fundamental" | "none"
+    matrix: np.ndarray | None = None
+
+    def residual(self, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
+        """Distance (px) of the correspondences x0 -> x1 (N, 2) from the camera motion."""
+        x0 = np.asarray(x0, np.float64)
+        x1 = np.asarray(x1, np.float64)
+        if self.kind == "none" or self.matrix is None:
+            return np.linalg.norm(x1 - x0, axis=-1)
+        h0 = np.concatenate([x0, np.ones(x0.shape[:-1] + (1,))], -1)
+        if self.kind == "homography":
+            pts = h0 @ self.matrix.T
+            pred = pts[..., :2] / np.where(np.abs(pts[..., 2:]) < 1e-9, 1e-9, pts[..., 2:])
+            return np.linalg.norm(x1 - pred, axis=-1)
+        h1 = np.concatenate([x1, np.ones(x1.shape[:-1] + (1,))], -1)
+        Fx0 = h0 @ self.matrix.T
+        Ftx1 = h1 @ self.matrix
+        num = np.abs(np.sum(h1 * Fx0, -1))
+        den = np.sqrt(Fx0[..., 0] ** 2 + Fx0[..., 1] ** 2 + Ftx1[..., 0] ** 2 + Ftx1[..., 1] ** 2) + 1e-9
+        return num / den
+
+
+def fit_camera_motion(flow: np.ndarray, model: str, stride: int = 4) -> CameraMotion:
+    """RANSAC fit of the camera-induced motion to a dense flow (array coordinates)."""
     if model == "none":
-        return mag
+        return CameraMotion("none")
+    H, W = flow.shape[:2]
     ys, xs = np.mgrid[0:H:stride, 0:W:stride]
     src = np.stack([xs.ravel(), ys.ravel()], -1).astype(np.float32)
     dst = src + flow[ys.ravel(), xs.ravel()]
     if len(src) < 8:
-        return mag
-    gy, gx = np.mgrid[0:H, 0:W].astype(np.float32)
+        return CameraMotion("none")
     if model == "homography":
-        Hm, inl = cv2.findHomography(src, dst, cv2.RANSAC, 1.0, maxIters=500, confidence=0.99)
-        if Hm is None or inl is None or inl.mean() < 0.2:
-            return mag
-        pts = np.stack([gx, gy, np.ones_like(gx)], -1) @ Hm.T
-        pred = pts[..., :2] / np.where(np.abs(pts[..., 2:]) < 1e-9, 1e-9, pts[..., 2:])
-        return np.linalg.norm(np.stack([gx, gy], -1) + flow - pred, axis=-1)
-    Fm, inl = cv2.findFundamentalMat(src, dst, cv2.FM_RANSAC, 1.0, 0.99)
-    if Fm is None or Fm.shape != (3, 3) or inl is None or inl.mean() < 0.2:
-        return mag
-    x1 = np.stack([gx, gy, np.ones_like(gx)], -1)
-    x2 = np.concatenate([x1[..., :2] + flow, np.ones_like(gx)[..., None]], -1)
-    Fx1 = x1 @ Fm.T
-    Ftx2 = x2 @ Fm
-    num = np.abs(np.sum(x2 * Fx1, -1))
-    den = np.sqrt(Fx1[..., 0] ** 2 + Fx1[..., 1] ** 2 + Ftx2[..., 0] ** 2 + Ftx2[..., 1] ** 2) + 1e-9
-    return num / den
+        M, inl = cv2.findHomography(src, dst, cv2.RANSAC, 1.0, maxIters=500, confidence=0.99)
+        ok = M is not None and inl is not None and inl.mean() >= 0.2
+    else:
+        M, inl = cv2.findFundamentalMat(src, dst, cv2.FM_RANSAC, 1.0, 0.99)
+        ok = M is not None and M.shape == (3, 3) and inl is not None and inl.mean() >= 0.2
+    # Too few pixels agree on a camera motion: fall back to a static camera.
+    return CameraMotion(model, np.asarray(M, np.float64)) if ok else CameraMotion("none")
+
+
+def _camera_residual(flow: np.ndarray, cam: CameraMotion) -> np.ndarray:
+    """Per-pixel residual (px) of `flow` after removing the camera motion."""
+    H, W = flow.shape[:2]
+    gy, gx = np.mgrid[0:H, 0:W].astype(np.float64)
+    x0 = np.stack([gx, gy], -1)
+    return cam.residual(x0, x0 + flow).astype(np.float32)
 
 
 def clean_mask(mask: np.ndarray, min_area: float, dilate_px: int) -> np.ndarray:
@@ -77,8 +104,9 @@ def clean_mask(mask: np.ndarray, min_area: float, dilate_px: int) -> np.ndarray:
     return m.astype(bool)
 
 
-def motion_segmentation(fwd: np.ndarray, bwd: np.ndarray, params: Mapping[str, Any]) -> np.ndarray:
-    """(T, H, W) bool moving-pixel masks from consecutive flows (T-1, H, W, 2)."""
+def motion_segmentation(fwd: np.ndarray, bwd: np.ndarray, params: Mapping[str, Any]) -> tuple[np.ndarray, list[CameraMotion]]:
+    """(T, H, W) bool moving-pixel masks from consecutive flows (T-1, H, W, 2),
+    and the camera motion fitted to each forward flow t -> t+1."""
     model = str(params["motion_camera_model"]).lower()
     if model not in CAMERA_MODELS:
         raise MogafError(f"priors: motion_camera_model {model!r} is not one of {CAMERA_MODELS}")
@@ -87,9 +115,10 @@ def motion_segmentation(fwd: np.ndarray, bwd: np.ndarray, params: Mapping[str, A
     thr = float(params["motion_threshold_px"])
     out = np.zeros((T, H, W), bool)
     if T < 2:
-        return out
-    res_next = [_camera_residual(fwd[t], model) for t in range(T - 1)]  # frame t -> t+1
-    res_prev = [_camera_residual(bwd[t], model) for t in range(T - 1)]  # frame t+1 -> t
+        return out, []
+    cams = [fit_camera_motion(fwd[t], model) for t in range(T - 1)]
+    res_next = [_camera_residual(fwd[t], cams[t]) for t in range(T - 1)]  # frame t -> t+1
+    res_prev = [_camera_residual(bwd[t], fit_camera_motion(bwd[t], model)) for t in range(T - 1)]  # t+1 -> t
     for t in range(T):
         rs = []
         if t < T - 1:
@@ -98,7 +127,27 @@ def motion_segmentation(fwd: np.ndarray, bwd: np.ndarray, params: Mapping[str, A
             rs.append(res_prev[t - 1])
         moving = np.minimum.reduce(rs) > thr
         out[t] = clean_mask(moving, float(params["motion_min_area"]), int(params["motion_dilate_px"]))
-    return out
+    return out, cams
+
+
+def static_tracks(xy: np.ndarray, visible: np.ndarray, cams: list[CameraMotion], threshold: float) -> np.ndarray:
+    """(P,) bool: tracks whose RMS motion beyond the camera's is below `threshold` px/frame.
+
+    xy are image coordinates (+0.5 convention) over the frames the cameras were
+    fitted on (in temporal order). Tracks with no visible step are not static.
+    """
+    P, T = visible.shape
+    if P == 0 or T < 2:
+        return np.zeros(P, bool)
+    sq = np.zeros(P)
+    n = np.zeros(P)
+    for t in range(T - 1):
+        step = visible[:, t] & visible[:, t + 1]
+        if step.any():
+            r = cams[t].residual(xy[step, t] - 0.5, xy[step, t + 1] - 0.5)
+            sq[step] += r**2
+            n[step] += 1
+    return (n > 0) & (np.sqrt(sq / np.maximum(n, 1)) < threshold)
 
 
 def background_colour_mask(images: np.ndarray, background: Any, tol: float = 8.0) -> np.ndarray:

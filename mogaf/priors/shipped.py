@@ -1,18 +1,21 @@
 """Split-aware readers of the priors a dataset ships in scene.h5.
 
-`load_observed_shipped` reads scene.h5's `shipped/` group and
-`load_observed_ground_truth_tracks` its `ground_truth/` 2D tracks, cutting
-both to the observed part of the split *while reading* (h5py selections), so
+Only the split's observed frames are read (h5py row/column selections), so
 no future frame's data is ever loaded:
 
-- per-frame arrays (first axis = scene.h5 frame rows, listed in
-  SHIPPED_FRAME_KEYS) -> only the split's observed rows;
-- time-major arrays (a time axis over the scene's time steps, listed in
-  SHIPPED_TIME_AXES) -> only the observed time steps;
-- any other entry is not read (reported in `ignored`).
-
-Shipped 2D tracks whose query time step is not observed are dropped by the
-caller (their query point was picked on a future frame).
+- frame-indexed groups shipped/<name>/{frame (N,), values (N, ...)} for
+  <name> in FRAME_INDEXED ("frame" = scene.h5 rows that have a value, e.g.
+  the iPhone reader's Shape-of-Motion disparity) -> values of the observed
+  frames, zeros and present = False where a frame has none;
+- shipped/tracks_2d (the iPhone reader's layout of SoM's TAPIR tracks):
+  query_frame (Q,), target_frame (M,), offsets (Q+1,), values
+  (offsets[-1], M, 4) [x, y (+0.5 convention), occlusion logit,
+  expected-distance logit] -> only queries whose query frame is observed and
+  only observed target columns;
+- ground_truth/{tracks2d (P, T, 2), visible (P, T)} of the synthetic scene
+  -> only the observed time steps.
+Everything else under shipped/ (keypoints, distortion, ...) is not read and
+is reported in `ignored`.
 """
 
 from __future__ import annotations
@@ -24,37 +27,13 @@ from typing import Any
 import h5py
 import numpy as np
 
-from ..artefact import open_artefact, read_rows
+from ..artefact import open_artefact
 from ..errors import input_error
 from ..scene import SCENE_STAGE
 from ..split import Split
 
-# Entries of shipped/ whose first axis is the scene.h5 frame row (leaf path
-# relative to shipped/).
-SHIPPED_FRAME_KEYS = {
-    "depth",  # (F, H, W) float32, 0 = invalid
-    "disparity",  # (F, H, W) float32, 0 = invalid
-    "depth/values",
-    "depth/valid",
-    "disparity/values",
-    "disparity/valid",
-    "masks",  # (F, H, W) uint8 foreground (e.g. SoM's track_anything masks)
-    "foreground",
-    "masks/foreground",
-}
-# Entries with a time axis over the scene's time steps: leaf path -> axis.
-SHIPPED_TIME_AXES = {
-    "tracks2d/xy": 1,  # (P, T, 2) float32 pixel coordinates (+0.5 convention)
-    "tracks2d/visible": 1,  # (P, T) uint8/bool
-    "tracks2d/confidence": 1,  # (P, T) float32 (optional)
-    "tracks2d/occlusion": 1,  # (P, T) float32 logits, SoM/TAPIR style (optional)
-    "tracks2d/expected_dist": 1,  # (P, T) float32, SoM/TAPIR style (optional)
-}
-# Per-track entries (no time axis) read whole.
-SHIPPED_TRACK_KEYS = {"tracks2d/query_time"}  # (P,) int64 time step of the query
-# Ground-truth 2D tracks of the synthetic scene (train camera 0).
-GROUND_TRUTH_TRACK_AXES = {"tracks2d": 1, "visible": 1}
-GROUND_TRUTH_STATIC = {"points_instance"}
+FRAME_INDEXED = ("disparity", "depth", "foreground")
+TRACKS = "tracks_2d"
 
 
 @dataclass
@@ -63,78 +42,106 @@ class Observed:
     ignored: list[str] = field(default_factory=list)
 
 
-def _set(tree: dict[str, Any], path: str, value: Any) -> None:
-    parts = path.split("/")
-    node = tree
-    for p in parts[:-1]:
-        node = node.setdefault(p, {})
-    node[parts[-1]] = value
-
-
-def _read_time_prefix(ds: h5py.Dataset, axis: int, steps: np.ndarray, num_timesteps: int, path) -> np.ndarray:
-    if ds.ndim <= axis or ds.shape[axis] != num_timesteps:
-        raise input_error(path, f"entry '{ds.name}' has {ds.shape} but a time axis {axis} of {num_timesteps} steps was expected")
-    steps = np.asarray(steps, np.int64)
-    if steps.size == 0:
-        shape = list(ds.shape)
-        shape[axis] = 0
-        return np.zeros(shape, ds.dtype)
-    sel: list[Any] = [slice(None)] * ds.ndim
-    if np.array_equal(steps, np.arange(steps[0], steps[-1] + 1)):
-        sel[axis] = slice(int(steps[0]), int(steps[-1]) + 1)  # contiguous: one slab
-    else:
-        sel[axis] = np.sort(steps)
-    try:
-        arr = ds[tuple(sel)]
-    except (OSError, RuntimeError) as exc:
-        raise input_error(path, f"entry '{ds.name}' cannot be read ({exc.__class__.__name__})") from None
-    if not np.array_equal(np.sort(steps), steps):
-        order = np.argsort(np.argsort(steps))
-        arr = np.take(arr, order, axis=axis)
+def _checked(arr: np.ndarray, path, name: str) -> np.ndarray:
     if arr.dtype.kind in "fc" and not np.all(np.isfinite(arr)):
-        raise input_error(path, f"entry '{ds.name}' contains non-finite values in the observed steps")
+        raise input_error(path, f"entry '{name}' contains non-finite values in the observed frames")
     return arr
 
 
+def _read(ds: h5py.Dataset, sel: tuple, path) -> np.ndarray:
+    try:
+        return ds[sel]
+    except (OSError, RuntimeError) as exc:
+        raise input_error(path, f"entry '{ds.name}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})") from None
+
+
+def _frame_indexed(g: h5py.Group, rows: np.ndarray, path) -> dict[str, Any]:
+    frame = np.asarray(g["frame"][()], np.int64)
+    ds = g["values"]
+    if ds.shape[0] != frame.size:
+        raise input_error(path, f"entry '{ds.name}' has {ds.shape[0]} rows for {frame.size} frames")
+    where = {int(f): i for i, f in enumerate(frame)}
+    idx = np.array([where.get(int(r), -1) for r in rows], np.int64)
+    present = idx >= 0
+    out = np.zeros((rows.size,) + ds.shape[1:], ds.dtype)
+    take = np.unique(idx[present])
+    if take.size:
+        block = _read(ds, (take,), path)
+        out[present] = block[np.searchsorted(take, idx[present])]
+    return {"values": _checked(out, path, ds.name), "present": present}
+
+
+def _tracks_2d(g: h5py.Group, rows: np.ndarray, path) -> dict[str, Any]:
+    query_frame = np.asarray(g["query_frame"][()], np.int64)
+    target_frame = np.asarray(g["target_frame"][()], np.int64)
+    offsets = np.asarray(g["offsets"][()], np.int64)
+    ds = g["values"]
+    if offsets.size != query_frame.size + 1 or ds.shape[1] != target_frame.size or ds.shape[0] != offsets[-1]:
+        raise input_error(path, f"entry '{g.name}' is inconsistent (offsets, query/target frames, values {ds.shape})")
+    col_of = {int(f): j for j, f in enumerate(target_frame)}
+    cols = np.array([col_of.get(int(r), -1) for r in rows], np.int64)  # per observed frame
+    have = cols >= 0
+    sel_cols = np.unique(cols[have])
+    pos = {int(r): i for i, r in enumerate(rows)}
+    xy, occ, dist, qidx = [], [], [], []
+    for q, qf in enumerate(query_frame):
+        if int(qf) not in pos or offsets[q + 1] == offsets[q]:
+            continue  # queried on a frame that is not observed (e.g. future): never read
+        block = np.zeros((offsets[q + 1] - offsets[q], rows.size, 4), np.float32)
+        block[..., 2] = 1e3  # frames without a column: occluded
+        if sel_cols.size:
+            vals = _read(ds, (slice(int(offsets[q]), int(offsets[q + 1])), sel_cols), path)
+            block[:, have] = vals[:, np.searchsorted(sel_cols, cols[have])]
+        _checked(block, path, ds.name)
+        xy.append(block[..., :2])
+        occ.append(block[..., 2])
+        dist.append(block[..., 3])
+        qidx.append(np.full(block.shape[0], pos[int(qf)], np.int64))
+    if not xy:
+        F = rows.size
+        return {"xy": np.zeros((0, F, 2), np.float32), "occlusion": np.zeros((0, F), np.float32),
+                "expected_dist": np.zeros((0, F), np.float32), "query_index": np.zeros(0, np.int64)}
+    return {"xy": np.concatenate(xy), "occlusion": np.concatenate(occ), "expected_dist": np.concatenate(dist),
+            "query_index": np.concatenate(qidx)}
+
+
 def load_observed_shipped(scene_h5: str | os.PathLike, split: Split) -> Observed:
-    """shipped/ entries cut to the split's observed frames and time steps."""
+    """Shipped priors of the split's observed frames (see module doc)."""
     out = Observed()
     rows = np.asarray(split.frame_ids["observed"], np.int64)
     with open_artefact(scene_h5, SCENE_STAGE) as fh:
         if "shipped" not in fh:
             return out
-        n_frames = fh["frames/time"].shape[0]
-        T = int(fh.attrs["num_timesteps"])
-        items: list[tuple[str, h5py.Dataset]] = []
-        fh["shipped"].visititems(lambda name, obj: items.append((name, obj)) if isinstance(obj, h5py.Dataset) else None)
-        for name, ds in items:
-            if name in SHIPPED_FRAME_KEYS:
-                if ds.shape[0] != n_frames:
-                    raise input_error(scene_h5, f"entry 'shipped/{name}' has {ds.shape[0]} rows, the scene has {n_frames} frames")
-                _set(out.data, name, read_rows(fh, f"shipped/{name}", rows))
-            elif name in SHIPPED_TIME_AXES:
-                _set(out.data, name, _read_time_prefix(ds, SHIPPED_TIME_AXES[name], split.observed_timesteps, T, scene_h5))
-            elif name in SHIPPED_TRACK_KEYS:
-                _set(out.data, name, ds[()])
+        g = fh["shipped"]
+        for name, item in g.items():
+            if name in FRAME_INDEXED and isinstance(item, h5py.Group) and {"frame", "values"} <= set(item):
+                out.data[name] = _frame_indexed(item, rows, scene_h5)
+            elif name == TRACKS and isinstance(item, h5py.Group):
+                out.data[name] = _tracks_2d(item, rows, scene_h5)
             else:
                 out.ignored.append(f"shipped/{name}")
     return out
 
 
+def _time_prefix(ds: h5py.Dataset, steps: np.ndarray, T: int, path) -> np.ndarray:
+    if ds.ndim < 2 or ds.shape[1] != T:
+        raise input_error(path, f"entry '{ds.name}' has shape {ds.shape}, expected time on axis 1 ({T} steps)")
+    steps = np.asarray(steps, np.int64)
+    if steps.size and np.array_equal(steps, np.arange(steps[0], steps[-1] + 1)):
+        arr = _read(ds, (slice(None), slice(int(steps[0]), int(steps[-1]) + 1)), path)
+    else:
+        arr = _read(ds, (slice(None), steps), path) if steps.size else np.zeros((ds.shape[0], 0) + ds.shape[2:], ds.dtype)
+    return _checked(arr, path, ds.name)
+
+
 def load_observed_ground_truth_tracks(scene_h5: str | os.PathLike, split: Split) -> dict[str, Any]:
-    """ground_truth/{tracks2d, visible, points_instance} at observed steps ({} if absent)."""
-    out: dict[str, Any] = {}
+    """ground_truth/{tracks2d, visible} (train camera) at the observed steps ({} if absent)."""
     with open_artefact(scene_h5, SCENE_STAGE) as fh:
         if "ground_truth" not in fh or "tracks2d" not in fh["ground_truth"]:
-            return out
+            return {}
         T = int(fh.attrs["num_timesteps"])
         g = fh["ground_truth"]
-        for key, axis in GROUND_TRUTH_TRACK_AXES.items():
-            if key in g:
-                out[key] = _read_time_prefix(g[key], axis, split.observed_timesteps, T, scene_h5)
-        for key in GROUND_TRUTH_STATIC:
-            if key in g:
-                out[key] = g[key][()]
-        for key, value in g.attrs.items():
-            out.setdefault("attrs", {})[key] = value
-    return out
+        out = {"tracks2d": _time_prefix(g["tracks2d"], split.observed_timesteps, T, scene_h5)}
+        if "visible" in g:
+            out["visible"] = _time_prefix(g["visible"], split.observed_timesteps, T, scene_h5)
+        return out

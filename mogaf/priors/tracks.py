@@ -11,8 +11,11 @@
    flows; a step is accepted when the forward-backward error
    |x + f(x) + b(x + f(x)) - x| is at most
    `fb_threshold_px + fb_relative * |f(x)|`, the point stays
-   `border_px` inside the image and its colour changes by at most
-   `photometric_threshold` (mean absolute RGB difference in [0, 1]). The first
+   `border_px` inside the image and the mean absolute RGB difference (in
+   [0, 1]) between its (2 r + 1)^2 patch before and after the step, r =
+   `photometric_patch_radius`, is at most `photometric_threshold` (this
+   catches points dragged along by an occluding edge, whose flow is
+   forward-backward consistent). The first
    failed step ends the chain in that direction: the point is invisible from
    there on (occluded, left the image or lost) and keeps its last position;
 4. tracks visible in fewer than `min_track_length` frames are dropped.
@@ -38,7 +41,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .flow import consecutive_flows, sample
+from .flow import consecutive_flows, sample, sample_patches
 
 
 @dataclass
@@ -107,7 +110,8 @@ def _chain(pos0: np.ndarray, q: int, step: int, flows_to: np.ndarray, flows_back
     photo = float(p["photometric_threshold"])
     pos = pos0.copy()
     alive = np.ones(len(pos), bool)
-    colour = sample(blurred[q], pos)
+    r = int(p["photometric_patch_radius"])
+    offs = np.stack(np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1)), -1).reshape(-1, 2).astype(np.float32)
     t = q
     while 0 <= t + step < T and alive.any():
         idx = np.flatnonzero(alive)
@@ -121,12 +125,13 @@ def _chain(pos0: np.ndarray, q: int, step: int, flows_to: np.ndarray, flows_back
         ok = err <= fb_thr + fb_rel * np.linalg.norm(f, axis=1)
         ok &= (new[:, 0] >= border) & (new[:, 0] <= W - 1 - border)
         ok &= (new[:, 1] >= border) & (new[:, 1] <= H - 1 - border)
-        new_colour = sample(blurred[t + step], new)
         if photo > 0:
-            ok &= np.abs(new_colour - colour[idx]).mean(axis=1) <= photo
+            # Patch appearance must persist from one frame to the next.
+            before = sample_patches(blurred[t], cur, offs)
+            after = sample_patches(blurred[t + step], new, offs)
+            ok &= np.abs(after - before).mean(axis=(1, 2)) <= photo
         good = idx[ok]
         pos[good] = new[ok]
-        colour[good] = new_colour[ok]
         alive[idx[~ok]] = False
         t += step
         out_xy[:, t] = pos  # lost points keep their last position
