@@ -394,6 +394,7 @@ def read_iphone_layout(scene_dir: str | os.PathLike, dataset: str, scene: str, o
     shipped: dict = {}
     meta: dict = {
         "scale": S,
+        "scene_dir": str(scene_dir),
         "source_size": [int(W0), int(H0)],
         "cameras": "DyCheck camera/<frame>.json (original cameras; Shape-of-Motion's refined COLMAP cameras are not used)",
         "alpha": "DyCheck valid-pixel mask (colours not composited)" if has_alpha.any() else "none",

@@ -27,7 +27,8 @@ DEFAULTS: dict[str, Any] = {
     "d_model": 32,  # "32-dimensional hidden state"
     "nhead": 8,  # "eight attention heads"
     "dim_feedforward": 64,  # "64-dimensional feedforward layer"
-    "dropout": 0.2,  # "We apply a dropout rate of 0.2"
+    "dropout": 0.2,  # "We apply a dropout rate of 0.2" (residual + feed-forward dropout)
+    "attn_dropout": 0.0,  # not stated; 0 on the attention weights as in PatchTST, whose RevIN + flatten-head design this follows
     "num_layers": 1,  # "single-layer Transformer encoder" (LW); 5 = HC ablation (supp. Table "component analysis")
     # --- state normalisation: supp. "instance normalization for each sequence" ---
     "norm_eps": 1e-5,  # variance floor of the per-sequence normalisation (RevIN's default eps); keeps static sequences finite
@@ -65,7 +66,43 @@ def _sinusoid(length: int, dim: int):
 
 def _build_model(window: int, p: dict[str, Any]):
     import torch
+    import torch.nn.functional as F
     from torch import nn
+
+    class EncoderLayer(nn.Module):
+        """Post-norm transformer encoder layer (same maths as
+        torch.nn.TransformerEncoderLayer, relu feed-forward), written out so
+        attention can run through scaled_dot_product_attention. Dropout acts on
+        the residual branches and the feed-forward; dropout on the attention
+        weights is separate (`attn_dropout`, 0 as in PatchTST)."""
+
+        def __init__(self, d: int, nhead: int, dim_ff: int, dropout: float, attn_dropout: float) -> None:
+            super().__init__()
+            self.nhead = nhead
+            self.qkv = nn.Linear(d, 3 * d)
+            self.proj = nn.Linear(d, d)
+            self.ff1 = nn.Linear(d, dim_ff)
+            self.ff2 = nn.Linear(dim_ff, d)
+            self.norm1 = nn.LayerNorm(d)
+            self.norm2 = nn.LayerNorm(d)
+            self.p_drop = dropout
+            self.attn_dropout = attn_dropout
+
+        def drop(self, x):
+            # Inverted dropout from a uniform draw: same distribution as
+            # nn.Dropout, but torch.rand is much cheaper than bernoulli_ on CPU.
+            if not self.training or self.p_drop <= 0.0:
+                return x
+            keep = torch.rand_like(x) >= self.p_drop
+            return x * keep / (1.0 - self.p_drop)
+
+        def forward(self, x):
+            b, n, d = x.shape
+            q, k, v = self.qkv(x).view(b, n, 3, self.nhead, d // self.nhead).permute(2, 0, 3, 1, 4)
+            a = F.scaled_dot_product_attention(q, k, v, dropout_p=self.attn_dropout if self.training else 0.0)
+            a = a.transpose(1, 2).reshape(b, n, d)
+            x = self.norm1(x + self.drop(self.proj(a)))
+            return self.norm2(x + self.drop(self.ff2(self.drop(F.relu(self.ff1(x))))))
 
     class MotionTransformer(nn.Module):
         """Linear embedding 7 -> d (+ sinusoidal positions), encoder, flatten head -> 7."""
@@ -78,21 +115,19 @@ def _build_model(window: int, p: dict[str, Any]):
             # paper's cited inspiration for masked motion modelling).
             self.mask_token = nn.Parameter(torch.randn(d) * 0.02)
             self.register_buffer("pos", _sinusoid(window, d), persistent=False)
-            layer = nn.TransformerEncoderLayer(
-                d_model=d,
-                nhead=p["nhead"],
-                dim_feedforward=p["dim_feedforward"],
-                dropout=p["dropout"],
-                batch_first=True,
+            self.layers = nn.ModuleList(
+                EncoderLayer(d, p["nhead"], p["dim_feedforward"], p["dropout"], p["attn_dropout"])
+                for _ in range(p["num_layers"])
             )
-            self.encoder = nn.TransformerEncoder(layer, num_layers=p["num_layers"], enable_nested_tensor=False)
             self.head = nn.Linear(window * d, 7)  # flatten head
 
         def forward(self, x, mask=None):
             h = self.embed(x)
             if mask is not None:
                 h = torch.where(mask[..., None], self.mask_token.to(h.dtype), h)
-            h = self.encoder(h + self.pos)
+            h = h + self.pos
+            for layer in self.layers:
+                h = layer(h)
             return self.head(h.flatten(1))
 
     return MotionTransformer()
@@ -190,7 +225,7 @@ class MoGaFForecaster(Forecaster):
                     torch.nn.utils.clip_grad_norm_(model.parameters(), p["grad_clip"])
                 opt.step()
                 sched.step()
-                loss_val, pred_val, acc_val = float(loss), float(l_pred), float(l_acc)
+                loss_val, pred_val, acc_val = loss.item(), l_pred.item(), l_acc.item()
             model.eval()
         self.model = model
         self.info.update(

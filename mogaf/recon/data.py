@@ -38,6 +38,7 @@ class TrainData:
     tracks_visible: np.ndarray | None = None  # (P, F) bool
     tracks_query: np.ndarray | None = None  # (P,) int64 frame index (into F)
     point_cloud: np.ndarray | None = None  # (P, 6) xyz rgb, dataset-level
+    instance_mask: np.ndarray | None = None  # (F, H, W) int32, 0 = background
     downscale: int = 1
 
     @property
@@ -111,6 +112,7 @@ def load_train_data(scene_h5: str | os.PathLike, split: Split | str | os.PathLik
         bg = np.ones(3, np.float32)
 
     fg = None
+    inst = None
     depth = valid = None
     tracks_xy = tracks_vis = tracks_q = None
     if priors_h5 is not None:
@@ -125,6 +127,9 @@ def load_train_data(scene_h5: str | os.PathLike, split: Split | str | os.PathLik
         if masks.shape[1:] != (H, W):
             raise input_error(priors_h5, f"foreground masks are {masks.shape[1:]}, images are {(H, W)}")
         fg = _area_down((masks > 0).astype(np.float32), s)
+        if "masks/instance" in pr:
+            im = np.asarray(pr["masks/instance"], dtype=np.int32)[order]
+            inst = im[:, s // 2:: s, s // 2:: s][:, : H // s, : W // s] if s > 1 else im
         if "depth/values" in pr:
             d = np.asarray(pr["depth/values"], dtype=np.float64)[order]
             v = np.asarray(pr["depth/valid"]).astype(bool)[order] if "depth/valid" in pr else np.ones_like(d, bool)
@@ -168,6 +173,7 @@ def load_train_data(scene_h5: str | os.PathLike, split: Split | str | os.PathLik
         tracks_visible=tracks_vis,
         tracks_query=tracks_q,
         point_cloud=scene.point_cloud,
+        instance_mask=inst,
         downscale=s,
     )
 

@@ -76,10 +76,16 @@ def gaussian_colors(color_logits: torch.Tensor, sh_rest: torch.Tensor | None, me
     return torch.sigmoid(x)
 
 
+AUX_FIELDS = ("labels",)  # per-Gaussian tensors that are carried along but not optimised
+
+
 class GaussianParams(nn.Module):
     def __init__(self, tensors: dict[str, torch.Tensor]):
         super().__init__()
-        self.params = nn.ParameterDict({k: nn.Parameter(v.detach().clone().float()) for k, v in tensors.items()})
+        self.params = nn.ParameterDict({k: nn.Parameter(v.detach().clone().float()) for k, v in tensors.items()
+                                        if k not in AUX_FIELDS})
+        # aux: e.g. "labels" (N,) int64 instance id the Gaussian was initialised on (0 = unknown)
+        self.aux: dict[str, torch.Tensor] = {k: v.detach().clone() for k, v in tensors.items() if k in AUX_FIELDS}
 
     def __len__(self) -> int:
         return int(self.params["means"].shape[0])
@@ -104,6 +110,15 @@ class GaussianParams(nn.Module):
 
     def sh_rest(self) -> torch.Tensor | None:
         return self.params["sh_rest"] if "sh_rest" in self.params else None
+
+    def rows_aux(self, fn) -> None:
+        """Apply a row operation (densify / cull) to the aux tensors."""
+        self.aux = {k: fn(v) for k, v in self.aux.items()}
+
+    def _apply(self, fn, recurse=True):  # keep aux on the module's device
+        out = super()._apply(fn, recurse)
+        self.aux = {k: fn(v) for k, v in self.aux.items()}
+        return out
 
     def replace(self, name: str, value: torch.Tensor) -> nn.Parameter:
         p = nn.Parameter(value.detach().contiguous())
@@ -182,7 +197,7 @@ class ReconModel(nn.Module):
 
     def fg_poses_at(self, t: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Means (N,3) and wxyz quaternions (N,4) of the fg Gaussians at step index t."""
-        R, tr = self.fg_transforms(torch.tensor([int(t)]))
+        R, tr = self.fg_transforms(torch.tensor([int(t)], device=self.motion["rot6d"].device))
         R, tr = R[:, 0], tr[:, 0]
         means = torch.einsum("nij,nj->ni", R, self.fg.get("means")) + tr
         quats = matrix_to_quat(R @ quat_to_matrix(self.fg.get("quats")))
@@ -196,19 +211,19 @@ class ReconModel(nn.Module):
         quats = np.zeros((N, T, 4), np.float32)
         qc = quat_to_matrix(self.fg.get("quats"))
         for s in range(0, T, chunk):
-            t = torch.arange(s, min(T, s + chunk))
+            t = torch.arange(s, min(T, s + chunk), device=qc.device)
             R, tr = self.fg_transforms(t)
-            means[:, s:s + len(t)] = (torch.einsum("nkij,nj->nki", R, self.fg.get("means")) + tr).numpy()
-            quats[:, s:s + len(t)] = matrix_to_quat(R @ qc[:, None]).numpy()
+            means[:, s:s + len(t)] = (torch.einsum("nkij,nj->nki", R, self.fg.get("means")) + tr).cpu().numpy()
+            quats[:, s:s + len(t)] = matrix_to_quat(R @ qc[:, None]).cpu().numpy()
         return means, quats
 
     def to_model4d(self, timesteps: np.ndarray, background: np.ndarray, training: dict | None = None) -> Model4D:
         tm, tq = self.trajectories()
         return Model4D(
             fg=self.fg.to_set(),
-            motion_coef_logits=self.fg.get("motion_coef_logits").detach().numpy().astype(np.float32),
-            rot6d=self.motion["rot6d"].detach().numpy().astype(np.float32),
-            translations=self.motion["transl"].detach().numpy().astype(np.float32),
+            motion_coef_logits=self.fg.get("motion_coef_logits").detach().cpu().numpy().astype(np.float32),
+            rot6d=self.motion["rot6d"].detach().cpu().numpy().astype(np.float32),
+            translations=self.motion["transl"].detach().cpu().numpy().astype(np.float32),
             timesteps=np.asarray(timesteps, dtype=np.int64),
             trajectory_means=tm,
             trajectory_quats=tq,
@@ -221,7 +236,11 @@ class ReconModel(nn.Module):
 
     # -------------------------------------------------------------- checkpoint
     def state(self) -> dict[str, torch.Tensor]:
-        return {k: v.detach().clone() for k, v in self.named_tensors().items()}
+        out = {k: v.detach().cpu().clone() for k, v in self.named_tensors().items()}
+        for part, g in self.parts().items():
+            for k, v in g.aux.items():
+                out[f"{part}.{k}"] = v.detach().cpu().clone()
+        return out
 
     @classmethod
     def from_state(cls, state: dict[str, torch.Tensor], *, sh_degree: int, scene_scale: float) -> "ReconModel":

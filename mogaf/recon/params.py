@@ -22,6 +22,7 @@ from ..errors import MogafError
 DEFAULT_PARAMS: dict[str, Any] = {
     # ---- budget (quality vs time)
     "iterations": 1500,  # CPU (SoM: 500 epochs, ~25k steps of 8 frames)
+    "iterations_scale": 1.0,  # multiplies `iterations` (error-against-run-time sweeps)
     "batch_size": 1,  # frames per step; CPU (SoM: 8)
     "downscale": 1,  # integer image downscale applied at training time
     "max_gaussians": 30000,  # cap on fg + bg after densification; CPU (SoM: uncapped)
@@ -64,6 +65,11 @@ DEFAULT_PARAMS: dict[str, Any] = {
     "w_smooth_tracks": 2.0,  # SoM w_smooth_tracks
     "w_z_accel": 1.0,  # SoM w_z_accel
     "w_scale_var": 0.01,  # SoM w_scale_var
+    "silhouette": "auto",  # "auto" (on when bases start at identity: no tracks + depth), "on", "off"
+    "w_silhouette": 1.0,  # not in SoM: 2D distance-transform / coverage pull of projected fg centres (see trainer)
+    "silhouette_pixels": 256,  # mask pixels per instance and frame for the coverage term
+    "silhouette_decay": 0.9,  # the weight falls linearly by this fraction over training
+    "lr_motion_identity_boost": 10.0,  # motion LRs x this when bases start at identity (no Procrustes init)
     "track_targets": 2,  # target frames per source frame for the 2D track loss; CPU (SoM: 4)
     "loss_quantile": 0.98,  # SoM: robust trimming of mask / depth / track losses
     # ---- temporal curriculum (multi-view scenes without depth / tracks)
@@ -85,18 +91,24 @@ DEFAULT_PARAMS: dict[str, Any] = {
     "log_every": 25,
     "checkpoint_every": 200,
     "eval_every": 100,  # training-curve PSNR on one fixed observed frame
-    "backend": "auto",  # rasterizer backend
+    "backend": "auto",  # rasterizer backend (mogaf.render)
+    "device": "auto",  # "auto" (cuda if available), "cpu", "cuda" (gsplat backend)
+    "threads": 1,  # torch (and CPU rasterizer) threads during the stage; 0 = leave as set by the caller.
+    # 1 keeps float reductions in one order (bitwise-reproducible artefacts) and avoids OpenMP
+    # spin-waiting when the cores are shared; the per-step work is small, so little is lost.
 }
 
 CHOICES = {
+    "device": ("auto", "cpu", "cuda"),
     "background_gaussians": ("auto", "yes", "no"),
     "curriculum": ("auto", "on", "off"),
+    "silhouette": ("auto", "on", "off"),
 }
 INT_KEYS = {
     "iterations", "batch_size", "downscale", "max_gaussians", "num_fg_init", "num_bg_init", "num_bases",
-    "sh_degree", "init_optim_iters", "carve_window", "carve_dilate", "carve_candidates", "track_targets",
+    "sh_degree", "threads", "init_optim_iters", "carve_window", "carve_dilate", "carve_candidates", "track_targets",
     "curriculum_start", "warmup_steps", "control_every", "reset_opacity_every", "log_every", "checkpoint_every",
-    "eval_every",
+    "eval_every", "silhouette_pixels",
 }
 
 
@@ -130,6 +142,10 @@ def resolve_params(params: Mapping[str, Any] | None = None) -> dict[str, Any]:
                 "log_every", "checkpoint_every", "eval_every"):
         if out[key] < 1:
             raise MogafError(f"recon param '{key}' must be at least 1, got {out[key]}")
+    if out["iterations_scale"] <= 0:
+        raise MogafError(f"recon param 'iterations_scale' must be positive, got {out['iterations_scale']}")
+    out["iterations"] = max(1, int(round(out["iterations"] * out["iterations_scale"])))
+    out["iterations_scale"] = 1.0  # applied (keeps the digest of equivalent settings equal)
     if out["sh_degree"] > 3:
         raise MogafError(f"recon param 'sh_degree' must be 0..3, got {out['sh_degree']}")
     return out

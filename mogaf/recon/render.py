@@ -70,7 +70,7 @@ def _render_sets(fg: GaussianSet, fg_means: torch.Tensor, fg_quats: torch.Tensor
         if features not in ("rgb", "rgb+mask"):
             raise MogafError(f"render: unknown features {features!r} (use 'rgb', 'rgb+mask' or an (N, C) array)")
         cols = torch.cat([_set_colors(g, m, cam) for g, m in sets], dim=0)
-        bgc = torch.tensor(background, dtype=torch.float32)
+        bgc = torch.tensor([float(c) for c in background], dtype=torch.float32)
         if features == "rgb+mask":
             is_fg = torch.zeros(n_all, 1)
             is_fg[:n_fg] = 1.0
@@ -97,6 +97,12 @@ def _render_sets(fg: GaussianSet, fg_means: torch.Tensor, fg_quats: torch.Tensor
     )
 
 
+def _background(model: Model4D, background: Any) -> tuple[float, float, float]:
+    # float(): attrs written through mogaf.artefact may come back as decimal strings
+    src = model.background if background is None else background
+    return tuple(float(c) for c in src)  # type: ignore[return-value]
+
+
 def timestep_position(model: Model4D, timestep: int) -> int:
     hits = np.flatnonzero(np.asarray(model.timesteps) == int(timestep))
     if hits.size == 0:
@@ -117,7 +123,7 @@ def render_model(model: Model4D, timestep: int, K: Any, w2c: Any, width: int, he
     k = timestep_position(model, timestep)
     means = _t(model.trajectory_means[:, k])
     quats = _t(model.trajectory_quats[:, k])
-    bgc = tuple(model.background) if background is None else tuple(background)
+    bgc = _background(model, background)
     return _render_sets(model.fg, means, quats, model.bg, K, w2c, width, height, features, bgc, backend)
 
 
@@ -131,5 +137,5 @@ def render_poses(model: Model4D, means: Any, quats: Any, K: Any, w2c: Any, width
         raise MogafError(f"render_poses: expected means ({n}, 3) and quats ({n}, 4), got {tuple(m.shape)} and {tuple(q.shape)}")
     if not (torch.isfinite(m).all() and torch.isfinite(q).all()):
         raise MogafError("render_poses: poses have non-finite values")
-    bgc = tuple(model.background) if background is None else tuple(background)
+    bgc = _background(model, background)
     return _render_sets(model.fg, m, q, model.bg, K, w2c, width, height, features, bgc, backend)

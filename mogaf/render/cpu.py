@@ -30,8 +30,8 @@ from mogaf.errors import MogafError
 from mogaf.paths import cache_dir
 
 SOURCE = Path(__file__).with_name("csrc") / "rasterize.cpp"
-ABI_VERSION = 1
-BASE_FLAGS = ["-O3", "-std=c++17", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-math-errno"]
+ABI_VERSION = 2
+BASE_FLAGS = ["-O3", "-std=c++17", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-math-errno", "-Wno-psabi"]
 # Static libstdc++ keeps the .so loadable on machines sharing the cache; dropped if unavailable.
 STATIC_FLAGS = ["-static-libstdc++", "-static-libgcc"]
 DEFAULT_TILE = 16
@@ -79,15 +79,21 @@ def _build(cxx: str, target: Path) -> None:
 
 def _declare(lib: ctypes.CDLL) -> None:
     for suf in ("f32", "f64"):
-        fn = getattr(lib, f"mogaf_bin_{suf}")
+        fn = getattr(lib, f"mogaf_splat_bytes_{suf}")
         fn.restype = _L
-        fn.argtypes = [_L, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P]
+        fn.argtypes = [_L]
+        fn = getattr(lib, f"mogaf_prepare_{suf}")
+        fn.restype = _L
+        fn.argtypes = [_L, _I, _I, _I, _I] + [_P] * 8
+        fn = getattr(lib, f"mogaf_fill_{suf}")
+        fn.restype = _I
+        fn.argtypes = [_L, _I, _I, _I] + [_P] * 4
         fn = getattr(lib, f"mogaf_forward_{suf}")
         fn.restype = _I
-        fn.argtypes = [_L, _I, _I, _I, _I, _I] + [_P] * 10
+        fn.argtypes = [_L, _I, _I, _I, _I, _I] + [_P] * 7
         fn = getattr(lib, f"mogaf_backward_{suf}")
         fn.restype = _I
-        fn.argtypes = [_L, _I, _I, _I, _I, _I] + [_P] * 16
+        fn.argtypes = [_L, _I, _I, _I, _I, _I] + [_P] * 13
     lib.mogaf_raster_abi_version.restype = _I
     lib.mogaf_raster_abi_version.argtypes = []
 
@@ -143,7 +149,7 @@ def _check(rc: int, what: str) -> None:
 
 class _CPURaster(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, feats, radii, order, width, height, tile):
+    def forward(ctx, means2d, conics, opacities, feats, radii, depths, width, height, tile):
         lib = load()
         if lib is None:
             raise MogafError("mogaf.render: the C++ CPU kernel is unavailable; use backend='torch'")
@@ -153,37 +159,41 @@ class _CPURaster(torch.autograd.Function):
             raise MogafError(f"mogaf.render: the CPU kernel supports float32 and float64, not {dtype}")
         means2d, conics, opacities, feats = (t.contiguous() for t in (means2d, conics, opacities, feats))
         radii = radii.to(torch.int32).contiguous()
-        order = order.to(torch.int64).contiguous()
+        depths = depths.to(dtype).contiguous()
         M, NC = feats.shape
         ntiles = ((width + tile - 1) // tile) * ((height + tile - 1) // tile)
+        nthreads = max(1, torch.get_num_threads())
+        splats = torch.empty(int(getattr(lib, f"mogaf_splat_bytes_{suf}")(M)), dtype=torch.uint8)
+        order = torch.empty(M, dtype=torch.int32)
         offsets = torch.empty(ntiles + 1, dtype=torch.int64)
-        args = (M, width, height, tile, _ptr(means2d), _ptr(conics), _ptr(opacities), _ptr(radii), _ptr(order))
-        total = getattr(lib, f"mogaf_bin_{suf}")(*args, _ptr(offsets), None)
+        total = getattr(lib, f"mogaf_prepare_{suf}")(
+            M, width, height, tile, nthreads, _ptr(means2d), _ptr(conics), _ptr(opacities), _ptr(radii),
+            _ptr(depths), _ptr(splats), _ptr(order), _ptr(offsets),
+        )  # fmt: skip
         _check(total, "binning")
         if total >= 2**31 - 1:
             raise MogafError(f"mogaf.render: {total} tile intersections exceed the kernel's int32 indices")
         isect = torch.empty(total, dtype=torch.int32)
-        _check(getattr(lib, f"mogaf_bin_{suf}")(*args, _ptr(offsets), _ptr(isect)), "binning")
+        rc = getattr(lib, f"mogaf_fill_{suf}")(M, width, height, tile, _ptr(splats), _ptr(order), _ptr(offsets), _ptr(isect))
+        _check(rc, "binning")
         acc = torch.empty(height, width, NC, dtype=dtype)
         Tf = torch.empty(height, width, dtype=dtype)
         last = torch.empty(height, width, dtype=torch.int32)
-        nthreads = max(1, torch.get_num_threads())
         rc = getattr(lib, f"mogaf_forward_{suf}")(
-            M, NC, width, height, tile, nthreads,
-            _ptr(means2d), _ptr(conics), _ptr(opacities), _ptr(feats), _ptr(radii),
-            _ptr(offsets), _ptr(isect), _ptr(acc), _ptr(Tf), _ptr(last),
+            M, NC, width, height, tile, nthreads, _ptr(splats), _ptr(feats), _ptr(offsets), _ptr(isect),
+            _ptr(acc), _ptr(Tf), _ptr(last),
         )  # fmt: skip
         _check(rc, "forward")
-        ctx.save_for_backward(means2d, conics, opacities, feats, radii, offsets, isect, Tf, last)
+        ctx.save_for_backward(feats, splats, offsets, isect, Tf, last)
         ctx.dims = (width, height, tile, nthreads)
         return acc, (1 - Tf).unsqueeze(-1)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, g_acc, g_alpha):
-        means2d, conics, opacities, feats, radii, offsets, isect, Tf, last = ctx.saved_tensors
+        feats, splats, offsets, isect, Tf, last = ctx.saved_tensors
         width, height, tile, nthreads = ctx.dims
-        dtype = means2d.dtype
+        dtype = feats.dtype
         suf = "f32" if dtype == torch.float32 else "f64"
         M, NC = feats.shape
         g_acc = g_acc.to(dtype).contiguous()
@@ -194,15 +204,13 @@ class _CPURaster(torch.autograd.Function):
         go = torch.empty(M, dtype=dtype)
         gf = torch.empty(M, NC, dtype=dtype)
         rc = getattr(load(), f"mogaf_backward_{suf}")(
-            M, NC, width, height, tile, nthreads,
-            _ptr(means2d), _ptr(conics), _ptr(opacities), _ptr(feats), _ptr(radii),
-            _ptr(offsets), _ptr(isect), _ptr(Tf), _ptr(last), _ptr(g_acc), _ptr(g_alpha),
-            _ptr(pair), _ptr(gm), _ptr(gc), _ptr(go), _ptr(gf),
+            M, NC, width, height, tile, nthreads, _ptr(splats), _ptr(feats), _ptr(offsets), _ptr(isect),
+            _ptr(Tf), _ptr(last), _ptr(g_acc), _ptr(g_alpha), _ptr(pair), _ptr(gm), _ptr(gc), _ptr(go), _ptr(gf),
         )  # fmt: skip
         _check(rc, "backward")
         return gm, gc, go, gf, None, None, None, None, None
 
 
-def composite_cpu(means2d, conics, opacities, feats, radii, order, width, height, tile=DEFAULT_TILE):
-    """(acc (H, W, NC), alpha (H, W, 1)) with the C++ tile compositor."""
-    return _CPURaster.apply(means2d, conics, opacities, feats, radii, order, width, height, tile)
+def composite_cpu(means2d, conics, opacities, feats, radii, depths, width, height, tile=DEFAULT_TILE):
+    """(acc (H, W, NC), alpha (H, W, 1)) with the C++ tile compositor; depths only order the Gaussians."""
+    return _CPURaster.apply(means2d, conics, opacities, feats, radii, depths, width, height, tile)

@@ -5,7 +5,7 @@ forward and the analytic backward passes of the fast backends. Memory is
 O(M x H x W): use it on small scenes (tests) only.
 
 It implements exactly the semantics documented in csrc/rasterize.cpp:
-pixel centre inside the closed radius box, sigma >= 0, alpha = min(0.99, o e^-sigma)
+pixel centre inside the closed radius box, alpha = min(0.99, o e^-sigma)
 >= 1/255, front-to-back by depth (ties by index), and a pixel stops at the first
 Gaussian that would bring its transmittance to <= 1e-4 (not composited).
 """
@@ -25,13 +25,13 @@ def composite_dense(
     opacities: torch.Tensor,
     feats: torch.Tensor,
     radii: torch.Tensor,
-    order: torch.Tensor,
+    depths: torch.Tensor,
     width: int,
     height: int,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Composite M projected Gaussians; returns (acc (H, W, NC), alpha (H, W, 1)).
 
-    `order` is the front-to-back order (argsort of depth, stable); `acc` is the
+    Gaussians are composited front to back by `depths` (stable); `acc` is the
     un-normalised sum of w_i f_i, alpha = 1 - prod(1 - alpha_i).
     """
     dtype = means2d.dtype
@@ -40,6 +40,7 @@ def composite_dense(
     if M == 0:
         acc = feats.sum() * 0 + torch.zeros(height, width, NC, dtype=dtype)
         return acc, torch.zeros(height, width, 1, dtype=dtype) + means2d.sum() * 0
+    order = torch.argsort(depths.detach(), stable=True)
     m = means2d[order]
     con = conics[order]
     o = opacities[order]
@@ -53,7 +54,7 @@ def composite_dense(
     sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
     raw = o[:, None] * torch.exp(-sigma)
     alpha = torch.clamp(raw, max=ALPHA_MAX)
-    valid = (sigma >= 0) & (alpha >= ALPHA_MIN) & (dx.abs() <= r[:, 0:1]) & (dy.abs() <= r[:, 1:2])
+    valid = (alpha >= ALPHA_MIN) & (dx.abs() <= r[:, 0:1]) & (dy.abs() <= r[:, 1:2])
     ones = torch.ones_like(alpha)
     t_incl = torch.cumprod(torch.where(valid, 1 - alpha, ones), 0)
     keep = valid & (t_incl > T_MIN)

@@ -85,11 +85,12 @@ def enumerate_pairs(means2d, conics, opacities, radii, width, height):
 
 class _TorchRaster(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, feats, radii, order, width, height):
+    def forward(ctx, means2d, conics, opacities, feats, radii, depths, width, height):
         dtype = means2d.dtype
         M, NC = feats.shape
         HW = width * height
         # Work in depth-rank space: pairs are generated in rank order.
+        order = torch.argsort(depths.detach(), stable=True)
         rank_m = means2d[order]
         rank_c = conics[order]
         rank_o = opacities[order]
@@ -102,7 +103,7 @@ class _TorchRaster(torch.autograd.Function):
         G = torch.exp(-sigma)
         raw = rank_o[g] * G
         alpha = torch.clamp(raw, max=ALPHA_MAX)
-        valid = (sigma >= 0) & (alpha >= ALPHA_MIN)
+        valid = alpha >= ALPHA_MIN
         sel = valid.nonzero().squeeze(1)
         pix = (j * width + i)[sel]
         g = g[sel]
@@ -192,6 +193,6 @@ class _TorchRaster(torch.autograd.Function):
         )
 
 
-def composite_torch(means2d, conics, opacities, feats, radii, order, width, height):
+def composite_torch(means2d, conics, opacities, feats, radii, depths, width, height):
     """(acc (H, W, NC), alpha (H, W, 1)) with the packed-pairs torch compositor."""
-    return _TorchRaster.apply(means2d, conics, opacities, feats, radii, order, width, height)
+    return _TorchRaster.apply(means2d, conics, opacities, feats, radii, depths, width, height)
