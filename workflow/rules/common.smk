@@ -145,28 +145,38 @@ def _ratio_str(value):
     return f"{float(value):g}"
 
 
+def _sweep_variants(name):
+    sweeps = ABLATIONS.get("sweeps", {})
+    if name not in sweeps:
+        raise WorkflowError(f"unknown sweep '{name}' (config/ablations.yaml sweeps: {', '.join(sweeps)})")
+    return sweeps[name]["variants"]
+
+
+def scope_targets(scope, sweeps=()):
+    """metrics.json of a {dataset, scenes, ratios} scope, plus its sweeps' variants."""
+    out = []
+    for scene in scope["scenes"]:
+        for ratio in scope["ratios"]:
+            base = mcfg.ratio_dir(scope["dataset"], scene, _ratio_str(ratio))
+            out.append(f"{base}/metrics.json")
+            for name in sweeps:
+                out += [f"{base}/ablation/{v}/metrics.json" for v in _sweep_variants(name)]
+    return out
+
+
 def grid_targets():
     out = []
     for entry in config["grid"]:
-        for scene in entry["scenes"]:
-            for ratio in entry["ratios"]:
-                out.append(f"{mcfg.ratio_dir(entry['dataset'], scene, _ratio_str(ratio))}/metrics.json")
+        out += scope_targets(entry, entry.get("sweeps", []))
     return out
 
 
 def sweep_targets(name):
-    sweep = ABLATIONS.get("sweeps", {}).get(name)
-    if sweep is None:
-        raise WorkflowError(f"unknown sweep '{name}' (config/ablations.yaml sweeps: {', '.join(ABLATIONS.get('sweeps', {}))})")
-    scopes = sweep.get("targets") or [{"dataset": config["demo"]["dataset"], "scenes": [config["demo"]["scene"]], "ratios": [config["demo"]["ratio"]]}]
-    out = []
-    for scope in scopes:
-        for scene in scope["scenes"]:
-            for ratio in scope["ratios"]:
-                base = mcfg.ratio_dir(scope["dataset"], scene, _ratio_str(ratio))
-                out.append(f"{base}/metrics.json")
-                out += [f"{base}/ablation/{v}/metrics.json" for v in sweep["variants"]]
-    return out
+    demo = config["demo"]
+    scopes = ABLATIONS["sweeps"].get(name, {}).get("targets") or [
+        {"dataset": demo["dataset"], "scenes": [demo["scene"]], "ratios": [demo["ratio"]]}
+    ]
+    return [t for scope in scopes for t in scope_targets(scope, [name])]
 
 
 def demo_targets():
