@@ -136,10 +136,27 @@ def _write_tree(group: h5py.Group, data: Mapping[str, Any], path: Path, prefix: 
         group.create_dataset(key, data=arr, **kwargs)
 
 
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.floating):
+        return float(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"attribute value of type {type(obj).__name__} is not JSON-serialisable")
+
+
 def _attr_value(value: Any) -> Any:
     if isinstance(value, (Mapping, list, tuple)) and not isinstance(value, np.ndarray):
-        # Structured attrs are stored as JSON text.
-        return "json:" + json.dumps(_canonical(value), sort_keys=True)
+        # Structured attrs are stored as JSON text (numbers stay numbers).
+        try:
+            return "json:" + json.dumps(value, sort_keys=True, default=_json_default, allow_nan=False)
+        except ValueError:
+            raise MogafError("refusing to write a non-finite number inside a structured attribute") from None
     if isinstance(value, Path):
         return str(value)
     if isinstance(value, (float, np.floating)) and not np.isfinite(value):
