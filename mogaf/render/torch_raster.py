@@ -44,43 +44,45 @@ def _segment_ids(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     total = int(counts.sum())
     seg = torch.repeat_interleave(torch.arange(counts.numel()), counts, output_size=total)
     starts = torch.cumsum(counts, 0) - counts
-    local = torch.arange(total) - starts[seg]
+    local = torch.arange(total) - starts.index_select(0, seg)
     return seg, local
 
 
-def enumerate_pairs(means2d, conics, opacities, radii, width, height):
+def enumerate_pairs(mx, my, a, b, c, o, rx, ry, width, height):
     """Candidate (Gaussian, pixel) pairs: per box row, the conservative ellipse span.
 
-    Returns (g, i, j) int64 tensors, grouped by Gaussian in index order.
+    Inputs are 1D per-Gaussian tensors (detached). Returns (g, i, j) int64
+    tensors, grouped by Gaussian in index order and row-major within a Gaussian.
     """
-    m = means2d.detach()
-    con = conics.detach().double()
-    o = opacities.detach().double()
-    rad = radii.to(m.dtype)
-    i0, i1 = box_range(m[:, 0], rad[:, 0], width)
-    j0, j1 = box_range(m[:, 1], rad[:, 1], height)
-    ok = (o * 255.0 >= 1.0) & (radii[:, 0] >= 0) & (radii[:, 1] >= 0)
+    i0, i1 = box_range(mx, rx, width)
+    j0, j1 = box_range(my, ry, height)
+    ok = (o.double() * 255.0 >= 1.0) & ((rx > 0) | (ry > 0))
     nrow = torch.where(ok & (i1 >= i0), (j1 - j0 + 1).clamp(min=0), torch.zeros_like(j0))
     rg, rlocal = _segment_ids(nrow)
-    j = j0[rg] + rlocal
+    j = j0.index_select(0, rg) + rlocal
+
+    def per_row(t):
+        return t.double().index_select(0, rg)
+
     # Row span of the relaxed ellipse sigma <= tau, tau = ln(255 o) (as the kernel).
-    a, b, c = con[rg, 0], con[rg, 1], con[rg, 2]
-    det = a * c - b * b
-    tau = torch.log(255.0 * o[rg].clamp(min=ALPHA_MIN)) * (1.0 + 1e-4) + 1e-3
-    dy = m[rg, 1].double() - (j.double() + 0.5)
-    disc = 2.0 * a * tau - det * dy * dy
-    sq = torch.sqrt(disc.clamp(min=0))
-    bdy = b * dy
-    a_s = torch.where(a > 0, a, torch.ones_like(a))
-    mx = m[rg, 0].double()
-    lo = torch.ceil(mx - (-bdy + sq) / a_s - 0.5).clamp(-4, width + 4).long()
-    hi = torch.floor(mx - (-bdy - sq) / a_s - 0.5).clamp(-4, width + 4).long()
-    regular = (det > 0) & (a > 0)
-    ia = torch.where(regular, torch.maximum(i0[rg], lo), i0[rg])
-    ib = torch.where(regular, torch.minimum(i1[rg], hi), i1[rg])
-    npix = torch.where(~regular | (disc >= 0), (ib - ia + 1).clamp(min=0), torch.zeros_like(ia))
+    ad, bd, cd = a.double(), b.double(), c.double()
+    det = ad * cd - bd * bd
+    tau = torch.log(255.0 * o.double().clamp(min=ALPHA_MIN)) * (1.0 + 1e-4) + 1e-3
+    regular = (det > 0) & (ad > 0)
+    inv_a = torch.where(ad > 0, 1.0 / torch.where(ad > 0, ad, torch.ones_like(ad)), torch.zeros_like(ad))
+    dy = per_row(my) - (j.double() + 0.5)
+    disc = per_row(2.0 * ad * tau) - per_row(det) * dy * dy
+    hw = torch.sqrt(disc.clamp(min=0)) * per_row(inv_a)
+    ctr = per_row(mx) + per_row(bd * inv_a) * dy - 0.5
+    lo = torch.ceil(ctr - hw).clamp(-4, width + 4).long()
+    hi = torch.floor(ctr + hw).clamp(-4, width + 4).long()
+    reg = regular.index_select(0, rg)
+    i0r, i1r = i0.index_select(0, rg), i1.index_select(0, rg)
+    ia = torch.where(reg, torch.maximum(i0r, lo), i0r)
+    ib = torch.where(reg, torch.minimum(i1r, hi), i1r)
+    npix = torch.where(~reg | (disc >= 0), (ib - ia + 1).clamp(min=0), torch.zeros_like(ia))
     row, plocal = _segment_ids(npix)
-    return rg[row], ia[row] + plocal, j[row]
+    return rg.index_select(0, row), ia.index_select(0, row) + plocal, j.index_select(0, row)
 
 
 class _TorchRaster(torch.autograd.Function):
@@ -89,98 +91,83 @@ class _TorchRaster(torch.autograd.Function):
         dtype = means2d.dtype
         M, NC = feats.shape
         HW = width * height
-        # Work in depth-rank space: pairs are generated in rank order.
+        # Depth-rank space: Gaussian r is the r-th from the front; pairs come out in rank order.
         order = torch.argsort(depths.detach(), stable=True)
-        rank_m = means2d[order]
-        rank_c = conics[order]
-        rank_o = opacities[order]
-        rank_f = feats[order]
-        g, i, j = enumerate_pairs(rank_m, rank_c, rank_o, radii[order], width, height)
-        dx = rank_m[g, 0] - (i.to(dtype) + 0.5)
-        dy = rank_m[g, 1] - (j.to(dtype) + 0.5)
-        a, b, c = rank_c[g, 0], rank_c[g, 1], rank_c[g, 2]
-        sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+        cols = [t.index_select(0, order) for t in (*means2d.unbind(1), *conics.unbind(1), opacities)]
+        mx, my, a, b, c, o = cols
+        rad = radii.index_select(0, order).to(dtype)
+        g, i, j = enumerate_pairs(mx, my, a, b, c, o, rad[:, 0], rad[:, 1], width, height)
+        dx = mx.index_select(0, g) - (i.to(dtype) + 0.5)
+        dy = my.index_select(0, g) - (j.to(dtype) + 0.5)
+        sigma = 0.5 * (a.index_select(0, g) * dx * dx + c.index_select(0, g) * dy * dy)
+        sigma += b.index_select(0, g) * dx * dy
         G = torch.exp(-sigma)
-        raw = rank_o[g] * G
+        raw = o.index_select(0, g) * G
         alpha = torch.clamp(raw, max=ALPHA_MAX)
-        valid = alpha >= ALPHA_MIN
-        sel = valid.nonzero().squeeze(1)
-        pix = (j * width + i)[sel]
-        g = g[sel]
-        # (pixel, depth rank) order; keys are unique.
-        key = pix * max(M, 1) + g
-        key, perm = torch.sort(key)
-        sel = sel[perm]
-        pix = key // max(M, 1)
-        g = key - pix * max(M, 1)
-        alpha = alpha[sel]
+        sel = (alpha >= ALPHA_MIN).nonzero().squeeze(1)
+        # Pixel-major order; the stable sort keeps depth order within a pixel.
+        pix = (j * width + i).index_select(0, sel).to(torch.int32)
+        pix, perm = torch.sort(pix, stable=True)
+        sel = sel.index_select(0, perm)
+        alpha = alpha.index_select(0, sel)
         counts = torch.bincount(pix, minlength=HW)
         starts = torch.cumsum(counts, 0) - counts
+        pix = pix.long()
         log1m = torch.log1p(-alpha.double())
         cs = torch.cumsum(log1m, 0)
         cs_excl = cs - log1m
-        base = cs_excl[starts[pix]]
-        keep = (cs - base) > LOG_T_MIN
-        kidx = keep.nonzero().squeeze(1)
+        base = cs_excl.index_select(0, starts.index_select(0, pix))
+        keep = ((cs - base) > LOG_T_MIN).nonzero().squeeze(1)
         # Compact to the composited pairs.
-        sel, pix, g, alpha = sel[kidx], pix[kidx], g[kidx], alpha[kidx]
-        T = torch.exp(cs_excl[kidx] - base[kidx]).to(dtype)
+        sel, pix, alpha = sel.index_select(0, keep), pix.index_select(0, keep), alpha.index_select(0, keep)
+        g = g.index_select(0, sel)
+        T = torch.exp((cs_excl - base).index_select(0, keep)).to(dtype)
         w = alpha * T
+        rank_f = feats.index_select(0, order)
         acc = torch.zeros(HW, NC, dtype=dtype)
-        acc.index_add_(0, pix, w[:, None] * rank_f[g])
+        acc.index_add_(0, pix, w[:, None] * rank_f.index_select(0, g))
         log_tf = torch.zeros(HW, dtype=torch.float64)
-        log_tf.index_add_(0, pix, log1m[kidx])
+        log_tf.index_add_(0, pix, log1m.index_select(0, keep))
         Tf = torch.exp(log_tf).to(dtype)
         ctx.save_for_backward(
-            rank_m, rank_c, rank_o, rank_f, order, g, pix, dx[sel], dy[sel], G[sel], raw[sel], alpha, T, Tf
-        )
+            a, b, c, rank_f, order, g, pix, dx.index_select(0, sel), dy.index_select(0, sel),
+            G.index_select(0, sel), raw.index_select(0, sel), alpha, T, Tf,
+        )  # fmt: skip
         ctx.dims = (width, height)
         return acc.reshape(height, width, NC), (1 - Tf).reshape(height, width, 1)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, g_acc, g_alpha):
-        rank_m, rank_c, rank_o, rank_f, order, g, pix, dx, dy, G, raw, alpha, T, Tf = ctx.saved_tensors
+        a, b, c, rank_f, order, g, pix, dx, dy, G, raw, alpha, T, Tf = ctx.saved_tensors
         width, height = ctx.dims
-        dtype = rank_m.dtype
+        dtype = rank_f.dtype
         M, NC = rank_f.shape
         HW = width * height
-        gC = g_acc.reshape(HW, NC)[pix]
-        f = rank_f[g]
-        dot = (gC * f).sum(1)
+        gC = g_acc.reshape(HW, NC).to(dtype).index_select(0, pix)
         w = alpha * T
-        v = (w * dot).double()
-        cs = torch.cumsum(v, 0)
+        dot = (gC * rank_f.index_select(0, g)).sum(1)
+        cs = torch.cumsum((w * dot).double(), 0)
         counts = torch.bincount(pix, minlength=HW)
         ends = torch.cumsum(counts, 0) - 1
-        suffix = (cs[ends[pix]] - cs).to(dtype)
-        gATf = (g_alpha.reshape(HW) * Tf)[pix]
-        om = 1 - alpha
-        dLda = T * dot - (suffix - gATf) / om
+        suffix = (cs.index_select(0, ends.index_select(0, pix)) - cs).to(dtype)
+        gATf = (g_alpha.reshape(HW).to(dtype) * Tf).index_select(0, pix)
+        dLda = T * dot - (suffix - gATf) / (1 - alpha)
         dLda = torch.where(raw < ALPHA_MAX, dLda, torch.zeros_like(dLda))
         dLds = -alpha * dLda
-        a, b, c = rank_c[g, 0], rank_c[g, 1], rank_c[g, 2]
-        rec = torch.cat(
-            [
-                torch.stack(
-                    [
-                        (a * dx + b * dy) * dLds,
-                        (b * dx + c * dy) * dLds,
-                        0.5 * dx * dx * dLds,
-                        dx * dy * dLds,
-                        0.5 * dy * dy * dLds,
-                        G * dLda,
-                    ],
-                    1,
-                ),
-                w[:, None] * gC,
-            ],
-            1,
-        )
+        ag, bg, cg = a.index_select(0, g), b.index_select(0, g), c.index_select(0, g)
+        rec = torch.empty(g.numel(), 6 + NC, dtype=dtype)
+        rec[:, 0] = (ag * dx + bg * dy) * dLds
+        rec[:, 1] = (bg * dx + cg * dy) * dLds
+        rec[:, 2] = 0.5 * dx * dx * dLds
+        rec[:, 3] = dx * dy * dLds
+        rec[:, 4] = 0.5 * dy * dy * dLds
+        rec[:, 5] = G * dLda
+        torch.mul(gC, w[:, None], out=rec[:, 6:])
         out = torch.zeros(M, 6 + NC, dtype=dtype)
         out.index_add_(0, g, rec)
         grads = torch.empty_like(out)
-        grads[order] = out
+        grads.index_copy_(0, order, out)
         return (
             grads[:, 0:2].contiguous(),
             grads[:, 2:5].contiguous(),
