@@ -170,6 +170,15 @@ def render_forecast_views(model: Model4D, fc: dict[str, Any], frames, params: Ma
     return renders
 
 
+def forecast_summary(attrs: Mapping[str, Any]) -> dict[str, Any]:
+    """What metrics.json keeps of a forecast artefact: no wall-clock values
+    (they live in the runtime section), so reruns give identical files."""
+    out = {k: attrs[k] for k in ("method", "groupwise", "epe_3d_quick", "num_groups_trained") if k in attrs}
+    jobs = attrs.get("flags") or {}
+    out["jobs"] = {job: {k: v for k, v in (info or {}).items() if not k.endswith("_time_s")} for job, info in sorted(jobs.items())}
+    return out
+
+
 # ------------------------------------------------------------------ tracking
 def attach_points(points: np.ndarray, means: np.ndarray, quats: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Attach points (P,3) to their k nearest Gaussians at one time.
@@ -292,6 +301,10 @@ def run_evaluate_stage(*, scene: str, split: str, model: str, groups: str, forec
     if unknown:
         raise MogafError(f"evaluate: unknown parameter(s) {', '.join(sorted(unknown))}")
     start = time.perf_counter()
+    if p["lpips"]:
+        from .metrics.lpips import load_lpips_weights
+
+        load_lpips_weights()  # fail before rendering anything when the weights are missing
     sp = read_split(split)
     m4 = load_model(model)
     frames = load_frames(scene, sp, "evaluation")
@@ -318,7 +331,7 @@ def run_evaluate_stage(*, scene: str, split: str, model: str, groups: str, forec
             section: dict[str, Any] = {"image": _mean_metrics(per),
                                        "per_view": [{"frame": frames.frame_names[f], "timestep": int(frames.time_index[f]), **per[f]} for f in range(frames.num_frames)]}
             section["tracking"] = tracking_section(m4, fc, scene, sp, p)
-            section["forecast"] = {k: v for k, v in fc["attrs"].items() if k in ("method", "groupwise", "epe_3d_quick", "num_groups_trained", "flags")}
+            section["forecast"] = forecast_summary(fc["attrs"])
             result["methods"][method] = section
             if p["save_renders"]:
                 for f in range(frames.num_frames):

@@ -222,6 +222,14 @@ def forecast_model(wildcards):
     return stage_path(mcfg.forecast_input_stage(scene_cfg(wildcards)), wildcards)
 
 
+def forecast_params(wildcards):
+    """Only what one method's forecast depends on (other methods' settings
+    must not trigger a rerun)."""
+    fc = scene_cfg(wildcards)["forecast"]
+    keys = ("input", "groupwise", "common", wildcards.method)
+    return {key: fc[key] for key in keys}
+
+
 def forecast_part_files(wildcards):
     from mogaf.forecast.stage import forecast_jobs
 

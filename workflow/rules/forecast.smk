@@ -10,7 +10,7 @@ rule forecast_group:
     output:
         "results/{dataset}/{scene}/ratio{ratio}/{prefix}forecast/{method}/group{group}.h5",
     params:
-        forecast=params_for("forecast"),
+        forecast=forecast_params,
         seed=seed,
     threads: 1
     resources:
@@ -36,7 +36,7 @@ rule forecast:
     output:
         "results/{dataset}/{scene}/ratio{ratio}/{prefix}forecast/{method}.h5",
     params:
-        forecast=params_for("forecast"),
+        forecast=forecast_params,
     log:
         "results/{dataset}/{scene}/ratio{ratio}/{prefix}logs/forecast_{method}.log",
     benchmark:
