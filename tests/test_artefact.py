@@ -1,0 +1,162 @@
+"""The HDF5 artefact layer: atomic writes, attrs, refusal of bad files."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+
+import h5py
+import numpy as np
+import pytest
+
+from mogaf import __version__
+from mogaf.artefact import (
+    ATTR_FORMAT,
+    ATTR_PACKAGE,
+    FORMAT_VERSION,
+    config_digest,
+    open_artefact,
+    read_artefact,
+    read_rows,
+    write_artefact,
+    write_json,
+)
+from mogaf.errors import MogafError
+
+
+def _write(path, **kw):
+    data = {"a": np.arange(6, dtype=np.float32).reshape(3, 2), "g": {"b": np.ones(4, np.int64), "names": ["x", "y"]}}
+    return write_artefact(path, "demo", data, config_digest="abc", attrs={"note": "hi", "nested": {"k": 0.5}}, **kw)
+
+
+def test_roundtrip_attrs_and_nested(tmp_path):
+    path = _write(tmp_path / "x.h5")
+    art = read_artefact(path, "demo")
+    assert art.stage == "demo" and art.config_digest == "abc" and art.package_version == __version__
+    assert art.created_utc.endswith("+00:00")
+    np.testing.assert_array_equal(art["a"], np.arange(6, dtype=np.float32).reshape(3, 2))
+    assert art["g/names"] == ["x", "y"]
+    assert art.attrs == {"note": "hi", "nested": {"k": 0.5}}
+    assert "g/b" in art and "g/zz" not in art
+
+
+def test_refuses_non_finite_and_leaves_nothing(tmp_path):
+    path = tmp_path / "bad.h5"
+    with pytest.raises(MogafError, match="non-finite values in 'g/x'"):
+        write_artefact(path, "demo", {"g": {"x": np.array([1.0, np.nan])}}, config_digest="d")
+    assert not path.exists()
+    assert not list(tmp_path.iterdir()), "no temporary file may survive a failed write"
+
+
+def test_refuses_non_finite_attr(tmp_path):
+    with pytest.raises(MogafError):
+        write_artefact(tmp_path / "a.h5", "demo", {}, config_digest="d", attrs={"x": float("inf")})
+    with pytest.raises(MogafError):
+        write_artefact(tmp_path / "b.h5", "demo", {}, config_digest="d", attrs={"x": {"y": float("nan")}})
+
+
+def test_stage_version_digest_checks(tmp_path):
+    path = _write(tmp_path / "x.h5")
+    with pytest.raises(MogafError, match="written by stage 'demo', expected 'recon'"):
+        read_artefact(path, "recon")
+    with pytest.raises(MogafError, match="config digest abc does not match"):
+        read_artefact(path, "demo", expected_config_digest="zzz")
+    with h5py.File(path, "r+") as fh:
+        fh.attrs[ATTR_FORMAT] = FORMAT_VERSION + 1
+    with pytest.raises(MogafError, match=f"format version {FORMAT_VERSION + 1}"):
+        read_artefact(path, "demo")
+
+
+def test_incompatible_package_version(tmp_path):
+    path = _write(tmp_path / "x.h5")
+    with h5py.File(path, "r+") as fh:
+        fh.attrs[ATTR_PACKAGE] = "99.0.0"
+    with pytest.raises(MogafError, match="incompatible"):
+        read_artefact(path, "demo")
+
+
+def test_truncated_and_foreign_files(tmp_path):
+    path = _write(tmp_path / "x.h5")
+    data = path.read_bytes()
+    trunc = tmp_path / "trunc.h5"
+    trunc.write_bytes(data[: len(data) // 2])
+    with pytest.raises(MogafError) as err:
+        read_artefact(trunc, "demo")
+    assert str(trunc) in str(err.value) and "\n" not in str(err.value)
+    foreign = tmp_path / "foreign.h5"
+    with h5py.File(foreign, "w") as fh:
+        fh["x"] = np.zeros(3)
+    with pytest.raises(MogafError, match="not a MoGaF artefact"):
+        read_artefact(foreign, "demo")
+    with pytest.raises(MogafError, match="missing"):
+        read_artefact(tmp_path / "nope.h5", "demo")
+
+
+def test_nan_inside_is_refused_on_read(tmp_path):
+    path = _write(tmp_path / "x.h5")
+    with h5py.File(path, "r+") as fh:
+        fh["a"][0, 0] = np.nan
+    with pytest.raises(MogafError, match="entry 'a' contains non-finite values"):
+        read_artefact(path, "demo")
+
+
+def test_inputs_are_opened_read_only(tmp_path):
+    path = _write(tmp_path / "x.h5")
+    os.chmod(path, 0o444)
+    try:
+        with open_artefact(path, "demo") as fh:
+            assert fh.mode == "r"
+            rows = read_rows(fh, "a", np.array([2, 0, 2]))
+        np.testing.assert_array_equal(rows, np.array([[4, 5], [0, 1], [4, 5]], np.float32))
+    finally:
+        os.chmod(path, 0o644)
+
+
+def test_read_rows_checks_bounds(tmp_path):
+    path = _write(tmp_path / "x.h5")
+    with open_artefact(path, "demo") as fh:
+        with pytest.raises(MogafError, match="has 3 rows"):
+            read_rows(fh, "a", np.array([3]))
+
+
+def test_killed_writer_leaves_no_artefact(tmp_path):
+    """SIGKILL in the middle of a write: the final name never appears."""
+    out = tmp_path / "big.h5"
+    code = textwrap.dedent(
+        f"""
+        import os, signal, numpy as np
+        import mogaf.artefact as A
+        real = A._write_tree
+        def slow(group, data, path, prefix=""):
+            real(group, data, path, prefix)
+            os.kill(os.getpid(), signal.SIGKILL)
+        A._write_tree = slow
+        A.write_artefact({str(out)!r}, "demo", {{"a": np.zeros(10)}}, config_digest="d")
+        """
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True)
+    assert proc.returncode == -signal.SIGKILL
+    assert not out.exists()
+    leftovers = list(tmp_path.iterdir())
+    assert leftovers and all(p.name.startswith(".big.h5.tmp-") for p in leftovers)
+    # The next write cleans the stale temporary and succeeds.
+    write_artefact(out, "demo", {"a": np.zeros(10)}, config_digest="d")
+    assert [p.name for p in tmp_path.iterdir()] == ["big.h5"]
+
+
+def test_config_digest_is_stable_and_sensitive():
+    a = config_digest({"x": 0.1, "y": [1, 2], "z": {"b": 1, "a": 2}})
+    b = config_digest({"z": {"a": 2, "b": 1}, "y": (1, 2), "x": 0.1})
+    assert a == b and len(a) == 16
+    assert config_digest({"x": 0.1}) != config_digest({"x": 0.1000001})
+
+
+def test_write_json_refuses_nan(tmp_path):
+    with pytest.raises(ValueError):
+        write_json(tmp_path / "m.json", {"x": float("nan")})
+    assert not (tmp_path / "m.json").exists()
+    write_json(tmp_path / "m.json", {"b": 1, "a": [0.5]})
+    assert (tmp_path / "m.json").read_text() == '{\n  "a": [\n    0.5\n  ],\n  "b": 1\n}\n'

@@ -1,0 +1,72 @@
+"""Config resolution: datasets, scene overrides, variants and shared artefacts."""
+
+from __future__ import annotations
+
+import pytest
+
+import mogaf.config as mcfg
+from mogaf.errors import MogafError
+
+BASE = mcfg.load_yaml("config/config.yaml")
+VARIANTS = mcfg.load_yaml("config/ablations.yaml")["variants"]
+
+
+def prefixes(variant):
+    cfg = mcfg.variant_config(BASE, VARIANTS, variant)
+    stages = ["priors", "recon", "group", "rigid_init", "refine", "forecast:mogaf", "forecast:gcn", "evaluate"]
+    return {s: mcfg.artefact_prefix(s, BASE, cfg, variant) for s in stages}
+
+
+def test_forecaster_variant_shares_everything_upstream():
+    p = prefixes("no_masking")
+    assert p["priors"] == p["recon"] == p["group"] == p["refine"] == ""
+    assert p["forecast:mogaf"] == "ablation/no_masking/"
+    assert p["forecast:gcn"] == ""  # another method's forecast is unchanged
+
+
+def test_grouping_variant_shares_reconstruction_only():
+    p = prefixes("gaga4d")
+    assert p["priors"] == p["recon"] == ""
+    assert p["group"] == p["refine"] == p["forecast:mogaf"] == "ablation/gaga4d/"
+
+
+def test_reconstruction_knob_invalidates_downstream():
+    p = prefixes("rt_fast")
+    assert p["priors"] == ""
+    assert all(p[s] == "ablation/rt_fast/" for s in ("recon", "group", "refine", "forecast:mogaf", "forecast:gcn"))
+
+
+def test_unrefined_input_variant():
+    cfg = mcfg.variant_config(BASE, VARIANTS, "lw_noopt_fc")
+    assert mcfg.forecast_input_stage(cfg) == "recon"
+    p = prefixes("lw_noopt_fc")
+    assert p["recon"] == p["group"] == "" and p["forecast:mogaf"] == "ablation/lw_noopt_fc/"
+
+
+def test_variant_equal_to_default_shares_all():
+    assert set(prefixes("lw_opt_fc").values()) - {""} == {"ablation/lw_opt_fc/"}
+    assert prefixes("lw_opt_fc")["forecast:mogaf"] == ""  # same values as default: reused
+
+
+def test_unknown_names_are_one_line_errors():
+    with pytest.raises(MogafError, match="unknown dataset 'nope'"):
+        mcfg.scene_dir(BASE, "nope", "x")
+    with pytest.raises(MogafError, match="unknown scene 'nope' of dataset 'iphone'"):
+        mcfg.scene_dir(BASE, "iphone", "nope")
+    with pytest.raises(MogafError, match="unknown ablation variant"):
+        mcfg.variant_config(BASE, VARIANTS, "nope")
+
+
+def test_scene_overrides_and_paths():
+    cfg = mcfg.deep_merge(BASE, {"datasets": {"mujoco": {"overrides": {"recon": {"iterations": 7}},
+                                                          "scene_overrides": {"scene3_collision": {"recon": {"iterations": 9}}}}}})
+    assert mcfg.scene_config(cfg, "mujoco", "scene1_close_proximity")["recon"]["iterations"] == 7
+    assert mcfg.scene_config(cfg, "mujoco", "scene3_collision")["recon"]["iterations"] == 9
+    assert mcfg.scene_dir(BASE, "iphone", "apple") == "data/iphone/apple"
+
+
+def test_rigidity_table():
+    table = BASE["rigidity"]
+    assert mcfg.rigidity_of("sphere_1", table) == 1
+    assert mcfg.rigidity_of("Cloth", table) == 0
+    assert mcfg.rigidity_of("teddy", table) == -1
