@@ -19,9 +19,17 @@ validate(config, schema=SCHEMA)
 os.environ.setdefault("MOGAF_CACHE_DIR", str(Path(config["cache_dir"]).resolve()))
 
 
+def _ablations_path():
+    """config's ablations_file, relative to the working directory, else to the repository."""
+    path = Path(config["ablations_file"])
+    if not path.is_absolute() and not path.exists():
+        path = Path(workflow.basedir) / path
+    return path
+
+
 def _load_ablations():
     try:
-        data = mcfg.load_yaml(config["ablations_file"])
+        data = mcfg.load_yaml(_ablations_path())
     except MogafError as exc:
         raise WorkflowError(str(exc))
     validate(data, schema=ABLATION_SCHEMA)

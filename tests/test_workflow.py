@@ -1,0 +1,159 @@
+"""The Snakemake workflow: lint, DAG shape, one-line errors, profiles, leave-out rules.
+
+Dry runs only (no stage runs here): each takes a few seconds.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import REPO
+
+SNAKEFILE = str(REPO / "Snakefile")
+CONFIG = str(REPO / "config" / "config.yaml")
+PAPER = str(REPO / "config" / "paper.yaml")
+
+
+def snakemake(args: list[str], cwd: Path, configfiles: tuple[str, ...] = (CONFIG,), timeout: int = 120) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "snakemake", "-s", SNAKEFILE, *args, "--configfile", *configfiles]
+    return subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=timeout)
+
+
+def job_counts(output: str) -> dict[str, int]:
+    block = output.split("Job stats:", 1)[1].split("total", 1)[0]
+    return {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\w+)\s+(\d+)\s*$", block, re.M)}
+
+
+def job_blocks(output: str, rule: str) -> list[str]:
+    """The dry-run description of every job of `rule`."""
+    blocks = re.split(r"\n\[[^\]]+\]\n", output)
+    return [b for b in blocks if re.match(rf"(local)?(rule|checkpoint) {rule}:", b.strip())]
+
+
+def test_lint_clean(tmp_path):
+    res = snakemake(["--lint"], REPO)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "Congratulations, your workflow is in a good condition!" in res.stdout + res.stderr
+
+
+def test_default_target_lists_the_chain(tmp_path):
+    res = snakemake(["-n", "demo"], tmp_path)
+    assert res.returncode == 0, res.stderr
+    counts = job_counts(res.stdout)
+    for rule in ("synthesize", "ingest", "split", "priors", "recon", "group", "evaluate", "tables", "runtime_report"):
+        assert counts.get(rule, 0) >= 1, (rule, counts)
+    # The run-time sweep changes reconstruction only: priors and split are shared.
+    assert counts["priors"] == 1 and counts["split"] == 1 and counts["recon"] == 3
+
+
+def test_users_example_without_data_fails_fast_in_one_line(tmp_path):
+    start = time.perf_counter()
+    res = snakemake(["-n", "results/iphone/apple/ratio0.6/metrics.json"], tmp_path)
+    elapsed = time.perf_counter() - start
+    assert res.returncode != 0
+    lines = [line for line in (res.stdout + res.stderr).splitlines() if "data/iphone/apple" in line]
+    assert len(lines) == 1, res.stderr
+    assert "DyCheck" in lines[0] and "Shape-of-Motion" in lines[0]
+    assert elapsed < 60  # seconds, not a hang (Snakemake start-up dominates)
+    assert not (tmp_path / "results").exists()
+
+
+@pytest.mark.parametrize(
+    "target, message",
+    [
+        ("results/nope/x/ratio0.6/metrics.json", "unknown dataset 'nope'"),
+        ("results/iphone/nope/ratio0.6/metrics.json", "unknown scene 'nope' of dataset 'iphone'"),
+        ("results/synthetic/default/ratio0.6/ablation/nope/metrics.json", "unknown ablation variant 'nope'"),
+    ],
+)
+def test_unknown_names(tmp_path, target, message):
+    res = snakemake(["-n", target], tmp_path)
+    assert res.returncode != 0
+    assert message in res.stdout + res.stderr
+
+
+def test_sweep_shares_upstream_stages(tmp_path):
+    res = snakemake(["-n", "sweep_groupwise"], tmp_path)
+    assert res.returncode == 0, res.stderr
+    counts = job_counts(res.stdout)
+    # Eight forecaster variants + the default result, one reconstruction, one grouping.
+    assert counts["evaluate"] == 9
+    assert counts["recon"] == 1 and counts["group"] == 1 and counts["priors"] == 1
+
+
+def _fake_paper_data(root: Path) -> None:
+    import yaml
+
+    paper = yaml.safe_load(Path(PAPER).read_text())
+    for entry in paper["grid"]:
+        for scene in entry["scenes"]:
+            (root / "data" / entry["dataset"] / scene).mkdir(parents=True, exist_ok=True)
+
+
+def test_slurm_profile_dry_runs_the_paper_grid(tmp_path):
+    pytest.importorskip("snakemake_executor_plugin_slurm")
+    _fake_paper_data(tmp_path)
+    res = snakemake(["-n", "all", "--profile", str(REPO / "profiles" / "slurm")], tmp_path, configfiles=(CONFIG, PAPER))
+    assert res.returncode == 0, res.stderr[-3000:]
+    counts = job_counts(res.stdout)
+    # 5 iPhone + 8 D-NeRF + 5 MuJoCo scenes + the synthetic demo scene.
+    assert counts["ingest"] == 19
+    # scene x ratio: iPhone 5x4, D-NeRF 8x2, MuJoCo 5x2, demo 1.
+    assert counts["split"] == 47 and counts["priors"] == 47
+    # + two reconstructions of the demo's run-time sweep.
+    assert counts["recon"] == 49
+    # + Gaga-4D grouping on the five iPhone scenes.
+    assert counts["group"] == 54
+    # results: 47 + 8x5 group-wise + 5 grouping + 8 masking + 2 run-time sweep
+    assert counts["evaluate"] == 102
+    recon = job_blocks(res.stdout, "recon")
+    assert len(recon) == 49
+    assert all("gpu=1" in b and "mem_mb=32000" in b and "runtime=240" in b and "cpus_per_task=4" in b for b in recon)
+    group = job_blocks(res.stdout, "group")
+    assert len(group) == 54 and all("gpu=1" not in b and "mem_mb=16000" in b for b in group)
+    assert len(job_blocks(res.stdout, "tables")) == 1
+
+
+def _groups_tree(root: Path, rigid: list[int]) -> None:
+    """A results tree up to groups.h5 (placeholder upstream files, real groups.h5)."""
+    from mogaf.grouping import write_groups
+    from mogaf.grouping.core import Groups
+
+    base = root / "results" / "synthetic" / "default"
+    (base / "source").mkdir(parents=True)
+    ratio = base / "ratio0.6"
+    ratio.mkdir()
+    for path in (base / "scene.h5", ratio / "split.h5", ratio / "priors.h5", ratio / "recon.h5"):
+        path.write_text("placeholder")
+        time.sleep(0.01)  # strictly increasing modification times
+    k = len(rigid)
+    groups = Groups(
+        group_id=np.arange(3 * k) % k,
+        rigid=np.asarray(rigid, np.int8),
+        static=np.zeros(k, np.int8),
+        instance_id=np.arange(1, k + 1),
+        names=[f"g{i}" for i in range(k)],
+        rigid_source=["label"] * k,
+        method="ours",
+        params={},
+    )
+    write_groups(ratio / "groups.h5", groups, digest="d")
+
+
+@pytest.mark.parametrize("rigid, expect", [([0, 0], False), ([1, 0], True)])
+def test_rigid_init_runs_only_with_rigid_groups(tmp_path, rigid, expect):
+    _groups_tree(tmp_path, rigid)
+    res = snakemake(["-n", "results/synthetic/default/ratio0.6/refined.h5"], tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    counts = job_counts(res.stdout)
+    assert counts.get("refine") == 1
+    assert ("rigid_init" in counts) is expect
+    assert "recon" not in counts and "group" not in counts  # existing artefacts are reused
