@@ -111,5 +111,6 @@ def align_to(q: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Geodesic angle (radians) between rotations a and b, sign-invariant."""
-    d = np.abs(np.sum(normalize(a) * normalize(b), axis=-1))
-    return 2.0 * np.arccos(np.clip(d, 0.0, 1.0))
+    rel = mul(conj(normalize(a)), normalize(b))
+    # atan2 form: accurate near 0 (arccos of the dot product is not).
+    return 2.0 * np.arctan2(np.linalg.norm(rel[..., 1:], axis=-1), np.abs(rel[..., 0]))

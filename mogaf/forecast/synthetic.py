@@ -101,3 +101,69 @@ TRAJECTORY_SETS: dict[str, Callable[..., np.ndarray]] = {
     "waving_sheet": waving_sheet,
     "static": static_cloud,
 }
+
+
+# --- stress trajectories (numerical-stability tests) -------------------------
+
+
+def spin_near_pi(n_gaussians: int = 64, n_frames: int = 24, seed: int = 4, angle: float = 0.97 * np.pi) -> np.ndarray:
+    """A rigid body spinning by `angle` (close to pi) per frame about a tilted
+    axis: consecutive quaternions are nearly orthogonal."""
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(-0.5, 0.5, size=(n_gaussians, 3))
+    q0 = _random_quats(rng, n_gaussians)
+    t = np.arange(n_frames, dtype=np.float64)
+    rot = quat.from_axis_angle(np.broadcast_to(np.array([0.2, -0.4, 1.0]), (n_frames, 3)), t * angle)
+    return rigid_motion(pts, q0, np.array([0.1, 0.0, 0.0]), rot, np.zeros((n_frames, 3)))
+
+
+def high_freq_oscillation(n_gaussians: int = 64, n_frames: int = 24, seed: int = 5, period: float = 2.5) -> np.ndarray:
+    """Every Gaussian shakes along its own direction with a 2.5-frame period
+    while its orientation wobbles by +-0.8 rad at the same frequency."""
+    rng = np.random.default_rng(seed)
+    base = rng.uniform(-0.5, 0.5, size=(n_gaussians, 3))
+    dirs = rng.normal(size=(n_gaussians, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    q0 = _random_quats(rng, n_gaussians)
+    t = np.arange(n_frames, dtype=np.float64)
+    s = np.sin(2.0 * np.pi * t / period)
+    out = np.empty((n_gaussians, n_frames, 7))
+    out[..., :3] = base[:, None] + 0.3 * s[None, :, None] * dirs[:, None]
+    wob = quat.from_axis_angle(np.broadcast_to(dirs[:, None], (n_gaussians, n_frames, 3)), 0.8 * s[None, :] * np.ones((n_gaussians, 1)))
+    out[..., 3:] = quat.mul(wob, q0[:, None])
+    return out
+
+
+def bounce_stop(n_gaussians: int = 64, n_frames: int = 24, seed: int = 6, impact: int | None = None) -> np.ndarray:
+    """A falling ball that hits the ground at frame `impact` (default: 3 frames
+    before the end) and stops dead: an abrupt change right before the
+    forecast starts."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n_gaussians, 3))
+    pts = 0.2 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    q0 = _random_quats(rng, n_gaussians)
+    impact = n_frames - 3 if impact is None else impact
+    t = np.arange(n_frames, dtype=np.float64)
+    tc = np.minimum(t, impact)
+    height = 1.0 - 0.5 * 0.004 * tc**2 - 0.02 * tc
+    trans = np.stack([0.01 * tc, np.zeros_like(tc), height], axis=1)
+    rot = quat.from_axis_angle(np.broadcast_to(np.array([0.0, 1.0, 0.0]), (n_frames, 3)), 0.1 * tc)
+    return rigid_motion(pts, q0, np.zeros(3), rot, trans)
+
+
+def add_noise(traj: np.ndarray, pos_sigma: float = 0.01, rot_sigma: float = 0.02, seed: int = 7) -> np.ndarray:
+    """Gaussian noise on positions and on the quaternion (renormalised)."""
+    rng = np.random.default_rng(seed)
+    out = np.array(traj, dtype=np.float64, copy=True)
+    out[..., :3] += rng.normal(scale=pos_sigma, size=out[..., :3].shape)
+    out[..., 3:] = quat.normalize(out[..., 3:] + rng.normal(scale=rot_sigma, size=out[..., 3:].shape))
+    return out
+
+
+STRESS_SETS: dict[str, Callable[..., np.ndarray]] = {
+    "spin_near_pi": spin_near_pi,
+    "high_freq_oscillation": high_freq_oscillation,
+    "bounce_stop": bounce_stop,
+    "static": lambda n_gaussians=64, n_frames=24: static_cloud(n_gaussians, n_frames),
+    "noisy_box": lambda n_gaussians=64, n_frames=24: add_noise(rigid_box(n_gaussians, n_frames)),
+}

@@ -39,6 +39,7 @@ class TrainData:
     tracks_query: np.ndarray | None = None  # (P,) int64 frame index (into F)
     point_cloud: np.ndarray | None = None  # (P, 6) xyz rgb, dataset-level
     instance_mask: np.ndarray | None = None  # (F, H, W) int32, 0 = background
+    content_offset: int = 0  # > 0: labels above it are "content next to instance (label - offset)"
     downscale: int = 1
 
     @property
@@ -189,3 +190,65 @@ def input_digests(paths: dict[str, Any]) -> dict[str, str]:
         attrs = read_attrs(Path(p))
         out[name] = str(attrs.get("mogaf_config_digest", ""))
     return out
+
+
+def extend_masks_to_content(data: TrainData, tau: float) -> float:
+    """Without a background model every visible thing must be a dynamic Gaussian.
+
+    The foreground masks are widened to every pixel that differs from the
+    background colour by more than `tau` (any channel): cast shadows, mask
+    edges lost to anti-aliasing, unlabelled objects. Such pixels get the
+    label (offset + id of the nearest labelled pixel), offset = the largest
+    instance id: "content next to instance k" (its shadow, typically) is its
+    own group, free to move differently from k. Returns the fraction of
+    pixels added.
+    """
+    from scipy.ndimage import binary_opening, distance_transform_edt
+
+    added = 0
+    total = 0
+    offset = int(data.instance_mask.max()) if data.instance_mask is not None else 1
+    if data.instance_mask is not None:
+        data.content_offset = offset
+    for f in range(data.num_frames):
+        diff = np.abs(data.images[f] - data.background[None, None]).max(-1) > tau
+        diff = binary_opening(diff, iterations=1) | (data.fg_masks[f] > 0.5)
+        extra = diff & (data.fg_masks[f] <= 0.5)
+        added += int(extra.sum())
+        total += extra.size
+        if not extra.any():
+            continue
+        data.fg_masks[f] = np.maximum(data.fg_masks[f], diff.astype(np.float32))
+        if data.instance_mask is not None:
+            lab = data.instance_mask[f]
+            if (lab > 0).any():
+                _, (ri, ci) = distance_transform_edt(lab == 0, return_indices=True)
+                data.instance_mask[f] = np.where(extra, lab[ri, ci] + offset, lab)
+    return added / max(total, 1)
+
+
+def coarser(data: TrainData, factor: int) -> TrainData:
+    """The same frames at 1/factor resolution (area average; labels and tracks follow)."""
+    import dataclasses
+
+    s = int(factor)
+    if s <= 1:
+        return data
+    H, W = data.height // s, data.width // s
+    depth = valid = None
+    if data.has_depth:
+        depth, valid = downscale_depth(data.depth, data.depth_valid, s)
+    inst = None
+    if data.instance_mask is not None:
+        inst = data.instance_mask[:, s // 2:: s, s // 2:: s][:, :H, :W]
+    return dataclasses.replace(
+        data,
+        images=_area_down(data.images, s).astype(np.float32),
+        fg_masks=_area_down(data.fg_masks, s).astype(np.float32),
+        K=scale_intrinsics(data.K, 1.0 / s),
+        depth=depth,
+        depth_valid=valid,
+        tracks_xy=None if data.tracks_xy is None else (data.tracks_xy / s).astype(np.float32),
+        instance_mask=inst,
+        downscale=data.downscale * s,
+    )

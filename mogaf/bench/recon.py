@@ -1,0 +1,215 @@
+"""Benchmark of the reconstruction stage: `python -m mogaf.bench recon`.
+
+Cases (each builds its inputs with the library: generator / reader ->
+scene.h5 -> split.h5 -> priors.h5, cached in --workdir):
+
+- synthetic: the default synthetic scene (mogaf.synth, DyCheck iPhone
+  layout, 160x120, 60 frames), ratio 0.6, default recon parameters;
+- mujoco/scene3_collision, mujoco/scene7_deformation: the shared MuJoCo
+  scenes (D-NeRF layout, 800x800 read with downscale 4 -> 200x200),
+  ratio 0.8 (skipped when ../shared/data is absent).
+
+Columns: wall time of run_recon_stage (init + training + export; the CPU
+load average at the start and end is printed too, the machine may be
+shared), train PSNR (all observed frames, at training resolution), held-out
+PSNR (the split's evaluation_observed frames: held-out cameras / test
+frames at observed times), held-out mPSNR (DyCheck co-visibility mask, where
+the scene has one), and for the synthetic scene the 3D trajectory error:
+for every ground-truth surface point, the nearest fg Gaussian (opacity >
+0.1) at the canonical time step; the mean distance between the two
+trajectories over the observed steps, in metres and in % of the scene extent
+(diagonal of the bounding box of the ground-truth points over those steps).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+MUJOCO = ("scene3_collision", "scene7_deformation")
+
+
+def _prepare_synthetic(work: Path, preset: str = "default") -> tuple[Path, Path, Path]:
+    from mogaf.artefact import config_digest
+    from mogaf.datasets import read_scene
+    from mogaf.priors import run_priors_stage
+    from mogaf.scene import save_scene
+    from mogaf.split import split_scene, write_split
+    from mogaf.synth import generate_scene
+
+    root = work / f"synthetic_{preset}"
+    src = root / "source"
+    if not (src / "dataset.json").exists():
+        generate_scene(src, {"preset": preset})
+    return _finish_inputs(root, lambda: read_scene("synthetic", src, dataset="synthetic", scene=preset, options={"scale": 1}), 0.6)
+
+
+def _prepare_mujoco(work: Path, scene: str) -> tuple[Path, Path, Path] | None:
+    from mogaf.datasets import read_scene
+
+    folder = SHARED / "mujoco" / scene
+    if not folder.is_dir():
+        return None
+    opts = {"downscale": 4, "background": [1.0, 1.0, 1.0]}
+    return _finish_inputs(work / f"mujoco_{scene}", lambda: read_scene("dnerf", folder, dataset="mujoco", scene=scene, options=opts), 0.8)
+
+
+def _finish_inputs(root: Path, reader, ratio: float) -> tuple[Path, Path, Path]:
+    from mogaf.artefact import config_digest
+    from mogaf.priors import run_priors_stage
+    from mogaf.scene import save_scene
+    from mogaf.split import split_scene, write_split
+
+    root.mkdir(parents=True, exist_ok=True)
+    scene_h5, split_h5, priors_h5 = root / "scene.h5", root / f"split{ratio}.h5", root / f"priors{ratio}.h5"
+    if not scene_h5.exists():
+        save_scene(scene_h5, reader(), config_digest=config_digest({"bench": str(root.name)}))
+    if not split_h5.exists():
+        write_split(split_h5, split_scene(scene_h5, ratio))
+    if not priors_h5.exists():
+        run_priors_stage(scene_h5, split_h5, priors_h5, {})
+    return scene_h5, split_h5, priors_h5
+
+
+def heldout_psnr(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[float, float | None]:
+    from mogaf.metrics.image import mpsnr, psnr
+    from mogaf.recon import render_model
+    from mogaf.representation import load_model
+    from mogaf.split import load_frames, read_split
+
+    model = load_model(recon_h5)
+    frames = load_frames(scene_h5, read_split(split_h5), "evaluation_observed")
+    ps, mps = [], []
+    for i in range(frames.num_frames):
+        out = render_model(model, int(frames.time_index[i]), frames.K[i], frames.w2c[i], frames.width, frames.height)
+        img = out.features.numpy().clip(0, 1).astype(np.float64)
+        gt = frames.images[i].astype(np.float64) / 255.0
+        ps.append(psnr(img, gt))
+        if frames.covisible is not None and (frames.covisible[i] > 0).any():
+            mps.append(mpsnr(img, gt, frames.covisible[i] > 0))
+    return float(np.mean(ps)), (float(np.mean(mps)) if mps else None)
+
+
+def trajectory_error(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[float, float] | None:
+    """Mean 3D distance (scene units, % of extent) between GT surface-point and matched Gaussian trajectories."""
+    from scipy.spatial import cKDTree
+
+    from mogaf.representation import load_model
+    from mogaf.split import load_ground_truth, read_split
+
+    split = read_split(split_h5)
+    gt = load_ground_truth(scene_h5, split, "observed")
+    if "points3d" not in gt:
+        return None
+    pts = np.asarray(gt["points3d"], dtype=np.float64)  # (P, T_obs, 3)
+    model = load_model(recon_h5)
+    steps = np.asarray(model.timesteps)
+    k = int(np.flatnonzero(steps == int(model.attrs.get("canonical_timestep", steps[0])))[0])
+    opac = 1.0 / (1.0 + np.exp(-np.asarray(model.fg.opacity_logits)))
+    sel = np.flatnonzero(opac > 0.1)
+    traj = np.asarray(model.trajectory_means, dtype=np.float64)[sel]  # (N, T, 3)
+    _, nn = cKDTree(traj[:, k]).query(pts[:, k])
+    err = np.linalg.norm(traj[nn] - pts, axis=-1).mean()
+    flat = pts.reshape(-1, 3)
+    extent = float(np.linalg.norm(flat.max(0) - flat.min(0)))
+    return float(err), float(100.0 * err / extent)
+
+
+def run_case(name: str, inputs: tuple[Path, Path, Path], out_dir: Path, params: dict[str, Any], seed: int,
+             progress: bool) -> dict[str, Any]:
+    from mogaf.recon import run_recon_stage
+    from mogaf.representation import load_model
+    from mogaf.split import read_split
+
+    scene_h5, split_h5, priors_h5 = inputs
+    out = out_dir / f"{name.replace('/', '_')}_recon.h5"
+    load0 = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    run_recon_stage(scene_h5, split_h5, priors_h5, out, params, seed=seed, progress=progress)
+    wall = time.perf_counter() - t0
+    load1 = os.getloadavg()[0]
+    model = load_model(out)
+    ho, mho = heldout_psnr(scene_h5, split_h5, out)
+    traj = trajectory_error(scene_h5, split_h5, out)
+    return {
+        "scene": name,
+        "ratio": read_split(split_h5).ratio,
+        "iterations": int(model.attrs.get("iterations", 0)),
+        "gaussians": len(model.fg) + (0 if model.bg is None else len(model.bg)),
+        "wall_s": wall,
+        "train_psnr": float(model.attrs.get("train_psnr", float("nan"))),
+        "heldout_psnr": ho,
+        "heldout_mpsnr": mho,
+        "traj_err": None if traj is None else traj[0],
+        "traj_err_pct": None if traj is None else traj[1],
+        "load": (load0, load1),
+    }
+
+
+def _fmt(v: Any, spec: str) -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def print_table(rows: list[dict[str, Any]]) -> None:
+    head = f"{'scene':28s} {'ratio':>5s} {'iters':>6s} {'gauss':>7s} {'wall s':>7s} {'train':>6s} {'heldout':>7s} {'h-mPSNR':>7s} {'traj err':>9s} {'traj %':>6s} {'load':>9s}"
+    print(head)
+    print("-" * len(head))
+    for r in rows:
+        print(f"{r['scene']:28s} {r['ratio']:5.2f} {r['iterations']:6d} {r['gaussians']:7d} {r['wall_s']:7.1f} "
+              f"{r['train_psnr']:6.2f} {r['heldout_psnr']:7.2f} {_fmt(r['heldout_mpsnr'], '7.2f')} "
+              f"{_fmt(r['traj_err'], '9.4f')} {_fmt(r['traj_err_pct'], '6.2f')} {r['load'][0]:4.1f}/{r['load'][1]:<4.1f}")
+    print("PSNR in dB; held-out = evaluation_observed frames; h-mPSNR with the co-visibility mask; traj err in scene units "
+          "(synthetic: metres) and % of the GT points' bounding-box diagonal; load = 1-min load average at start/end.")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m mogaf.bench recon", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--cases", default="synthetic," + ",".join(f"mujoco/{s}" for s in MUJOCO),
+                    help="comma-separated: synthetic, synthetic:hard, mujoco/<scene>")
+    ap.add_argument("--workdir", default=None, help="inputs and outputs (default: <cache>/bench_recon)")
+    ap.add_argument("--params", default="{}", help="JSON recon parameters for every case (e.g. '{\"iterations\": 500}')")
+    ap.add_argument("--mujoco-params", default="{}", help="extra JSON parameters for the MuJoCo cases")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--progress", action="store_true")
+    ap.add_argument("--json", default=None, help="also write the rows to this JSON file")
+    args = ap.parse_args(argv)
+    from mogaf.paths import cache_dir
+
+    work = Path(args.workdir) if args.workdir else cache_dir("bench_recon")
+    work.mkdir(parents=True, exist_ok=True)
+    params = json.loads(args.params)
+    rows = []
+    for case in [c.strip() for c in args.cases.split(",") if c.strip()]:
+        if case.startswith("synthetic"):
+            preset = case.split(":", 1)[1] if ":" in case else "default"
+            inputs = _prepare_synthetic(work, preset)
+            p = dict(params)
+        elif case.startswith("mujoco/"):
+            inputs = _prepare_mujoco(work, case.split("/", 1)[1])
+            if inputs is None:
+                print(f"skipping {case}: {SHARED / 'mujoco'} is absent", file=sys.stderr)
+                continue
+            p = {**params, **json.loads(args.mujoco_params)}
+        else:
+            print(f"unknown case {case!r}", file=sys.stderr)
+            return 2
+        print(f"[{case}] running recon ...", file=sys.stderr, flush=True)
+        rows.append(run_case(case, inputs, work, p, args.seed, args.progress))
+        print_table(rows[-1:])
+    print()
+    print_table(rows)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

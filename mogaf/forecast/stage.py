@@ -1,0 +1,179 @@
+"""Forecast stage: one job per dynamic motion group and method, then a merge.
+
+forecast/{method}/group{k}.h5 (stage "forecast_group"): the poses of group k's
+Gaussians at every forecast time step, predicted from the group's observed
+trajectories only. k = "all" when group-wise forecasting is off (ablation
+"w/o group-wise forecasting": one forecaster for every dynamic Gaussian).
+forecast/{method}.h5 (stage "forecast"): poses of every dynamic Gaussian at
+every forecast time step; Gaussians of static groups keep their last
+observed pose (no forecaster is trained for them).
+
+Schema of forecast/{method}.h5:
+  timesteps (T_fc,)        scene time-grid indices (= split.forecast_timesteps)
+  means (N, T_fc, 3), quats (N, T_fc, 4)   per fg Gaussian, wxyz, unit
+  group_id (N,)
+attrs: method, groupwise, num_groups_trained, flags (per job), epe_3d_quick
+(when ground truth exists: mean 3D error of the GT surface points carried by
+the forecast, a quick check beside the rendered metrics).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..artefact import config_digest, read_artefact, write_artefact
+from ..errors import MogafError, input_error
+from ..representation import Model4D, load_model, quat_sign_continuity
+from ..split import read_split
+
+log = logging.getLogger(__name__)
+
+GROUP_STAGE = "forecast_group"
+MERGE_STAGE = "forecast"
+ALL = "all"
+
+
+def _groups(groups_h5: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    art = read_artefact(groups_h5, "group", required=["group_id", "group_static"])
+    return np.asarray(art["group_id"], np.int64), np.asarray(art["group_static"], bool)
+
+
+def dynamic_members(group_id: np.ndarray, group_static: np.ndarray) -> np.ndarray:
+    """Indices of Gaussians in non-static groups."""
+    dynamic = np.flatnonzero(~group_static)
+    return np.flatnonzero(np.isin(group_id, dynamic))
+
+
+def forecast_jobs(groups_h5: str | os.PathLike, *, groupwise: bool) -> list[str]:
+    """Job names: dynamic group ids (as text), or ['all']; [] for a static scene."""
+    group_id, group_static = _groups(groups_h5)
+    dynamic = [k for k in np.flatnonzero(~group_static) if np.any(group_id == k)]
+    if not dynamic:
+        return []
+    return [str(int(k)) for k in dynamic] if groupwise else [ALL]
+
+
+def job_members(job: str, group_id: np.ndarray, group_static: np.ndarray, source: str | os.PathLike) -> np.ndarray:
+    if job == ALL:
+        members = dynamic_members(group_id, group_static)
+    else:
+        try:
+            k = int(job)
+        except ValueError:
+            raise MogafError(f"forecast job '{job}' is neither a group id nor '{ALL}'") from None
+        if k < 0 or k >= group_static.size:
+            raise input_error(source, f"has {group_static.size} groups, no group {k}")
+        if group_static[k]:
+            raise input_error(source, f"group {k} is static: it is not forecast (its future is its last pose)")
+        members = np.flatnonzero(group_id == k)
+    if members.size == 0:
+        raise input_error(source, f"forecast job '{job}' has no Gaussians")
+    return members
+
+
+def observed_states(model: Model4D, members: np.ndarray) -> np.ndarray:
+    """(G, T, 7) float64 [mu, q] with quaternion sign continuity along time."""
+    means = np.asarray(model.trajectory_means[members], np.float64)
+    quats = quat_sign_continuity(np.asarray(model.trajectory_quats[members], np.float64), axis=1)
+    return np.concatenate([means, quats], axis=-1)
+
+
+def method_params(params: Mapping[str, Any], method: str) -> dict[str, Any]:
+    return {**dict(params.get("common") or {}), **dict(params.get(method) or {})}
+
+
+def _job_seed(seed: int, job: str) -> int:
+    # Distinct, reproducible streams per job; "all" uses the base seed.
+    return int(seed) if job == ALL else int(seed) + 1000 * (int(job) + 1)
+
+
+def run_forecast_group(model_h5: str, groups_h5: str, split_h5: str, out: str, params: Mapping[str, Any], *, method: str, job: str, seed: int) -> Path:
+    from . import fit_and_rollout
+
+    model = load_model(model_h5)
+    group_id, group_static = _groups(groups_h5)
+    if group_id.size != len(model.fg):
+        raise input_error(groups_h5, f"groups {group_id.size} Gaussians, the model {model_h5} has {len(model.fg)}")
+    split = read_split(split_h5)
+    members = job_members(job, group_id, group_static, groups_h5)
+    observed = observed_states(model, members)
+    if observed.shape[1] != split.num_observed_timesteps:
+        raise input_error(model_h5, f"trajectories have {observed.shape[1]} steps, the split observes {split.num_observed_timesteps}")
+    mparams = method_params(params, method)
+    start = time.perf_counter()
+    result = fit_and_rollout(method, observed, int(split.forecast_timesteps.size), mparams, _job_seed(seed, job))
+    wall = time.perf_counter() - start
+    poses = np.asarray(result.poses, np.float64)
+    if not np.all(np.isfinite(poses)):
+        raise MogafError(f"forecast {method} job {job}: the forecaster produced non-finite poses")
+    info = {k: v for k, v in dict(result.info).items() if isinstance(v, (int, float, str, bool)) or v is None}
+    log.info("forecast %s job %s: %d Gaussians, %.1f s, info %s", method, job, members.size, wall, info)
+    return write_artefact(
+        out, GROUP_STAGE,
+        {"members": members, "means": poses[..., :3].astype(np.float32), "quats": poses[..., 3:].astype(np.float32)},
+        config_digest=config_digest({"method": method, "params": mparams, "job": job, "seed": seed}),
+        attrs={"method": method, "job": job, "num_gaussians": int(members.size), "fit_wall_s": round(wall, 3), "info": info},
+    )
+
+
+def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, scene_h5: str, parts: list[str], out: str, params: Mapping[str, Any], *, method: str) -> Path:
+    model = load_model(model_h5)
+    group_id, group_static = _groups(groups_h5)
+    split = read_split(split_h5)
+    n, T = len(model.fg), int(split.forecast_timesteps.size)
+    # Static groups (and anything no job covers) keep the last observed pose.
+    means = np.repeat(np.asarray(model.trajectory_means[:, -1:], np.float32), T, axis=1)
+    quats = np.repeat(np.asarray(model.trajectory_quats[:, -1:], np.float32), T, axis=1)
+    covered = np.zeros(n, bool)
+    flags = {}
+    for part in parts:
+        art = read_artefact(part, GROUP_STAGE, required=["members", "means", "quats"])
+        if art.attrs.get("method") != method:
+            raise input_error(part, f"holds method '{art.attrs.get('method')}', expected '{method}'")
+        members = np.asarray(art["members"], np.int64)
+        if art["means"].shape != (members.size, T, 3):
+            raise input_error(part, f"poses have shape {art['means'].shape}, expected ({members.size}, {T}, 3)")
+        if np.any(covered[members]):
+            raise input_error(part, "overlaps another forecast job")
+        covered[members] = True
+        means[members] = art["means"]
+        quats[members] = art["quats"]
+        flags[str(art.attrs.get("job"))] = art.attrs.get("info", {})
+    missing = dynamic_members(group_id, group_static)
+    missing = missing[~covered[missing]]
+    if missing.size:
+        raise MogafError(f"forecast {method}: {missing.size} dynamic Gaussians are covered by no forecast job")
+    attrs: dict[str, Any] = {"method": method, "groupwise": bool(params.get("groupwise", True)), "num_groups_trained": len(parts), "flags": flags}
+    epe = quick_epe(model, means, quats, scene_h5, split)
+    if epe is not None:
+        attrs["epe_3d_quick"] = round(epe, 6)
+    return write_artefact(
+        out, MERGE_STAGE,
+        {"timesteps": split.forecast_timesteps, "means": means, "quats": quats, "group_id": group_id},
+        config_digest=config_digest({"method": method, "parts": sorted(Path(p).name for p in parts)}),
+        attrs=attrs,
+    )
+
+
+def quick_epe(model: Model4D, means: np.ndarray, quats: np.ndarray, scene_h5: str, split) -> float | None:
+    """Mean 3D error of GT surface points carried by the forecast (None without GT).
+
+    Runs after every forecast job has finished: nothing here feeds back into
+    a prediction.
+    """
+    from ..evaluate import predicted_gt_tracks
+    from ..split import load_ground_truth
+
+    gt_obs = load_ground_truth(scene_h5, split, "observed")
+    if "points3d" not in gt_obs:
+        return None
+    gt_fc = load_ground_truth(scene_h5, split, "forecast")
+    pred = predicted_gt_tracks(model, {"means": means, "quats": quats}, gt_obs, k=4)
+    return float(np.mean(np.linalg.norm(pred - np.asarray(gt_fc["points3d"], np.float64), axis=-1)))

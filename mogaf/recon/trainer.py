@@ -1,0 +1,571 @@
+"""Optimisation loop of the reconstruction stage.
+
+One step: sample `batch_size` observed frames (a seeded torch.Generator),
+pose the fg Gaussians at each frame's step, render colour (+ fg-share
+channel when there is a background model, + positions at a few target
+frames for the 2D track loss) in one rasterizer pass, add the losses,
+backpropagate, take one Adam step per parameter, accumulate the
+screen-space gradient statistics and, every `control_every` steps,
+densify / prune.
+
+Determinism: every random choice goes through one torch.Generator (frames,
+track targets, split positions) seeded from `seed`; its state is part of the
+checkpoint, as are the parameters, the Adam moments, the density
+statistics and the training curve, so a resumed run continues bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .data import TrainData
+from .densify import DensifyRules, DensityStats, control_step
+from .init import InitResult, camera_centers
+from .losses import basis_smoothness, gradient_loss, masked_l1, rgb_loss, z_velocity_loss, accel_loss
+from .model import ReconModel, gaussian_colors
+from .render import rasterize
+
+CHECKPOINT_VERSION = 1
+
+
+@dataclass
+class Curve:
+    iteration: list[int] = field(default_factory=list)
+    loss: list[float] = field(default_factory=list)
+    psnr: list[float] = field(default_factory=list)
+    num_gaussians: list[int] = field(default_factory=list)
+
+    def as_arrays(self) -> dict[str, np.ndarray]:
+        return {
+            "iteration": np.asarray(self.iteration, dtype=np.int64),
+            "loss": np.asarray(self.loss, dtype=np.float64),
+            "psnr": np.asarray(self.psnr, dtype=np.float64),
+            "num_gaussians": np.asarray(self.num_gaussians, dtype=np.int64),
+        }
+
+
+def _lr_names(params: dict, scale: float) -> dict[str, float]:
+    s = scale if params["lr_scene_scaled"] else 1.0
+    b = params["lr_boost"]
+    lr = {
+        "means": params["lr_means"] * s,
+        "quats": params["lr_quats"],
+        "log_scales": params["lr_scales"],
+        "color_logits": params["lr_colors"],
+        "sh_rest": params["lr_colors"] / 20.0,
+        "motion_coef_logits": params["lr_motion_coefs"],
+    }
+    out = {}
+    for part in ("fg", "bg"):
+        for k, v in lr.items():
+            out[f"{part}.{k}"] = v * b
+        out[f"{part}.opacity_logits"] = params[f"lr_opacities_{part}"] * b
+    out["motion.rot6d"] = params["lr_rots"] * b
+    out["motion.transl"] = params["lr_transls"] * s * b
+    return out
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "cuda" or (name == "auto" and torch.cuda.is_available()):
+        if not torch.cuda.is_available():
+            from ..errors import MogafError
+
+            raise MogafError("recon: device 'cuda' asked for, but torch sees no CUDA device")
+        return torch.device("cuda")
+    return torch.device("cpu")
+
+
+class Trainer:
+    def __init__(self, data: TrainData, params: dict, seed: int, init: InitResult | None = None,
+                 state: dict | None = None, coarse: TrainData | None = None):
+        self.fine = data
+        self.coarse = coarse
+        self.p = params
+        self.seed = int(seed)
+        self.dev = resolve_device(params["device"])
+        d = self.dev
+        self.w2c = torch.tensor(data.w2c, dtype=torch.float32, device=d)
+        self.cam_centers = torch.tensor(camera_centers(data.w2c), dtype=torch.float32, device=d)
+        self.tidx = torch.tensor(data.tidx, dtype=torch.int64)  # CPU: sampling logic
+        self.background = torch.tensor(data.background, dtype=torch.float32, device=d)
+        self.tracks_vis = torch.tensor(data.tracks_visible, device=d) if data.has_tracks else None
+        # coarse-to-fine: the first `coarse_fraction` of the iterations use `coarse`
+        self.switch_at = int(params["coarse_fraction"] * params["iterations"]) if coarse is not None else 0
+        self._levels: dict[int, dict[str, Any]] = {}
+        self.level = -1
+        self.gen = torch.Generator().manual_seed(self.seed)
+        if state is None:
+            assert init is not None
+            self.model = ReconModel(init.fg, init.rot6d, init.transl, init.bg, sh_degree=params["sh_degree"],
+                                    scene_scale=init.scene_scale)
+            self.canonical_frame = init.canonical_frame
+            self.motion_source = init.motion_source
+            self.init_info = dict(init.info)
+            self.iteration = 0
+            self.curve = Curve()
+            self.elapsed = 0.0
+        else:
+            self.model = ReconModel.from_state(state["model"], sh_degree=params["sh_degree"],
+                                               scene_scale=float(state["scene_scale"]))
+            self.canonical_frame = int(state["canonical_frame"])
+            self.motion_source = str(state["motion_source"])
+            self.init_info = dict(state.get("init_info", {}))
+            self.iteration = int(state["iteration"])
+            self.curve = Curve(**state["curve"])
+            self.elapsed = float(state["elapsed"])
+            self.gen.set_state(state["generator"])
+        self.model.to(self.dev)
+        self.scale = self.model.scene_scale
+        self.base_lr = _lr_names(params, self.scale)
+        if self.motion_source == "identity":
+            for k in ("motion.rot6d", "motion.transl"):
+                self.base_lr[k] *= params["lr_motion_identity_boost"]
+        self.optimizers = {name: torch.optim.Adam([p], lr=self.base_lr[name], eps=1e-15)
+                           for name, p in self.model.named_tensors().items()}
+        self.stats = DensityStats(self.model.num_gaussians)
+        if state is not None:
+            for name, opt in self.optimizers.items():
+                opt.load_state_dict(state["optimizers"][name])
+            self.stats.load(state["stats"])
+        self.has_bg = self.model.bg is not None
+        from .init import gap_interpolation
+
+        gi = gap_interpolation(data.num_timesteps, data.tidx) if params["gap_interpolation"] else None
+        if gi is None:
+            self.gap_fill = None
+        else:
+            knots = np.unique(data.tidx)
+            self.gap_fill = (torch.tensor(gi[0], device=self.dev), torch.tensor(knots, device=self.dev),
+                             torch.tensor(gi[1], dtype=torch.float32, device=self.dev))
+        mode = params["curriculum"]
+        self.curriculum = (mode == "on") or (mode == "auto" and self.motion_source == "identity")
+        self.rules = DensifyRules(
+            grad_threshold=params["densify_grad_threshold"],
+            scale_threshold=params["densify_scale_threshold"],
+            screen_threshold=params["densify_screen_threshold"],
+            cull_opacity=params["cull_opacity_threshold"],
+            cull_scale=params["cull_scale_threshold"],
+            cull_screen=params["cull_screen_threshold"],
+            extent=self.scale,
+            max_gaussians=params["max_gaussians"],
+        )
+        smode = params["silhouette"]
+        self.silhouette = params["w_silhouette"] > 0 and (
+            (smode == "on") or (smode == "auto" and self.motion_source != "procrustes"))
+        self.use_level(self.level_for(self.iteration))
+        self._loss_acc: list[float] = []
+        self._psnr_acc: list[float] = []
+        if state is not None:
+            self._loss_acc = list(state["pending"]["loss"])
+            self._psnr_acc = list(state["pending"]["psnr"])
+
+    # -------------------------------------------------------------- resolution levels
+    def level_for(self, it: int) -> int:
+        return 0 if (self.coarse is not None and it < self.switch_at) else 1
+
+    def use_level(self, level: int) -> None:
+        """Point the per-resolution tensors at level 0 (coarse) or 1 (fine); built once each."""
+        if level == self.level:
+            return
+        if level not in self._levels:
+            data = self.coarse if level == 0 else self.fine
+            d = self.dev
+            lv: dict[str, Any] = {
+                "data": data,
+                "H": data.height,
+                "W": data.width,
+                "images": torch.tensor(data.images, device=d),
+                "masks": torch.tensor(data.fg_masks, device=d),
+                "K": torch.tensor(data.K, dtype=torch.float32, device=d),
+                "depth": torch.tensor(data.depth, device=d) if data.has_depth else None,
+                "depth_valid": torch.tensor(data.depth_valid.astype(np.float32), device=d) if data.has_depth else None,
+                "tracks_xy": torch.tensor(data.tracks_xy, device=d) if data.has_tracks else None,
+                "sil": None,
+            }
+            if self.silhouette:
+                from .silhouette import SilhouetteTargets
+
+                gen = torch.Generator().manual_seed(self.seed + 29 + level)
+                lv["sil"] = SilhouetteTargets(data, self.p["silhouette_pixels"], gen, d)
+            self._levels[level] = lv
+        lv = self._levels[level]
+        self.level = level
+        self.data = lv["data"]
+        self.H, self.W = lv["H"], lv["W"]
+        for k in ("images", "masks", "K", "depth", "depth_valid", "tracks_xy", "sil"):
+            setattr(self, k, lv[k])
+
+    def silhouette_loss(self, f: int, means: torch.Tensor) -> torch.Tensor:
+        from .silhouette import project_batch
+
+        frames = torch.tensor([f], device=self.dev)
+        uv, front = project_batch(means[:, None], self.K[frames], self.w2c[frames], 1e-3 * self.scale)
+        labels = self.model.fg.aux.get("labels")
+        fwd, cov = self.sil.terms(frames, uv, front, self.model.fg.opacities().detach(), labels)
+        return fwd + cov
+
+    # -------------------------------------------------------------- schedule
+    def set_lrs(self, it: int) -> None:
+        frac = min(1.0, it / max(1, self.p["iterations"]))
+        for name, opt in self.optimizers.items():
+            lr = self.base_lr[name]
+            if name.endswith("log_scales"):
+                lr = lr * math.exp(math.log(0.1) * frac)  # SoM: x0.1 exponential decay
+            for g in opt.param_groups:
+                g["lr"] = lr
+
+    def window(self, it: int) -> int:
+        T = self.data.num_timesteps
+        if not self.curriculum:
+            return T
+        n = max(1, int(self.p["curriculum_fraction"] * self.p["iterations"]))
+        start = self.p["curriculum_start"]
+        return int(min(T, start + (T - start) * it / n))
+
+    def allowed_frames(self, it: int) -> torch.Tensor:
+        if not self.curriculum:
+            return torch.arange(self.data.num_frames)
+        c = int(self.tidx[self.canonical_frame])
+        w = self.window(it)
+        ok = (self.tidx - c).abs() <= w
+        return torch.nonzero(ok, as_tuple=False).squeeze(1)
+
+    @torch.no_grad()
+    def fill_gaps(self) -> None:
+        """Steps without a training frame take the cubic-spline interpolation of the steps with one."""
+        if self.gap_fill is None:
+            return
+        gaps, knots, M = self.gap_fill
+        for key in ("rot6d", "transl"):
+            x = self.model.motion[key].data
+            x[:, gaps] = torch.einsum("gk,bkd->bgd", M, x[:, knots])
+
+    @torch.no_grad()
+    def extrapolate_bases(self, it: int) -> None:
+        """Curriculum: steps outside the window follow the nearest in-window steps linearly."""
+        if not self.curriculum:
+            return
+        T = self.data.num_timesteps
+        c = int(self.tidx[self.canonical_frame])
+        w = self.window(it)
+        lo, hi = max(0, c - w), min(T - 1, c + w)
+        for key in ("rot6d", "transl"):
+            x = self.model.motion[key].data
+            if hi < T - 1:
+                v = x[:, hi] - x[:, hi - 1] if hi >= 1 and hi - 1 >= lo else torch.zeros_like(x[:, hi])
+                k = torch.arange(1, T - hi, dtype=x.dtype).reshape(1, -1, 1)
+                x[:, hi + 1:] = x[:, hi:hi + 1] + k * v[:, None]
+            if lo > 0:
+                v = x[:, lo] - x[:, lo + 1] if lo + 1 <= hi else torch.zeros_like(x[:, lo])
+                k = torch.arange(lo, 0, -1, dtype=x.dtype).reshape(1, -1, 1)
+                x[:, :lo] = x[:, lo:lo + 1] + k * v[:, None]
+
+    # -------------------------------------------------------------- rendering
+    def render_frame(self, f: int, extra_fg: torch.Tensor | None = None, extra_bg: torch.Tensor | None = None,
+                     with_mask: bool = True):
+        m = self.model
+        t = int(self.tidx[f])
+        means_fg, quats_fg = m.fg_poses_at(t)
+        cam = self.cam_centers[f]
+        cols_fg = gaussian_colors(m.fg.get("color_logits"), m.fg.sh_rest(), means_fg, cam)
+        parts_means = [means_fg]
+        parts_quats = [quats_fg]
+        parts_scales = [m.fg.scales()]
+        parts_op = [m.fg.opacities()]
+        feats_fg = [cols_fg]
+        feats_bg = []
+        if self.has_bg:
+            bmeans = m.bg.get("means")
+            parts_means.append(bmeans)
+            parts_quats.append(m.bg.quats())
+            parts_scales.append(m.bg.scales())
+            parts_op.append(m.bg.opacities())
+            feats_bg.append(gaussian_colors(m.bg.get("color_logits"), m.bg.sh_rest(), bmeans, cam))
+            if with_mask:
+                feats_fg.append(torch.ones(m.num_fg, 1, device=self.dev))
+                feats_bg.append(torch.zeros(m.num_bg, 1, device=self.dev))
+        if extra_fg is not None:
+            feats_fg.append(extra_fg)
+            if self.has_bg:
+                feats_bg.append(extra_bg)
+        feats = torch.cat(feats_fg, 1)
+        if self.has_bg:
+            feats = torch.cat([feats, torch.cat(feats_bg, 1)], 0)
+        C = feats.shape[1]
+        bgc = torch.zeros(C, device=self.dev)
+        bgc[:3] = self.background
+        out = rasterize(
+            torch.cat(parts_means, 0), torch.cat(parts_quats, 0), torch.cat(parts_scales, 0), torch.cat(parts_op, 0),
+            feats, self.w2c[f], self.K[f], self.W, self.H, background=bgc, backend=self.p["backend"],
+        )
+        if torch.is_grad_enabled() and hasattr(out, "retain_means2d_grad"):
+            out.retain_means2d_grad()
+        return out, means_fg
+
+    # -------------------------------------------------------------- one step
+    def step(self) -> tuple[float, float]:
+        p = self.p
+        it = self.iteration
+        self.use_level(self.level_for(it))
+        self.set_lrs(it)
+        self.extrapolate_bases(it)
+        allowed = self.allowed_frames(it)
+        bs = min(p["batch_size"], int(allowed.numel()))
+        pick = allowed[torch.randperm(int(allowed.numel()), generator=self.gen)[:bs]]
+        m = self.model
+        T = self.data.num_timesteps
+        q = p["loss_quantile"]
+        total = torch.zeros((), device=self.dev)
+        terms: dict[str, float] = {}
+
+        def note(name: str, value: torch.Tensor) -> torch.Tensor:
+            terms[name] = terms.get(name, 0.0) + float(value.detach())
+            return value
+        outs = []
+        psnrs = []
+        for f in pick.tolist():
+            extra_fg = extra_bg = None
+            targets = None
+            if self.tracks_xy is not None and p["w_track"] > 0 and p["track_targets"] > 0:
+                cand = allowed[allowed != f]
+                if cand.numel() > 0:
+                    k = min(p["track_targets"], int(cand.numel()))
+                    targets = cand[torch.randperm(int(cand.numel()), generator=self.gen)[:k]]
+                    tt = self.tidx[targets]
+                    tm = m.fg_means_at(tt.to(self.dev))  # (N, k, 3)
+                    extra_fg = tm.reshape(m.num_fg, -1)
+                    if self.has_bg:
+                        extra_bg = m.bg.get("means").repeat(1, len(tt))
+            out, means_f = self.render_frame(f, extra_fg, extra_bg)
+            outs.append(out)
+            feats = out.features
+            rgb = feats[..., :3]
+            acc = out.alpha
+            gt = self.images[f]
+            fgm = self.masks[f][..., None]
+            loss = p["w_rgb"] * note("rgb", rgb_loss(rgb[None], gt[None], p["ssim_weight"]))
+            with torch.no_grad():
+                mse = float(((rgb - gt) ** 2).mean())
+                psnrs.append(-10 * math.log10(max(mse, 1e-10)))
+            # mask
+            if p["w_mask"] > 0:
+                if self.has_bg:
+                    ml = ((acc - 1) ** 2).mean() + masked_l1(feats[..., 3:4], fgm, None, q)
+                else:
+                    ml = ((acc - fgm) ** 2).mean()
+                loss = loss + p["w_mask"] * note("mask", ml)
+            # depth (disparity, scene-scale free)
+            if self.depth is not None and (p["w_depth"] > 0 or p["w_depth_grad"] > 0):
+                dmask = self.depth_valid[f][..., None]
+                if not self.has_bg:
+                    dmask = dmask * (fgm > 0.5)
+                pd = self.scale / (out.depth + 1e-5 * self.scale)
+                td = self.scale / (self.depth[f][..., None] + 1e-5 * self.scale)
+                td = torch.where(dmask > 0, td, torch.zeros_like(td))
+                if p["w_depth"] > 0:
+                    loss = loss + p["w_depth"] * note("depth", masked_l1(pd, td, dmask, q))
+                if p["w_depth_grad"] > 0:
+                    loss = loss + p["w_depth_grad"] * note("depth_grad", gradient_loss(pd[None], td[None], dmask[None], 0.95))
+            if self.silhouette:
+                wsil = p["w_silhouette"] * (1 - p["silhouette_decay"] * min(1.0, it / max(1, p["iterations"])))
+                loss = loss + wsil * note("silhouette", self.silhouette_loss(f, means_f))
+            # 2D tracks
+            if targets is not None:
+                loss = loss + p["w_track"] * note("track", self.track_loss(f, targets, feats, acc, q))
+            total = total + loss
+        total = total / len(outs)
+        # regularisers (once per step)
+        reg = torch.zeros((), device=self.dev)
+        if p["w_smooth_bases"] > 0 and T >= 3:
+            reg = reg + p["w_smooth_bases"] * note("smooth_bases", basis_smoothness(m.motion["rot6d"], m.motion["transl"], self.scale))
+        if (p["w_smooth_tracks"] > 0 or p["w_z_accel"] > 0) and T >= 3:
+            ts = self.tidx[pick].clamp(1, T - 2)
+            nb = torch.cat([ts - 1, ts, ts + 1])
+            mn = m.fg_means_at(nb.to(self.dev)).reshape(m.num_fg, 3, len(ts), 3)
+            if p["w_smooth_tracks"] > 0:
+                a = (2 * mn[:, 1] - mn[:, 0] - mn[:, 2]).norm(dim=-1).mean() / self.scale
+                reg = reg + p["w_smooth_tracks"] * 0.5 * note("smooth_tracks", a)
+            if p["w_z_accel"] > 0:
+                reg = reg + p["w_z_accel"] * note("z_vel", z_velocity_loss(mn, self.cam_centers[pick.to(self.dev)], self.scale))
+        if p["w_scale_var"] > 0:
+            for g in m.parts().values():
+                reg = reg + p["w_scale_var"] * torch.var(g.get("log_scales"), dim=-1).mean()
+        total = total + reg
+        self.last_terms = terms
+        for opt in self.optimizers.values():
+            opt.zero_grad(set_to_none=True)
+        total.backward()
+        for out in outs:
+            grad = out.means2d_grad if hasattr(out, "means2d_grad") else getattr(out.means2d, "grad", None)
+            if grad is not None:
+                radii = out.radii.max(dim=-1).values if out.radii.ndim == 2 else out.radii
+                self.stats.accumulate(grad, radii, self.W, self.H, len(outs))
+        for opt in self.optimizers.values():
+            opt.step()
+        self.fill_gaps()
+        self.iteration += 1
+        self.control()
+        return float(total.detach()), float(np.mean(psnrs))
+
+    def track_loss(self, f: int, targets: torch.Tensor, feats: torch.Tensor, acc: torch.Tensor, q: float) -> torch.Tensor:
+        off = 4 if self.has_bg else 3
+        vis_f = self.tracks_vis[:, f]
+        xy_f = self.tracks_xy[:, f]
+        inb = vis_f & (xy_f[:, 0] >= 0) & (xy_f[:, 1] >= 0) & (xy_f[:, 0] < self.W) & (xy_f[:, 1] < self.H)
+        # fg tracks only (the points the dynamic Gaussians must follow)
+        idx = torch.nonzero(inb, as_tuple=False).squeeze(1)
+        if idx.numel() == 0:
+            return feats.sum() * 0.0
+        px = xy_f[idx]
+        fgv = self.masks[f][px[:, 1].long().clamp(0, self.H - 1), px[:, 0].long().clamp(0, self.W - 1)]
+        idx, px = idx[fgv > 0.5], px[fgv > 0.5]
+        if idx.numel() == 0:
+            return feats.sum() * 0.0
+        grid = torch.stack([px[:, 0] / self.W * 2 - 1, px[:, 1] / self.H * 2 - 1], -1).reshape(1, 1, -1, 2)
+        k = len(targets)
+        maps = torch.cat([feats[..., off:off + 3 * k], acc], -1).permute(2, 0, 1)[None]
+        s = F.grid_sample(maps, grid, mode="bilinear", align_corners=False)[0, :, 0].T  # (M, 3k+1)
+        pts = s[:, :3 * k].reshape(-1, k, 3) / s[:, -1:].clamp_min(1e-4)[:, None]
+        losses = []
+        weights = []
+        T = self.data.num_timesteps
+        preds, gts, ws = [], [], []
+        for j, g in enumerate(targets.tolist()):
+            P = pts[:, j]
+            cam = P @ self.w2c[g][:3, :3].T + self.w2c[g][:3, 3]
+            uvw = cam @ self.K[g].T
+            uv = uvw[:, :2] / uvw[:, 2:3].clamp_min(1e-6)
+            vis_g = self.tracks_vis[idx, g].float()
+            wint = math.exp(-2.0 * abs(int(self.tidx[f]) - int(self.tidx[g])) / T)
+            preds.append(uv)
+            gts.append(self.tracks_xy[idx, g])
+            ws.append(vis_g * wint)
+        del losses, weights
+        pred = torch.cat(preds)
+        gt = torch.cat(gts)
+        w = torch.cat(ws)[:, None]
+        return masked_l1(pred, gt, w, q) / max(self.H, self.W)
+
+    # -------------------------------------------------------------- density control
+    def control(self) -> dict | None:
+        p = self.p
+        it = self.iteration
+        stop = int(p["stop_control_fraction"] * p["iterations"])
+        if it <= p["warmup_steps"] or it % p["control_every"] != 0 or it >= stop:
+            return None
+        self.rules.use_screen = True
+        every = p["reset_opacity_every"]
+        self.rules.cull_by_size = every > 0 and it > every
+        counts = control_step(self.model, self.optimizers, self.stats, self.rules, self.gen)
+        if p["reset_opacity_every"] > 0 and it % p["reset_opacity_every"] == 0:
+            self.reset_opacity()
+        return counts
+
+    @torch.no_grad()
+    def reset_opacity(self) -> None:
+        v = math.log(0.8 * self.p["cull_opacity_threshold"] / (1 - 0.8 * self.p["cull_opacity_threshold"]))
+        for part, g in self.model.parts().items():
+            prm = g.get("opacity_logits")
+            prm.data.clamp_(max=v)
+            st = self.optimizers[f"{part}.opacity_logits"].state.get(prm)
+            if st:
+                for k2 in ("exp_avg", "exp_avg_sq"):
+                    st[k2].zero_()
+
+    # -------------------------------------------------------------- evaluation
+    @torch.no_grad()
+    def psnr_all(self) -> float:
+        self.use_level(1)
+        vals = []
+        for f in range(self.data.num_frames):
+            out, _ = self.render_frame(f, with_mask=False)
+            mse = float(((out.features[..., :3] - self.images[f]) ** 2).mean())
+            vals.append(-10 * math.log10(max(mse, 1e-10)))
+        return float(np.mean(vals))
+
+    # -------------------------------------------------------------- checkpoint
+    def checkpoint_state(self, digest: str) -> dict[str, Any]:
+        return {
+            "version": CHECKPOINT_VERSION,
+            "digest": digest,
+            "model": self.model.state(),
+            "scene_scale": self.model.scene_scale,
+            "optimizers": {k: v.state_dict() for k, v in self.optimizers.items()},
+            "stats": self.stats.state(),
+            "generator": self.gen.get_state(),
+            "iteration": self.iteration,
+            "curve": dict(self.curve.__dict__),
+            "elapsed": self.elapsed,
+            "canonical_frame": self.canonical_frame,
+            "motion_source": self.motion_source,
+            "init_info": self.init_info,
+            "pending": {"loss": list(self._loss_acc), "psnr": list(self._psnr_acc)},
+        }
+
+    # -------------------------------------------------------------- loop
+    def run(self, *, progress: bool = True, checkpoint: str | os.PathLike | None = None, digest: str = "",
+            stop_at: int | None = None) -> None:
+        from tqdm import tqdm
+
+        p = self.p
+        end = p["iterations"] if stop_at is None else min(stop_at, p["iterations"])
+        bar = tqdm(total=p["iterations"], initial=self.iteration, disable=not progress, file=sys.stderr,
+                   desc="recon", dynamic_ncols=True, leave=False)
+        t0 = time.perf_counter()
+        base_elapsed = self.elapsed
+        try:
+            while self.iteration < end:
+                loss, psnr = self.step()
+                self._loss_acc.append(loss)
+                self._psnr_acc.append(psnr)
+                if self.iteration % p["log_every"] == 0 or self.iteration == p["iterations"]:
+                    self.curve.iteration.append(self.iteration)
+                    self.curve.loss.append(float(np.mean(self._loss_acc)))
+                    self.curve.psnr.append(float(np.mean(self._psnr_acc)))
+                    self.curve.num_gaussians.append(self.model.num_gaussians)
+                    self._loss_acc, self._psnr_acc = [], []
+                    bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{psnr:.2f}", n=self.model.num_gaussians)
+                bar.update(1)
+                self.elapsed = base_elapsed + time.perf_counter() - t0
+                if checkpoint is not None and (self.iteration % p["checkpoint_every"] == 0) and self.iteration < p["iterations"]:
+                    save_checkpoint(checkpoint, self.checkpoint_state(digest))
+        finally:
+            bar.close()
+
+
+def save_checkpoint(path: str | os.PathLike, state: dict[str, Any]) -> None:
+    """torch.save to a temporary name in the same folder, then rename (atomic)."""
+    final = Path(path)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, final)
+    except BaseException:
+        if tmp.exists():
+            tmp.unlink()
+        raise
+
+
+def load_checkpoint(path: str | os.PathLike, digest: str) -> dict[str, Any] | None:
+    """The checkpoint's state if it exists, is readable and matches `digest`; else None."""
+    p = Path(path)
+    if not p.exists():
+        return None
+    try:
+        state = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception:
+        return None
+    if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION or state.get("digest") != digest:
+        return None
+    return state

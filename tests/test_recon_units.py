@@ -1,0 +1,187 @@
+"""Unit checks of the reconstruction stage: Procrustes init, densification, losses, parameters."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from mogaf.errors import MogafError
+
+
+def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
+    axis = axis / np.linalg.norm(axis)
+    Kx = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + math.sin(angle) * Kx + (1 - math.cos(angle)) * Kx @ Kx
+
+
+def test_procrustes_init_recovers_rigid_motion_of_lifted_tracks():
+    """Tracks of a rigidly moving point set, lifted from depth maps, give back the motion as a basis."""
+    from mogaf.recon.data import TrainData
+    from mogaf.recon.init import bases_from_clusters, fill_in_time, lift_tracks
+    from mogaf.representation import rot6d_to_matrix
+
+    rng = np.random.default_rng(0)
+    H = W = 200
+    F = 5
+    K = np.array([[180.0, 0, W / 2], [0, 180.0, H / 2], [0, 0, 1]])
+    w2c = np.eye(4)
+    w2c[:3, 3] = [0, 0, 4.0]
+    # points on a 7x7 grid in the image at the canonical frame, random depths
+    g = (np.arange(7) * 24 + 30).astype(float)
+    uv0 = np.stack(np.meshgrid(g + 0.5, g + 0.5), -1).reshape(-1, 2)
+    z0 = rng.uniform(3.5, 4.5, size=len(uv0))
+    rays = np.concatenate([uv0, np.ones((len(uv0), 1))], 1) @ np.linalg.inv(K).T
+    X0 = rays * z0[:, None] - w2c[:3, 3]
+    motions = [(_rot(np.array([0.2, 1.0, 0.1]), 0.08 * f), np.array([0.05 * f, -0.03 * f, 0.02 * f])) for f in range(F)]
+    xy = np.zeros((len(X0), F, 2), np.float32)
+    depth = np.zeros((F, H, W), np.float32)
+    for f, (R, t) in enumerate(motions):
+        Xf = X0 @ R.T + t
+        cam = Xf + w2c[:3, 3]
+        uv = (cam @ K.T)[:, :2] / cam[:, 2:]
+        xy[:, f] = uv
+        px = np.floor(uv).astype(int)
+        assert len({tuple(p) for p in px}) == len(px)  # one point per pixel
+        depth[f, px[:, 1], px[:, 0]] = cam[:, 2]
+    data = TrainData(
+        images=np.zeros((F, H, W, 3), np.float32), fg_masks=np.ones((F, H, W), np.float32), K=np.repeat(K[None], F, 0),
+        w2c=np.repeat(w2c[None], F, 0), tidx=np.arange(F), timesteps=np.arange(F), frame_ids=np.arange(F), layout="iphone",
+        background=np.ones(3, np.float32), depth=depth, depth_valid=depth > 0, tracks_xy=xy,
+        tracks_visible=np.ones((len(X0), F), bool), tracks_query=np.zeros(len(X0), np.int64),
+    )
+    xyz, ok = lift_tracks(data)
+    assert ok.all()
+    xyz = fill_in_time(xyz, ok, data.tidx.astype(float))
+    for f, (R, t) in enumerate(motions):
+        np.testing.assert_allclose(xyz[:, f], X0 @ R.T + t, atol=1e-4)
+    cano = 2
+    rot, tr, info = bases_from_clusters(xyz, ok, np.zeros(len(X0), np.int64), np.array([0]), cano, data.tidx, F)
+    Rc, tc = motions[cano]
+    for f, (R, t) in enumerate(motions):
+        # basis maps canonical positions (frame `cano`) to frame f: X_f = R_rel X_c + t_rel
+        R_rel = R @ Rc.T
+        t_rel = t - R_rel @ tc
+        Rb = rot6d_to_matrix(torch.tensor(rot[0, f])).numpy()
+        np.testing.assert_allclose(Rb, R_rel, atol=1e-4)
+        np.testing.assert_allclose(tr[0, f], t_rel, atol=1e-4)
+    assert info["procrustes_err_after"] < 1e-4 < info["procrustes_err_before"]
+
+
+def _model(n_fg: int, n_bg: int, scales_fg: np.ndarray, scales_bg: np.ndarray):
+    from mogaf.recon.model import ReconModel
+
+    def part(n, s, motion):
+        d = {
+            "means": torch.arange(n * 3, dtype=torch.float32).reshape(n, 3) * 0.01,
+            "quats": torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+            "log_scales": torch.log(torch.tensor(s, dtype=torch.float32))[:, None].repeat(1, 3),
+            "opacity_logits": torch.zeros(n),
+            "color_logits": torch.zeros(n, 3),
+        }
+        if motion:
+            d["motion_coef_logits"] = torch.zeros(n, 2)
+            d["labels"] = torch.arange(n)
+        return d
+
+    m = ReconModel(part(n_fg, scales_fg, True), torch.zeros(2, 3, 6), torch.zeros(2, 3, 3), part(n_bg, scales_bg, False))
+    opts = {k: torch.optim.Adam([p], lr=1e-3) for k, p in m.named_tensors().items()}
+    # give every tensor some Adam state
+    loss = sum((p * p).sum() for p in m.named_tensors().values())
+    loss.backward()
+    for o in opts.values():
+        o.step()
+    return m, opts
+
+
+def test_densify_clone_split_and_prune_counts():
+    from mogaf.recon.densify import SPLIT_SCALE, DensifyRules, DensityStats, control_step
+
+    # fg: 6 Gaussians, bg: 4; extent 1 -> densify scale threshold 0.01
+    scales_fg = np.array([0.001, 0.001, 0.05, 0.05, 0.001, 0.05])
+    scales_bg = np.array([0.001, 0.05, 0.001, 0.001])
+    m, opts = _model(6, 4, scales_fg, scales_bg)
+    with torch.no_grad():
+        m.fg.get("opacity_logits")[4] = -5.0  # opacity 0.007 -> pruned
+        m.bg.get("opacity_logits")[3] = -5.0
+    stats = DensityStats(10)
+    # crafted statistic: high gradient on fg 0 (small -> clone), fg 2 (big -> split), bg 0 (clone), bg 1 (split)
+    stats.grad_acc[:] = 1e-6
+    stats.count[:] = 2
+    for i in (0, 2, 6, 7):
+        stats.grad_acc[i] = 2 * 5e-3
+    rules = DensifyRules(grad_threshold=2e-3, scale_threshold=0.01, screen_threshold=10.0, cull_opacity=0.1, extent=1.0)
+    gen = torch.Generator().manual_seed(0)
+    old_fg_means = m.fg.get("means").detach().clone()
+    counts = control_step(m, opts, stats, rules, gen)
+    assert counts == {"split": 2, "clone": 2, "culled": 2}
+    # fg: 6 - 1 split + 1 clone + 2 halves - 1 pruned = 7; bg: 4 - 1 + 1 + 2 - 1 = 5
+    assert (m.num_fg, m.num_bg) == (7, 5)
+    assert len(stats) == 12 and stats.count.sum() == 0
+    fg_scales = m.fg.scales()[:, 0].detach().numpy()
+    assert np.isclose(fg_scales, 0.05 / SPLIT_SCALE, rtol=1e-2).sum() == 2  # the two halves of fg 2
+    assert np.isclose(fg_scales, 0.05, rtol=1e-2).sum() == 2  # fg 3 and 5 untouched
+    # optimiser state follows the rows; new rows start with zero moments
+    for name, p in m.named_tensors().items():
+        st = opts[name].state[p]
+        assert st["exp_avg"].shape == p.shape, name
+    ea = opts["fg.means"].state[m.fg.get("means")]["exp_avg"]
+    assert torch.count_nonzero(ea.abs().sum(-1)) == 4  # kept rows (0, 1, 3, 5) have state, the 3 new ones none
+    assert m.fg.aux["labels"].tolist()[:4] == [0, 1, 3, 5] and sorted(m.fg.aux["labels"].tolist()[4:]) == [0, 2, 2]
+    assert torch.equal(m.fg.get("means")[0], old_fg_means[0])
+
+
+def test_densify_respects_the_budget():
+    from mogaf.recon.densify import DensifyRules, DensityStats, control_step
+
+    m, opts = _model(6, 4, np.full(6, 0.001), np.full(4, 0.001))
+    stats = DensityStats(10)
+    stats.count[:] = 1
+    stats.grad_acc[:] = torch.linspace(1e-2, 2e-2, 10, dtype=torch.float64)  # all want a clone
+    rules = DensifyRules(grad_threshold=1e-3, max_gaussians=13, cull_opacity=0.0)
+    counts = control_step(m, opts, stats, rules, torch.Generator().manual_seed(0))
+    assert counts["clone"] == 3 and m.num_gaussians == 13
+    # the highest-gradient candidates (the last three rows: bg 1, 2, 3) were cloned
+    assert (m.num_fg, m.num_bg) == (6, 7)
+
+
+def test_stats_accumulate_in_ndc_units():
+    from mogaf.recon.densify import DensityStats
+
+    st = DensityStats(3)
+    grad = torch.tensor([[1e-3, 0.0], [0.0, 2e-3], [5.0, 5.0]])
+    radii = torch.tensor([2.0, 3.0, 0.0])
+    st.accumulate(grad, radii, width=100, height=50, batch_size=2)
+    np.testing.assert_allclose(st.grad_acc[:2].numpy(), [1e-3 * 50 * 2, 2e-3 * 25 * 2])
+    assert st.count.tolist() == [1, 1, 0] and st.grad_acc[2] == 0
+    np.testing.assert_allclose(st.max_radii.numpy(), [0.02, 0.03, 0.0])
+
+
+def test_losses():
+    from mogaf.recon.losses import accel_loss, masked_l1, ssim
+
+    x = torch.rand(1, 20, 24, 3, generator=torch.Generator().manual_seed(0))
+    assert abs(float(ssim(x, x)) - 1.0) < 1e-5
+    assert float(ssim(x, 1 - x)) < 0.5
+    pred = torch.zeros(100, 1)
+    gt = torch.zeros(100, 1)
+    gt[0] = 100.0  # one outlier is ignored by the 0.98 quantile
+    gt[1:] = 1.0
+    assert abs(float(masked_l1(pred, gt, None, 0.98)) - 1.0) < 1e-6
+    line = torch.linspace(0, 1, 10)[None, :, None].repeat(2, 1, 3)
+    assert float(accel_loss(line)) < 1e-6
+
+
+def test_params_are_checked():
+    from mogaf.recon.params import DEFAULT_PARAMS, resolve_params
+
+    assert resolve_params({})["iterations"] == DEFAULT_PARAMS["iterations"]
+    assert resolve_params({"iterations": 1000, "iterations_scale": 0.25})["iterations"] == 250
+    with pytest.raises(MogafError, match="unknown recon param"):
+        resolve_params({"iteration": 3})
+    with pytest.raises(MogafError, match="integer"):
+        resolve_params({"num_bases": 2.5})
+    with pytest.raises(MogafError, match="one of"):
+        resolve_params({"device": "tpu"})
