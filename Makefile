@@ -10,7 +10,7 @@ LPIPS_CACHE := .cache/mogaf/lpips/alexnet_lpips.npz
 
 .PHONY: demo test setup lint clean-results
 demo: setup
-	$(BIN)/snakemake --cores $(CORES) demo
+	$(BIN)/snakemake --cores $(CORES) demo --configfile config/config.yaml config/demo.yaml
 
 test: setup
 	$(BIN)/python -m pytest -q

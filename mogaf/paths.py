@@ -19,3 +19,15 @@ def cache_dir(*parts: str, create: bool = True) -> Path:
     if create:
         path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+def use_cache_dir(default: str | os.PathLike) -> Path:
+    """Make `default` the cache folder unless MOGAF_CACHE_DIR is already set,
+    and keep matplotlib's font cache in it too (it would go under ~/.cache).
+    Called by the workflow, so that a run writes only under results/ and here."""
+    if not os.environ.get(ENV_CACHE):
+        os.environ[ENV_CACHE] = str(Path(default).resolve())
+    base = Path(os.environ[ENV_CACHE])
+    if not os.environ.get("MPLCONFIGDIR"):
+        os.environ["MPLCONFIGDIR"] = str(base / "matplotlib")
+    return base

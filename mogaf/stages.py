@@ -102,10 +102,10 @@ def recon(scene: str, split: str, priors: str, out: str, params: Mapping[str, An
     return run_recon_stage(scene, split, priors, out, {**params, "device": device}, seed=seed, checkpoint=checkpoint, progress=False)
 
 
-def group(model: str, priors: str, scene: str, split: str, out: str, params: Mapping[str, Any]) -> Path:
+def group(model: str, priors: str, scene: str, split: str, out: str, params: Mapping[str, Any], seed: int = 0) -> Path:
     from .grouping import run_group_stage
 
-    return run_group_stage(model, priors, scene, split, out, dict(params))
+    return run_group_stage(model, priors, scene, split, out, {**params, "seed": seed})
 
 
 def rigid_init(model: str, groups: str, out: str, params: Mapping[str, Any]) -> Path:
@@ -126,10 +126,10 @@ def forecast_group(model: str, groups: str, split: str, out: str, params: Mappin
     return run_forecast_group(model, groups, split, out, dict(params), method=method, job=group, seed=seed)
 
 
-def forecast_merge(model: str, groups: str, split: str, scene: str, parts: list[str], out: str, params: Mapping[str, Any], method: str) -> Path:
+def forecast_merge(model: str, groups: str, split: str, scene: str, parts: list[str], out: str, params: Mapping[str, Any], method: str, seed: int = 0) -> Path:
     from .forecast.stage import run_forecast_merge
 
-    return run_forecast_merge(model, groups, split, scene, parts, out, dict(params), method=method)
+    return run_forecast_merge(model, groups, split, scene, parts, out, dict(params), method=method, seed=seed)
 
 
 def evaluate(scene: str, split: str, model: str, groups: str, forecasts: Mapping[str, str], benchmarks: Mapping[str, str], out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str, ids: Mapping[str, str]) -> Path:

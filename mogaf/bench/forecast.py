@@ -134,6 +134,79 @@ def format_table(rows: Sequence[Mapping[str, Any]], reduced: Mapping[str, Mappin
     return "\n".join(lines)
 
 
+def _local_rotations(points: np.ndarray, k: int = 8) -> np.ndarray:
+    """(P, T, 4) wxyz rotation of each point's k-neighbourhood (nearest at
+    frame 0) from frame 0 to every frame: the best rigid fit, det = +1."""
+    from scipy.spatial import cKDTree
+
+    P, T, _ = points.shape
+    k = min(k + 1, P)
+    _, nn = cKDTree(points[:, 0]).query(points[:, 0], k=k)
+    src = points[nn, 0]  # (P, k, 3)
+    src = src - src.mean(1, keepdims=True)
+    dst = points[nn].transpose(0, 2, 1, 3)  # (P, T, k, 3)
+    dst = dst - dst.mean(2, keepdims=True)
+    H = np.einsum("pki,ptkj->ptij", src, dst)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.einsum("ptij,ptjk->ptik", Vt.transpose(0, 1, 3, 2), U.transpose(0, 1, 3, 2))))
+    D = np.broadcast_to(np.eye(3), H.shape).copy()
+    D[..., 2, 2] = np.where(d == 0, 1.0, d)
+    R = np.einsum("ptji,ptjk,ptlk->ptil", Vt, D, U)  # V D U^T
+    return quat.make_continuous(_matrix_to_quat(R), axis=1)
+
+
+def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    import torch
+
+    from mogaf.representation import matrix_to_quat
+
+    return matrix_to_quat(torch.from_numpy(np.ascontiguousarray(R, dtype=np.float64))).numpy()
+
+
+def synthetic_scene_sets(preset: str = "default") -> dict[str, np.ndarray]:
+    """Ground-truth trajectories of the embedded synthetic scene, one set per
+    object (the group-wise setting): (P_obj, T, 7) [surface point, rotation].
+    Rotations: the object pose for rigid objects, the local best rigid fit of
+    the point's neighbourhood for non-rigid ones. The scene is generated into
+    the cache once."""
+    import json as _json
+
+    from mogaf.paths import cache_dir
+    from mogaf.synth import generate_scene
+
+    root = cache_dir("bench_forecast", f"synthetic_{preset}")
+    if not (root / "mogaf_gt" / "points3d.npy").exists():
+        generate_scene(root, {"preset": preset})
+    gt = root / "mogaf_gt"
+    points = np.load(gt / "points3d.npy").astype(np.float64)
+    inst = np.load(gt / "points_instance.npy")
+    poses = np.load(gt / "object_poses.npy")
+    objects = _json.loads((gt / "instances.json").read_text())["instances"]
+    out = {}
+    for obj in objects:
+        oid = int(obj["id"])
+        if oid == 0:
+            continue
+        sel = np.flatnonzero(inst == oid)
+        if sel.size < 2:
+            continue
+        if int(obj.get("pose_index", -1)) >= 0:
+            R = poses[int(obj["pose_index"])][:, :3, :3]  # (T, 3, 3)
+            q = quat.make_continuous(np.repeat(_matrix_to_quat(R)[None], sel.size, axis=0), axis=1)
+        else:
+            q = _local_rotations(points[sel])
+        out[f"{preset}/{obj['name']}"] = np.concatenate([points[sel], q], axis=-1)
+    return out
+
+
+def synthetic_default() -> dict[str, np.ndarray]:
+    return synthetic_scene_sets("default")
+
+
+def synthetic_hard() -> dict[str, np.ndarray]:
+    return synthetic_scene_sets("hard")
+
+
 def _load_source(spec: str) -> dict[str, Any]:
     mod_name, _, func_name = spec.partition(":")
     if not func_name:

@@ -51,13 +51,27 @@ def dynamic_members(group_id: np.ndarray, group_static: np.ndarray) -> np.ndarra
     return np.flatnonzero(np.isin(group_id, dynamic))
 
 
-def forecast_jobs(groups_h5: str | os.PathLike, *, groupwise: bool) -> list[str]:
-    """Job names: dynamic group ids (as text), or ['all']; [] for a static scene."""
-    group_id, group_static = _groups(groups_h5)
+# Methods with nothing to train run inside the merge job: a Snakemake job of
+# their own would take longer to start than to run.
+INLINE_METHODS = ("constant_velocity", "frozen")
+
+
+def method_jobs(groups_h5: str | os.PathLike, method: str, *, groupwise: bool) -> list[str]:
+    """The separate forecast_group jobs of `method` ([] for INLINE_METHODS)."""
+    return [] if method in INLINE_METHODS else forecast_jobs(groups_h5, groupwise=groupwise)
+
+
+def _job_names(group_id: np.ndarray, group_static: np.ndarray, groupwise: bool) -> list[str]:
     dynamic = [k for k in np.flatnonzero(~group_static) if np.any(group_id == k)]
     if not dynamic:
         return []
     return [str(int(k)) for k in dynamic] if groupwise else [ALL]
+
+
+def forecast_jobs(groups_h5: str | os.PathLike, *, groupwise: bool) -> list[str]:
+    """Job names: dynamic group ids (as text), or ['all']; [] for a static scene."""
+    group_id, group_static = _groups(groups_h5)
+    return _job_names(group_id, group_static, groupwise)
 
 
 def job_members(job: str, group_id: np.ndarray, group_static: np.ndarray, source: str | os.PathLike) -> np.ndarray:
@@ -94,27 +108,40 @@ def _job_seed(seed: int, job: str) -> int:
     return int(seed) if job == ALL else int(seed) + 1000 * (int(job) + 1)
 
 
-def run_forecast_group(model_h5: str, groups_h5: str, split_h5: str, out: str, params: Mapping[str, Any], *, method: str, job: str, seed: int) -> Path:
-    from . import fit_and_rollout
-
+def _load_inputs(model_h5, groups_h5, split_h5):
     model = load_model(model_h5)
     group_id, group_static = _groups(groups_h5)
     if group_id.size != len(model.fg):
         raise input_error(groups_h5, f"groups {group_id.size} Gaussians, the model {model_h5} has {len(model.fg)}")
     split = read_split(split_h5)
-    members = job_members(job, group_id, group_static, groups_h5)
+    if model.trajectory_means.shape[1] != split.num_observed_timesteps:
+        raise input_error(model_h5, f"trajectories have {model.trajectory_means.shape[1]} steps, "
+                                    f"the split observes {split.num_observed_timesteps}")
+    return model, group_id, group_static, split
+
+
+def forecast_job(model: Model4D, members: np.ndarray, horizon: int, params: Mapping[str, Any], method: str, job: str,
+                 seed: int) -> tuple[np.ndarray, dict[str, Any], float]:
+    """Fit `method` on the members' observed trajectories; (poses (G, horizon, 7), info, wall seconds)."""
+    from . import fit_and_rollout
+
     observed = observed_states(model, members)
-    if observed.shape[1] != split.num_observed_timesteps:
-        raise input_error(model_h5, f"trajectories have {observed.shape[1]} steps, the split observes {split.num_observed_timesteps}")
-    mparams = method_params(params, method)
     start = time.perf_counter()
-    result = fit_and_rollout(method, observed, int(split.forecast_timesteps.size), mparams, _job_seed(seed, job))
+    result = fit_and_rollout(method, observed, horizon, method_params(params, method), _job_seed(seed, job))
     wall = time.perf_counter() - start
     poses = np.asarray(result.poses, np.float64)
     if not np.all(np.isfinite(poses)):
         raise MogafError(f"forecast {method} job {job}: the forecaster produced non-finite poses")
     info = {k: v for k, v in dict(result.info).items() if isinstance(v, (int, float, str, bool)) or v is None}
     log.info("forecast %s job %s: %d Gaussians, %.1f s, info %s", method, job, members.size, wall, info)
+    return poses, info, wall
+
+
+def run_forecast_group(model_h5: str, groups_h5: str, split_h5: str, out: str, params: Mapping[str, Any], *, method: str, job: str, seed: int) -> Path:
+    model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
+    members = job_members(job, group_id, group_static, groups_h5)
+    mparams = method_params(params, method)
+    poses, info, wall = forecast_job(model, members, int(split.forecast_timesteps.size), params, method, job, seed)
     return write_artefact(
         out, GROUP_STAGE,
         {"members": members, "means": poses[..., :3].astype(np.float32), "quats": poses[..., 3:].astype(np.float32)},
@@ -123,10 +150,10 @@ def run_forecast_group(model_h5: str, groups_h5: str, split_h5: str, out: str, p
     )
 
 
-def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, scene_h5: str, parts: list[str], out: str, params: Mapping[str, Any], *, method: str) -> Path:
-    model = load_model(model_h5)
-    group_id, group_static = _groups(groups_h5)
-    split = read_split(split_h5)
+def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, scene_h5: str, parts: list[str], out: str,
+                       params: Mapping[str, Any], *, method: str, seed: int = 0) -> Path:
+    """Merge the group jobs' poses into forecast/{method}.h5 (INLINE_METHODS: computed here, group by group)."""
+    model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
     n, T = len(model.fg), int(split.forecast_timesteps.size)
     # Static groups (and anything no job covers) keep the last observed pose.
     means = np.repeat(np.asarray(model.trajectory_means[:, -1:], np.float32), T, axis=1)
@@ -146,18 +173,30 @@ def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, scene_h5: s
         means[members] = art["means"]
         quats[members] = art["quats"]
         flags[str(art.attrs.get("job"))] = art.attrs.get("info", {})
+    if method in INLINE_METHODS:
+        if parts:
+            raise MogafError(f"forecast {method}: computed in the merge job, it takes no group files")
+        for job in _job_names(group_id, group_static, bool(params.get("groupwise", True))):
+            members = job_members(job, group_id, group_static, groups_h5)
+            poses, info, _ = forecast_job(model, members, T, params, method, job, seed)
+            means[members] = poses[..., :3]
+            quats[members] = poses[..., 3:]
+            covered[members] = True
+            flags[job] = info
     missing = dynamic_members(group_id, group_static)
     missing = missing[~covered[missing]]
     if missing.size:
         raise MogafError(f"forecast {method}: {missing.size} dynamic Gaussians are covered by no forecast job")
-    attrs: dict[str, Any] = {"method": method, "groupwise": bool(params.get("groupwise", True)), "num_groups_trained": len(parts), "flags": flags}
+    attrs: dict[str, Any] = {"method": method, "groupwise": bool(params.get("groupwise", True)),
+                             "num_groups_trained": len(parts), "flags": flags, "params": method_params(params, method)}
     epe = quick_epe(model, means, quats, scene_h5, split)
     if epe is not None:
         attrs["epe_3d_quick"] = round(epe, 6)
     return write_artefact(
         out, MERGE_STAGE,
         {"timesteps": split.forecast_timesteps, "means": means, "quats": quats, "group_id": group_id},
-        config_digest=config_digest({"method": method, "parts": sorted(Path(p).name for p in parts)}),
+        config_digest=config_digest({"method": method, "params": method_params(params, method), "seed": int(seed),
+                                     "parts": sorted(Path(p).name for p in parts)}),
         attrs=attrs,
     )
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from collections.abc import Mapping
@@ -18,6 +19,8 @@ from .data import TrainData, coarser, extend_masks_to_content, input_digests, lo
 from .init import initialise
 from .params import resolve_params
 from .trainer import Trainer, load_checkpoint, save_checkpoint
+
+log = logging.getLogger(__name__)
 
 MOTION_AT_UNOBSERVED_STEPS = (
     "bases are stored at every observed time step; steps without a training frame are set, after "
@@ -94,7 +97,9 @@ def _run(scene_h5, split_h5, priors_h5, out_h5, p: dict, seed: int, checkpoint, 
     prepare_data(data, p)
     inputs = input_digests({"scene": scene_h5, "split": split_h5, "priors": priors_h5})
     digest = checkpoint_digest(p, seed, data, inputs)
-    trainer, _resumed = build_trainer(data, p, seed, checkpoint=checkpoint, digest=digest)
+    trainer, resumed = build_trainer(data, p, seed, checkpoint=checkpoint, digest=digest)
+    if resumed:
+        log.info("recon: resumed from %s at iteration %d of %d", checkpoint, trainer.iteration, p["iterations"])
     trainer.run(progress=progress, checkpoint=checkpoint, digest=digest, stop_at=stop_at)
     if stop_at is not None and trainer.iteration < p["iterations"]:
         if checkpoint is None:

@@ -165,6 +165,8 @@ class Trainer:
         self.use_level(self.level_for(self.iteration))
         self._loss_acc: list[float] = []
         self._psnr_acc: list[float] = []
+        # extra_loss(pick, note) -> scalar: a term added once per step (the refinement's L_motion)
+        self.extra_loss = None
         if state is not None:
             self._loss_acc = list(state["pending"]["loss"])
             self._psnr_acc = list(state["pending"]["psnr"])
@@ -400,6 +402,8 @@ class Trainer:
         if p["w_scale_var"] > 0:
             for g in m.parts().values():
                 reg = reg + p["w_scale_var"] * torch.var(g.get("log_scales"), dim=-1).mean()
+        if self.extra_loss is not None:
+            reg = reg + self.extra_loss(pick, note)
         total = total + reg
         self.last_terms = terms
         for opt in self.optimizers.values():

@@ -138,13 +138,43 @@ def _key(result: dict[str, Any]) -> tuple[str, str, float]:
     return (result["dataset"], result["scene"], float(result["ratio"]))
 
 
+def budget_differences(result: dict[str, Any], method: str) -> dict[str, tuple[Any, Any]]:
+    """Forecaster parameters of this result that differ from the method's
+    defaults (the papers' settings): {key: (used, default)}."""
+    params = (result.get("methods", {}).get(method, {}).get("forecast") or {}).get("params")
+    if not params:
+        return {}
+    from ..forecast import METHODS, defaults
+
+    if method not in METHODS:
+        return {}
+    ref = defaults(method)
+    return {k: (v, ref[k]) for k, v in sorted(params.items()) if k in ref and ref[k] != v and k != "num_threads"}
+
+
+def _mark_budgets(t: Table, results: list[dict[str, Any]], methods: list[str]) -> dict[str, str]:
+    """Method labels, with '*' (and a note) where a result ran a method off its defaults."""
+    labels = {}
+    for m in methods:
+        diffs: dict[str, set[str]] = defaultdict(set)
+        for r in results:
+            for k, (used, ref) in budget_differences(r, m).items():
+                diffs[f"{k} (default {ref})"].add(str(used))
+        labels[m] = METHOD_LABELS[m] + ("*" if diffs else "")
+        if diffs:
+            t.notes.append(f"* {METHOD_LABELS[m]}: run off its defaults: "
+                           + "; ".join(f"{k} = {', '.join(sorted(v))}" for k, v in sorted(diffs.items())))
+    return labels
+
+
 # ------------------------------------------------------------------ tables
 def forecast_table(results: list[dict[str, Any]]) -> Table:
     cols = ["dataset", "scene", "ratio", "variant", "method"] + [METRICS[m][0] for m in ("psnr", "ssim", "lpips", "mpsnr", "epe_3d", "total_wall_s")]
     t = Table("Forecast results (every metrics.json, every method)", cols)
+    labels = _mark_budgets(t, results, [m for m in METHOD_ORDER if any(m in r.get("methods", {}) for r in results)])
     for r in sorted(results, key=lambda r: (_key(r), _variant(r))):
         for method in [m for m in METHOD_ORDER if m in r.get("methods", {})]:
-            t.rows.append([r["dataset"], r["scene"], f"{float(r['ratio']):g}", _variant(r), METHOD_LABELS[method]]
+            t.rows.append([r["dataset"], r["scene"], f"{float(r['ratio']):g}", _variant(r), labels[method]]
                           + [fmt(_metric(r, method, m), m) for m in ("psnr", "ssim", "lpips", "mpsnr", "epe_3d", "total_wall_s")])
     return t
 
@@ -152,9 +182,10 @@ def forecast_table(results: list[dict[str, Any]]) -> Table:
 def _layout_table(results: list[dict[str, Any]], layout: str, metrics: tuple[str, ...], title: str) -> Table:
     chosen = [r for r in results if _variant(r) == "default" and r.get("protocol") == layout]
     methods = [m for m in METHOD_ORDER if any(m in r.get("methods", {}) for r in chosen)] or ["mogaf"]
-    spans = [("", 2)] + [(METHOD_LABELS[m], len(metrics)) for m in methods]
     cols = ["Obs. ratio", "Scene"] + [METRICS[x][0] for _ in methods for x in metrics]
-    t = Table(title, cols, spans=spans)
+    t = Table(title, cols)
+    labels = _mark_budgets(t, chosen, methods)
+    t.spans = [("", 2)] + [(labels[m], len(metrics)) for m in methods]
     by_ratio: dict[float, list[dict[str, Any]]] = defaultdict(list)
     for r in chosen:
         by_ratio[float(r["ratio"])].append(r)

@@ -1,13 +1,13 @@
 """Shared setup: config validation, wildcards, artefact paths and input functions."""
 
 import functools
-import os
 from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 import mogaf.config as mcfg
+import mogaf.paths as mpaths
 from mogaf.errors import MogafError
 
 SCHEMA = "../../config/schema.yaml"
@@ -16,7 +16,7 @@ ABLATION_SCHEMA = "../../config/ablations.schema.yaml"
 validate(config, schema=SCHEMA)
 
 # Every pipeline write goes to results/ or the cache folder (kernels, LPIPS).
-os.environ.setdefault("MOGAF_CACHE_DIR", str(Path(config["cache_dir"]).resolve()))
+mpaths.use_cache_dir(config["cache_dir"])
 
 
 def _ablations_path():
@@ -239,10 +239,10 @@ def forecast_params(wildcards):
 
 
 def forecast_part_files(wildcards):
-    from mogaf.forecast.stage import forecast_jobs
+    from mogaf.forecast.stage import method_jobs
 
     cfg = scene_cfg(wildcards)
-    jobs = forecast_jobs(groups_h5(wildcards), groupwise=cfg["forecast"]["groupwise"])
+    jobs = method_jobs(groups_h5(wildcards), wildcards.method, groupwise=cfg["forecast"]["groupwise"])
     base = ratio_path(wildcards, forecast_prefix(wildcards))
     return [f"{base}forecast/{wildcards.method}/group{job}.h5" for job in jobs]
 
@@ -267,13 +267,12 @@ def _benchmarks_of(wildcards):
             stages.append("rigid_init")
     for stage in stages:
         out[f"bench_{stage}"] = ratio_path(wildcards, f"{stage_prefix(stage, wildcards)}benchmarks/{stage}.tsv")
-    from mogaf.forecast.stage import forecast_jobs
+    from mogaf.forecast.stage import method_jobs
 
-    jobs = forecast_jobs(groups_h5(wildcards), groupwise=cfg["forecast"]["groupwise"])
     for method in cfg["forecast"]["methods"]:
         base = ratio_path(wildcards, stage_prefix(f"forecast:{method}", wildcards))
         out[f"bench_forecast_{method}"] = f"{base}benchmarks/forecast_{method}.tsv"
-        for job in jobs:
+        for job in method_jobs(groups_h5(wildcards), method, groupwise=cfg["forecast"]["groupwise"]):
             out[f"bench_forecast_{method}_group{job}"] = f"{base}benchmarks/forecast_{method}_group{job}.tsv"
     return out
 

@@ -37,6 +37,7 @@ rule forecast:
         "results/{dataset}/{scene}/ratio{ratio}/{prefix}forecast/{method}.h5",
     params:
         forecast=forecast_params,
+        seed=seed,
     log:
         "results/{dataset}/{scene}/ratio{ratio}/{prefix}logs/forecast_{method}.log",
     benchmark:

@@ -12,6 +12,7 @@ checkpoint group:
         "results/{dataset}/{scene}/ratio{ratio}/{prefix}groups.h5",
     params:
         grouping=params_for("grouping"),
+        seed=seed,
     threads: 2
     log:
         log_file("group"),

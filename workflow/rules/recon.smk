@@ -14,7 +14,9 @@ rule recon:
         device=device,
         # Survives a killed job so a rerun resumes instead of starting over.
         checkpoint="results/{dataset}/{scene}/ratio{ratio}/{prefix}checkpoints/recon.pt",
-    threads: 2
+    # One torch thread (recon.threads): fixed float-reduction order, so artefacts are
+    # bitwise reproducible; two such jobs share a 2-core machine.
+    threads: 1
     resources:
         mem_mb=8000,
         runtime=240,

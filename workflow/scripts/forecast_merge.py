@@ -13,4 +13,5 @@ run_stage(
     out=snakemake.output[0],
     params=snakemake.params.forecast,
     method=snakemake.wildcards.method,
+    seed=snakemake.params.seed,
 )

@@ -12,4 +12,5 @@ run_stage(
     split=snakemake.input.split,
     out=snakemake.output[0],
     params=snakemake.params.grouping,
+    seed=snakemake.params.seed,
 )

@@ -1,0 +1,174 @@
+"""config/config.yaml holds every library default (so the two cannot drift
+apart) and config/schema.yaml refuses keys the library does not know."""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+import pytest
+import yaml
+
+from conftest import REPO
+
+CONFIG = REPO / "config" / "config.yaml"
+SCHEMA = REPO / "config" / "schema.yaml"
+
+# Keys the workflow injects from the top level of the config (mogaf.stages):
+# priors and grouping get `seed`, recon and refine get `device`. They are left out of the
+# stage sections (the schema refuses them there).
+INJECTED = {"priors": {"seed"}, "grouping": {"seed"}, "recon": {"device"}}
+
+
+def load_config() -> dict[str, Any]:
+    with open(CONFIG) as fh:
+        return yaml.safe_load(fh)
+
+
+def library_defaults() -> dict[str, dict[str, Any]]:
+    """section path -> the library's default dict, as the stages receive it."""
+    import mogaf.evaluate
+    import mogaf.grouping
+    import mogaf.priors
+    import mogaf.recon.params
+    import mogaf.refine
+    from mogaf.forecast import METHODS, defaults
+
+    out = {
+        "priors": mogaf.priors.DEFAULT_PARAMS,
+        "recon": mogaf.recon.params.DEFAULT_PARAMS,
+        "grouping": mogaf.grouping.DEFAULT_PARAMS,
+        "rigid_init": mogaf.grouping.RIGID_INIT_DEFAULTS,
+        "refine": mogaf.refine.REFINE_DEFAULTS,
+        "evaluate": mogaf.evaluate.DEFAULT_PARAMS,
+    }
+    out.update({f"forecast.{m}": defaults(m) for m in METHODS})
+    return {name: {k: v for k, v in d.items() if k not in INJECTED.get(name, set())} for name, d in out.items()}
+
+
+def section(cfg: dict[str, Any], path: str) -> Any:
+    for part in path.split("."):
+        cfg = cfg[part]
+    return cfg
+
+
+def same_typed(a: Any, b: Any) -> bool:
+    """Equal with the same types (1 vs 1.0 would change artefact digests)."""
+    if type(a) is not type(b):
+        return False
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(same_typed(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(same_typed(x, y) for x, y in zip(a, b))
+    return a == b
+
+
+@pytest.mark.parametrize("name", list(library_defaults()))
+def test_section_equals_library_defaults(name):
+    lib = library_defaults()[name]
+    cfg = section(load_config(), name)
+    assert sorted(cfg) == sorted(lib), f"{name}: config only {sorted(set(cfg) - set(lib))}, library only {sorted(set(lib) - set(cfg))}"
+    wrong = {k: (cfg[k], lib[k]) for k in lib if not same_typed(cfg[k], lib[k])}
+    assert not wrong, f"{name}: config vs library {wrong}"
+
+
+def test_injected_keys_exist_and_are_the_top_level_defaults():
+    import mogaf.priors
+    import mogaf.recon.params
+
+    cfg = load_config()
+    assert mogaf.priors.DEFAULT_PARAMS["seed"] == cfg["seed"]
+    assert mogaf.recon.params.DEFAULT_PARAMS["device"] == cfg["device"]
+
+
+def test_resolved_params_are_the_library_defaults():
+    """What the stages resolve from the config sections (with the injected
+    keys) is exactly what they resolve from no parameters."""
+    import mogaf.grouping
+    import mogaf.priors
+    import mogaf.recon.params
+    import mogaf.refine
+    from mogaf.forecast import METHODS, defaults
+    from mogaf.forecast.base import merge_params
+    from mogaf.forecast.stage import method_params
+
+    cfg = load_config()
+    assert mogaf.priors.resolve_params({**cfg["priors"], "seed": cfg["seed"]}) == mogaf.priors.resolve_params({})
+    recon = {**cfg["recon"], "device": cfg["device"]}
+    assert mogaf.recon.params.resolve_params(recon) == mogaf.recon.params.resolve_params({})
+    assert mogaf.grouping.resolve_params({**cfg["grouping"], "seed": cfg["seed"]}) == mogaf.grouping.resolve_params({})
+    assert mogaf.refine.resolve_params({**cfg["refine"], "device": cfg["device"]}) == mogaf.refine.resolve_params({})
+    for m in METHODS:
+        merged = merge_params(m, defaults(m), method_params(cfg["forecast"], m))
+        assert same_typed(merged, defaults(m)), m
+
+
+def test_forecast_common_holds_no_key():
+    # constant_velocity and frozen take no parameters: any common key breaks them.
+    assert load_config()["forecast"]["common"] == {}
+
+
+# ------------------------------------------------------------------ schema
+def validate(cfg: dict[str, Any]) -> None:
+    from snakemake.utils import validate as sm_validate
+
+    sm_validate(copy.deepcopy(cfg), schema=str(SCHEMA))
+
+
+def test_config_validates():
+    validate(load_config())
+
+
+def test_paper_grid_and_ablation_variants_validate():
+    import mogaf.config as mcfg
+
+    base = load_config()
+    validate(mcfg.deep_merge(base, mcfg.load_yaml(REPO / "config" / "paper.yaml")))
+    variants = mcfg.load_yaml(REPO / "config" / "ablations.yaml")["variants"]
+    for name in variants:
+        validate(mcfg.variant_config(base, variants, name))
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        {"recon": {"iteratons": 100}},  # misspelt key
+        {"recon": {"iterations": "many"}},  # wrong type
+        {"recon": {"silhouette": "maybe"}},  # not one of the library's choices
+        {"recon": {"device": "cpu"}},  # injected from the top level, not a section key
+        {"priors": {"seed": 1}},
+        {"grouping": {"seed": 1}},
+        {"priors": {"grid_stride": 0}},
+        {"grouping": {"front_fraction": 0.0}},
+        {"rigid_init": {"weight": "uniform"}},
+        {"refine": {"lambda_rigid": -1.0}},
+        {"refine": {"recon": {"w_rgbb": 1.0}}},
+        {"forecast": {"mogaf": {"num_layer": 5}}},
+        {"forecast": {"ode": {"ode_layers": 1}}},
+        {"forecast": {"frozen": {"lr": 0.1}}},
+        {"forecast": {"common": {"lr": 0.1}}},  # frozen / constant_velocity are listed
+        {"evaluate": {"lpip": False}},
+    ],
+)
+def test_schema_refuses(override):
+    from snakemake.exceptions import WorkflowError
+
+    import mogaf.config as mcfg
+
+    with pytest.raises(WorkflowError):
+        validate(mcfg.deep_merge(load_config(), override))
+
+
+def test_schema_accepts_overrides_the_library_accepts():
+    import mogaf.config as mcfg
+
+    base = load_config()
+    for override in (
+        {"recon": {"iterations_scale": 0.25, "silhouette": "off"}},
+        {"forecast": {"mogaf": {"num_layers": 5, "masking": False}}},
+        {"forecast": {"methods": ["mogaf", "ode"], "common": {"num_threads": 2}}},
+        {"grouping": {"method": "gaga4d", "pca_components": 3, "rigid_override": {"ball": 1}}},
+        {"refine": {"recon": {"w_track": 0.0}}},
+        {"priors": {"depth_sources": "shipped"}},
+    ):
+        validate(mcfg.deep_merge(base, override))
