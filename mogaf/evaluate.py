@@ -124,7 +124,8 @@ def _round(obj: Any, digits: int = 6) -> Any:
     if isinstance(obj, float):
         return round(obj, digits) if math.isfinite(obj) else None
     if isinstance(obj, dict):
-        return {k: _round(v, digits) for k, v in obj.items()}
+        # settings are copied as they are (an Adam eps of 1e-15 must not become 0)
+        return {k: (v if k == "params" else _round(v, digits)) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [_round(v, digits) for v in obj]
     if isinstance(obj, (np.floating,)):

@@ -9,19 +9,10 @@ import pytest
 
 from mogaf.forecast import METHODS, fit_and_rollout, make_forecaster, quat
 from mogaf.forecast.synthetic import STRESS_SETS, rigid_box
+from test_forecast import FAST as FAST_FIT
 
-# Tiny budgets (see test_forecast.FAST): stability must not depend on training well.
-FAST = {
-    "mogaf": {"iterations": 30, "batch_size": 32},
-    "gcn": {"n_nodes": 12, "num_stage": 1, "linear_size": 16, "epochs": 10, "num_threads": 1},
-    "ode": {
-        "latent_dim": 8, "d_model": 16, "nhead": 2, "num_encoder_layers": 1, "num_decoder_layers": 2,
-        "ode_nhidden": 16, "decoder_nhidden": 16, "epochs": 1, "batch_size": 128, "max_gaussians_per_epoch": 32,
-        "num_threads": 1,
-    },
-    "constant_velocity": {},
-    "frozen": {},
-}
+# Tiny budgets (test_forecast.FAST): stability must not depend on training well.
+FAST = {**FAST_FIT, "mogaf": {"iterations": 30, "batch_size": 32}}
 
 
 def _assert_sane(poses: np.ndarray, observed: np.ndarray, n_steps: int, bound_factor: float = 10.0) -> None:

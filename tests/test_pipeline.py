@@ -1,7 +1,7 @@
 """End to end: the whole DAG on a tiny synthetic scene (.test/config.yaml).
 
 One uninterrupted run, then a second run in a fresh folder that is killed
-(SIGKILL to Snakemake and its jobs) while reconstruction trains and is then
+(SIGKILL to Snakemake and its jobs) while reconstruction trains, unlocked and
 simply rerun. Checks: every method's metrics, nothing written outside
 results/, .snakemake/ and the cache folder (HOME is an empty folder that
 must stay empty), the killed run leaves no partial artefact and resumes
@@ -82,6 +82,10 @@ def runs(tmp_path_factory):
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     after_kill = _files(second)
+    # A killed Snakemake leaves its lock behind: --unlock, then a plain rerun.
+    unlock = subprocess.run(_command() + ["--unlock"], cwd=second, env=_env(second), capture_output=True, text=True,
+                            timeout=120)
+    assert unlock.returncode == 0, unlock.stderr[-3000:]
     rerun = _run(second)
     return {"first": first, "second": second, "before": before, "killed": killed, "after_kill": after_kill,
             "rerun": rerun}

@@ -18,7 +18,7 @@ from ..split import read_split
 from .data import TrainData, coarser, extend_masks_to_content, input_digests, load_train_data
 from .init import initialise
 from .params import resolve_params
-from .trainer import Trainer, load_checkpoint, save_checkpoint
+from .trainer import Trainer, load_checkpoint, run_resumable
 
 log = logging.getLogger(__name__)
 
@@ -98,14 +98,10 @@ def _run(scene_h5, split_h5, priors_h5, out_h5, p: dict, seed: int, checkpoint, 
     inputs = input_digests({"scene": scene_h5, "split": split_h5, "priors": priors_h5})
     digest = checkpoint_digest(p, seed, data, inputs)
     trainer, resumed = build_trainer(data, p, seed, checkpoint=checkpoint, digest=digest)
-    if resumed:
-        log.info("recon: resumed from %s at iteration %d of %d", checkpoint, trainer.iteration, p["iterations"])
-    trainer.run(progress=progress, checkpoint=checkpoint, digest=digest, stop_at=stop_at)
-    if stop_at is not None and trainer.iteration < p["iterations"]:
-        if checkpoint is None:
-            raise ValueError("stop_at needs a checkpoint path")
-        save_checkpoint(checkpoint, trainer.checkpoint_state(digest))
-        return Path(checkpoint)
+    paused = run_resumable(trainer, log, stage="recon", resumed=resumed, checkpoint=checkpoint, digest=digest,
+                           progress=progress, stop_at=stop_at)
+    if paused is not None:
+        return paused
     t0 = time.perf_counter()
     train_psnr = trainer.psnr_all()
     model = trainer.model.to_model4d(split.observed_timesteps, data.background, trainer.curve.as_arrays())

@@ -96,7 +96,9 @@ class Table:
         out.append(r"\midrule")
         rows = self.rows or [[NO_RESULT] * len(self.columns)]
         out += [" & ".join(esc(c) for c in r) + r" \\" for r in rows]
-        out += [r"\bottomrule", r"\end{tabular}", "}", r"\end{table}"]
+        out += [r"\bottomrule", r"\end{tabular}", "}"]
+        out += [r"\par{\footnotesize " + esc(n) + "}" for n in self.notes]
+        out.append(r"\end{table}")
         return "\n".join(out) + "\n"
 
     def csv(self) -> str:
@@ -171,10 +173,11 @@ def _mark_budgets(t: Table, results: list[dict[str, Any]], methods: list[str]) -
 def forecast_table(results: list[dict[str, Any]]) -> Table:
     cols = ["dataset", "scene", "ratio", "variant", "method"] + [METRICS[m][0] for m in ("psnr", "ssim", "lpips", "mpsnr", "epe_3d", "total_wall_s")]
     t = Table("Forecast results (every metrics.json, every method)", cols)
-    labels = _mark_budgets(t, results, [m for m in METHOD_ORDER if any(m in r.get("methods", {}) for r in results)])
+    _mark_budgets(t, results, [m for m in METHOD_ORDER if any(m in r.get("methods", {}) for r in results)])
     for r in sorted(results, key=lambda r: (_key(r), _variant(r))):
         for method in [m for m in METHOD_ORDER if m in r.get("methods", {})]:
-            t.rows.append([r["dataset"], r["scene"], f"{float(r['ratio']):g}", _variant(r), labels[method]]
+            label = METHOD_LABELS[method] + ("*" if budget_differences(r, method) else "")
+            t.rows.append([r["dataset"], r["scene"], f"{float(r['ratio']):g}", _variant(r), label]
                           + [fmt(_metric(r, method, m), m) for m in ("psnr", "ssim", "lpips", "mpsnr", "epe_3d", "total_wall_s")])
     return t
 
