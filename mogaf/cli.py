@@ -15,13 +15,14 @@ Errors are one line on stderr and exit status 1.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from . import stages
 from .errors import MogafError
+from .paths import use_cache_dir
 
 # stage -> (function, {cli option: function argument}, config section or None)
 _PATH = "path"
@@ -159,8 +160,6 @@ def _run_extra(args: argparse.Namespace) -> int:
                          benchmarks=_pairs(args.benchmark, "benchmark"), out_metrics=args.out, out_renders=args.renders,
                          params=cfg["evaluate"], variant=args.variant or "default", ids=ids)
     else:
-        from pathlib import Path
-
         from . import config as mcfg
         from .report.tables import main_table_paths
 
@@ -172,7 +171,7 @@ def _run_extra(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    os.environ.setdefault("MOGAF_CACHE_DIR", os.path.abspath(".cache/mogaf"))
+    use_cache_dir(".cache/mogaf")
     try:
         return _run(args)
     except MogafError as exc:

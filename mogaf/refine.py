@@ -49,7 +49,8 @@ from .recon.data import TrainData, input_digests, load_train_data
 from .recon.init import InitResult
 from .recon.params import resolve_params as resolve_recon_params
 from .recon.trainer import Trainer, load_checkpoint, run_resumable
-from .representation import Model4D, blend_bases, load_model, matrix_to_rot6d, rot6d_to_matrix, save_model
+from .representation import Model4D, load_model, matrix_to_rot6d, rot6d_to_matrix, save_model
+from .rigid import apply_rigid
 from .split import read_split
 
 log = logging.getLogger(__name__)
@@ -155,7 +156,6 @@ class RefineTrainer(Trainer):
         canonical = self.model.fg.get("means").detach().cpu().numpy()
         self.pairs = {g: torch.tensor(p, device=d) for g, p in
                       neighbour_pairs(canonical, groups, refine["nr_neighbors"], refine["nr_radius_factor"]).items()}
-        self.pair_sizes = {g: int(groups.members(g).size) for g in self.pairs}
         self.rigid_members: dict[int, torch.Tensor] = {}
         self.rigid_rot6d = self.rigid_transl = None
         if rigid is not None and rigid["group_ids"].size:
@@ -185,12 +185,6 @@ class RefineTrainer(Trainer):
     def control(self):  # no densification: the grouped Gaussian set stays as it is
         return None
 
-    def _means_of(self, idx: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        m = self.model
-        coefs = torch.softmax(m.fg.get("motion_coef_logits")[idx], dim=-1)
-        R, tr = blend_bases(coefs, m.motion["rot6d"][:, t], m.motion["transl"][:, t])
-        return torch.einsum("nkij,nj->nki", R, m.fg.get("means")[idx]) + tr
-
     def motion_loss(self, pick: torch.Tensor, note) -> torch.Tensor:
         r = self.refine
         total = torch.zeros((), device=self.dev)
@@ -204,9 +198,10 @@ class RefineTrainer(Trainer):
                 if n > r["rigid_members"]:
                     members = members[torch.randperm(n, generator=self.gen)[: r["rigid_members"]].to(self.dev)]
                 i = self.rigid_index[g]
-                R = rot6d_to_matrix(self.rigid_rot6d[i, ts])  # (nt, 3, 3)
-                target = torch.einsum("kij,nj->nki", R, self.model.fg.get("means")[members]) + self.rigid_transl[i, ts][None]
-                d2 = ((self._means_of(members, ts) - target) ** 2).sum(-1) / self.scale ** 2
+                # Phi_t(g) = R_t mu_c + t_t, (nt, n, 3) -> (n, nt, 3) like the learned means
+                target = apply_rigid(rot6d_to_matrix(self.rigid_rot6d[i, ts]), self.rigid_transl[i, ts],
+                                     self.model.fg.get("means")[members]).transpose(0, 1)
+                d2 = ((self.model.fg_means_at(ts, members) - target) ** 2).sum(-1) / self.scale ** 2
                 loss = loss + d2.mean(dim=1).sum() * (n / members.numel())
             total = total + r["lambda_rigid"] * note("rigid", loss)
         if self.pairs and r["lambda_nr"] > 0:
@@ -235,7 +230,8 @@ def _init_from_model(model: Model4D, data: TrainData) -> InitResult:
     canonical_step = int(model.attrs.get("canonical_timestep", data.timesteps[0]))
     pos = np.flatnonzero(data.timesteps[data.tidx] == canonical_step)
     return InitResult(fg=fg, rot6d=torch.as_tensor(np.asarray(model.rot6d, np.float32)),
-                      transl=torch.as_tensor(np.asarray(model.translations, np.float32)), bg=bg, scene_scale=float(model.scene_scale), canonical_frame=int(pos[0]) if pos.size else 0,
+                      transl=torch.as_tensor(np.asarray(model.translations, np.float32)), bg=bg,
+                      scene_scale=float(model.scene_scale), canonical_frame=int(pos[0]) if pos.size else 0,
                       motion_source="refine", info={})
 
 

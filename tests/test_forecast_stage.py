@@ -173,12 +173,14 @@ def test_forecast_jobs_lists_dynamic_groups(inputs, tmp_path):
 
 def test_method_jobs(inputs):
     assert set(INLINE_METHODS) == {"constant_velocity", "frozen"}
+    per_group = forecast_jobs(inputs["groups"], groupwise=True)
+    joint = forecast_jobs(inputs["groups"], groupwise=False)
     for m in INLINE_METHODS:
-        assert method_jobs(inputs["groups"], m, groupwise=True) == []
-        assert method_jobs(inputs["groups"], m, groupwise=False) == []
+        assert method_jobs(m, per_group) == []
+        assert method_jobs(m, joint) == []
     for m in ("mogaf", "gcn", "ode"):
-        assert method_jobs(inputs["groups"], m, groupwise=True) == [str(RIGID), str(NONRIGID)]
-        assert method_jobs(inputs["groups"], m, groupwise=False) == ["all"]
+        assert method_jobs(m, per_group) == [str(RIGID), str(NONRIGID)]
+        assert method_jobs(m, joint) == ["all"]
 
 
 # ------------------------------------------------------------------ group jobs

@@ -139,19 +139,13 @@ def _local_rotations(points: np.ndarray, k: int = 8) -> np.ndarray:
     frame 0) from frame 0 to every frame: the best rigid fit, det = +1."""
     from scipy.spatial import cKDTree
 
-    P, T, _ = points.shape
-    k = min(k + 1, P)
+    from mogaf.rigid import procrustes_numpy
+
+    k = min(k + 1, points.shape[0])
     _, nn = cKDTree(points[:, 0]).query(points[:, 0], k=k)
-    src = points[nn, 0]  # (P, k, 3)
-    src = src - src.mean(1, keepdims=True)
+    src = points[nn, 0][:, None]  # (P, 1, k, 3)
     dst = points[nn].transpose(0, 2, 1, 3)  # (P, T, k, 3)
-    dst = dst - dst.mean(2, keepdims=True)
-    H = np.einsum("pki,ptkj->ptij", src, dst)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.einsum("ptij,ptjk->ptik", Vt.transpose(0, 1, 3, 2), U.transpose(0, 1, 3, 2))))
-    D = np.broadcast_to(np.eye(3), H.shape).copy()
-    D[..., 2, 2] = np.where(d == 0, 1.0, d)
-    R = np.einsum("ptji,ptjk,ptlk->ptil", Vt, D, U)  # V D U^T
+    R, _ = procrustes_numpy(src, dst)
     return quat.make_continuous(_matrix_to_quat(R), axis=1)
 
 

@@ -56,9 +56,10 @@ def dynamic_members(group_id: np.ndarray, group_static: np.ndarray) -> np.ndarra
 INLINE_METHODS = ("constant_velocity", "frozen")
 
 
-def method_jobs(groups_h5: str | os.PathLike, method: str, *, groupwise: bool) -> list[str]:
-    """The separate forecast_group jobs of `method` ([] for INLINE_METHODS)."""
-    return [] if method in INLINE_METHODS else forecast_jobs(groups_h5, groupwise=groupwise)
+def method_jobs(method: str, jobs: list[str]) -> list[str]:
+    """Of the forecast jobs (forecast_jobs), those `method` runs as separate
+    forecast_group jobs: all of them, or none for INLINE_METHODS."""
+    return [] if method in INLINE_METHODS else list(jobs)
 
 
 def _job_names(group_id: np.ndarray, group_static: np.ndarray, groupwise: bool) -> list[str]:
@@ -140,12 +141,11 @@ def forecast_job(model: Model4D, members: np.ndarray, horizon: int, params: Mapp
 def run_forecast_group(model_h5: str, groups_h5: str, split_h5: str, out: str, params: Mapping[str, Any], *, method: str, job: str, seed: int) -> Path:
     model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
     members = job_members(job, group_id, group_static, groups_h5)
-    mparams = method_params(params, method)
     poses, info, wall = forecast_job(model, members, int(split.forecast_timesteps.size), params, method, job, seed)
     return write_artefact(
         out, GROUP_STAGE,
         {"members": members, "means": poses[..., :3].astype(np.float32), "quats": poses[..., 3:].astype(np.float32)},
-        config_digest=config_digest({"method": method, "params": mparams, "job": job, "seed": seed}),
+        config_digest=config_digest({"method": method, "params": method_params(params, method), "job": job, "seed": seed}),
         attrs={"method": method, "job": job, "num_gaussians": int(members.size), "fit_wall_s": round(wall, 3), "info": info},
     )
 
@@ -165,8 +165,9 @@ def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, scene_h5: s
         if art.attrs.get("method") != method:
             raise input_error(part, f"holds method '{art.attrs.get('method')}', expected '{method}'")
         members = np.asarray(art["members"], np.int64)
-        if art["means"].shape != (members.size, T, 3):
-            raise input_error(part, f"poses have shape {art['means'].shape}, expected ({members.size}, {T}, 3)")
+        for key, width in (("means", 3), ("quats", 4)):
+            if art[key].shape != (members.size, T, width):
+                raise input_error(part, f"{key} have shape {art[key].shape}, expected ({members.size}, {T}, {width})")
         if np.any(covered[members]):
             raise input_error(part, "overlaps another forecast job")
         covered[members] = True
@@ -187,15 +188,16 @@ def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, scene_h5: s
     missing = missing[~covered[missing]]
     if missing.size:
         raise MogafError(f"forecast {method}: {missing.size} dynamic Gaussians are covered by no forecast job")
+    mparams = method_params(params, method)
     attrs: dict[str, Any] = {"method": method, "groupwise": bool(params.get("groupwise", True)),
-                             "num_groups_trained": len(parts), "flags": flags, "params": method_params(params, method)}
+                             "num_groups_trained": len(parts), "flags": flags, "params": mparams}
     epe = quick_epe(model, means, quats, scene_h5, split)
     if epe is not None:
         attrs["epe_3d_quick"] = round(epe, 6)
     return write_artefact(
         out, MERGE_STAGE,
         {"timesteps": split.forecast_timesteps, "means": means, "quats": quats, "group_id": group_id},
-        config_digest=config_digest({"method": method, "params": method_params(params, method), "seed": int(seed),
+        config_digest=config_digest({"method": method, "params": mparams, "seed": int(seed),
                                      "parts": sorted(Path(p).name for p in parts)}),
         attrs=attrs,
     )

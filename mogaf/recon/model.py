@@ -186,14 +186,16 @@ class ReconModel(nn.Module):
         return out
 
     # -------------------------------------------------------------- motion
-    def fg_transforms(self, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """R (N,K,3,3), translation (N,K,3) of every fg Gaussian at step indices t (K,)."""
-        coefs = self.fg.coefs()
+    def fg_transforms(self, t: torch.Tensor, members: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """R (N,K,3,3), translation (N,K,3) of the fg Gaussians (all, or `members`) at step indices t (K,)."""
+        coefs = self.fg.coefs() if members is None else torch.softmax(self.fg.get("motion_coef_logits")[members], dim=-1)
         return blend_bases(coefs, self.motion["rot6d"][:, t], self.motion["transl"][:, t])
 
-    def fg_means_at(self, t: torch.Tensor) -> torch.Tensor:
-        R, tr = self.fg_transforms(t)
-        return torch.einsum("nkij,nj->nki", R, self.fg.get("means")) + tr
+    def fg_means_at(self, t: torch.Tensor, members: torch.Tensor | None = None) -> torch.Tensor:
+        """Means (N,K,3) of the fg Gaussians (all, or `members`) at step indices t (K,)."""
+        R, tr = self.fg_transforms(t, members)
+        means = self.fg.get("means") if members is None else self.fg.get("means")[members]
+        return torch.einsum("nkij,nj->nki", R, means) + tr
 
     def fg_poses_at(self, t: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Means (N,3) and wxyz quaternions (N,4) of the fg Gaussians at step index t."""

@@ -126,8 +126,5 @@ def _run(scene_h5, split_h5, priors_h5, out_h5, p: dict, seed: int, checkpoint, 
     }
     path = save_model(out_h5, "recon", model, config_digest=stage_digest(p, seed), attrs=attrs)
     if checkpoint is not None and not keep_checkpoint:
-        try:
-            Path(checkpoint).unlink()
-        except FileNotFoundError:
-            pass
+        Path(checkpoint).unlink(missing_ok=True)
     return path

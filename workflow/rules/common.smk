@@ -239,10 +239,10 @@ def forecast_params(wildcards):
 
 
 def forecast_part_files(wildcards):
-    from mogaf.forecast.stage import method_jobs
+    from mogaf.forecast.stage import forecast_jobs, method_jobs
 
     cfg = scene_cfg(wildcards)
-    jobs = method_jobs(groups_h5(wildcards), wildcards.method, groupwise=cfg["forecast"]["groupwise"])
+    jobs = method_jobs(wildcards.method, forecast_jobs(groups_h5(wildcards), groupwise=cfg["forecast"]["groupwise"]))
     base = ratio_path(wildcards, forecast_prefix(wildcards))
     return [f"{base}forecast/{wildcards.method}/group{job}.h5" for job in jobs]
 
@@ -267,12 +267,13 @@ def _benchmarks_of(wildcards):
             stages.append("rigid_init")
     for stage in stages:
         out[f"bench_{stage}"] = ratio_path(wildcards, f"{stage_prefix(stage, wildcards)}benchmarks/{stage}.tsv")
-    from mogaf.forecast.stage import method_jobs
+    from mogaf.forecast.stage import forecast_jobs, method_jobs
 
+    jobs = forecast_jobs(groups_h5(wildcards), groupwise=cfg["forecast"]["groupwise"])
     for method in cfg["forecast"]["methods"]:
         base = ratio_path(wildcards, stage_prefix(f"forecast:{method}", wildcards))
         out[f"bench_forecast_{method}"] = f"{base}benchmarks/forecast_{method}.tsv"
-        for job in method_jobs(groups_h5(wildcards), method, groupwise=cfg["forecast"]["groupwise"]):
+        for job in method_jobs(method, jobs):
             out[f"bench_forecast_{method}_group{job}"] = f"{base}benchmarks/forecast_{method}_group{job}.tsv"
     return out
 
