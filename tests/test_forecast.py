@@ -178,6 +178,20 @@ def test_hc_variant_and_no_masking_run():
     assert nm.info["masking"] is False and np.isfinite(nm.rollout(3)).all()
 
 
+def test_batch_shrinks_with_window_to_a_token_budget():
+    from mogaf.forecast.transformer import batch_for_window
+
+    assert batch_for_window(128, 4480, 35) == 128  # T = 36: the full batch
+    assert batch_for_window(128, 4480, 99) == 45  # T = 100: same tokens per step
+    assert batch_for_window(128, 4480, 10_000) == 16  # floor
+    assert batch_for_window(8, 4480, 10_000) == 8  # never above batch_size
+    assert batch_for_window(128, 0, 99) == 128  # budget off
+    fc = make_forecaster("mogaf", {"iterations": 2, "batch_tokens": 320}).fit(rigid_box(200, 21))
+    assert fc.info["batch_size"] == 16 and fc.info["window"] == 20
+    with pytest.raises(MogafError, match="batch_tokens"):
+        make_forecaster("mogaf", {"iterations": 2, "batch_tokens": -1}).fit(rigid_box(20, 8))
+
+
 def _linear_motion(g=200, t=40, seed=0):
     rng = np.random.default_rng(seed)
     p0 = rng.uniform(-1, 1, (g, 3))
@@ -203,11 +217,12 @@ def test_mogaf_fits_simple_motion(motion, fraction):
     """30 observed frames, 10 forecast. The frozen pose's EPE is the mean
     distance travelled over the horizon; the forecaster must recover at least
     98% (linear: after instance normalisation every sequence is the same ramp)
-    or 90% (uniform circular motion, a fixed linear recurrence) of it with a
-    5-second training budget. Measured: 0.6% and 4.5%."""
+    or 90% (uniform circular motion, a fixed linear recurrence) of it at the
+    default budget and weight decay (which damps the rollout). Measured: 0.4%
+    and 5.6% (without weight decay 0.1% and 3.2%)."""
     traj = motion()
     obs, fut = traj[:, :30], traj[:, 30:]
-    res = fit_and_rollout("mogaf", obs, 10, {"iterations": 200, "batch_size": 64}, seed=0)
+    res = fit_and_rollout("mogaf", obs, 10, {"batch_size": 64}, seed=0)
     epe = np.linalg.norm(res.poses[..., :3] - fut[..., :3], axis=-1).mean()
     frozen = np.linalg.norm(obs[:, -1:, :3] - fut[..., :3], axis=-1).mean()
     assert epe < fraction * frozen, (epe, frozen)

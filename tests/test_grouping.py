@@ -108,6 +108,31 @@ def test_gaga4d_fragments_when_overlap_is_low(scene_far):
     assert any(name.startswith("sphere#") for name in g.names)
 
 
+def test_reseeding_moves_grown_gaussians_but_never_seeded_ones():
+    from mogaf.grouping.ours import GROW, SEED, seed
+
+    labels = np.array([0, 0, 1, -1])
+    stage = np.array([SEED, GROW, GROW, -1], dtype=np.int8)
+    queried = np.array([0.5, 0.5, 0.5, 0.0])
+    idx, inst = np.array([0, 1, 2, 3]), np.array([1, 1, 1, 1])
+    # default (first kept): only the unassigned one joins
+    l1, s1 = labels.copy(), stage.copy()
+    assert seed(l1, s1, idx, inst) == 1 and list(l1) == [0, 0, 1, 1]
+    # reseed_grown: the grown Gaussian in the other group moves (radius cache reset); the seeded one stays
+    l2, s2, q2 = labels.copy(), stage.copy(), queried.copy()
+    assert seed(l2, s2, idx, inst, q2) == 2
+    assert list(l2) == [0, 1, 1, 1] and list(s2) == [SEED, SEED, GROW, SEED] and list(q2) == [0.5, 0.0, 0.5, 0.0]
+
+
+@pytest.mark.parametrize("which", ["scene_far", "scene_close"])
+def test_reseed_grown_still_recovers_two_objects(which, request):
+    sc = request.getfixturevalue(which)
+    g = group_gaussians(sc.model, sc.masks, sc.frames, sc.instances, {"method": "ours", "reseed_grown": True})
+    assert adjusted_rand_score(sc.labels, g.group_id) > 0.9
+    with pytest.raises(MogafError, match="reseed_grown"):
+        group_gaussians(sc.model, sc.masks, sc.frames, sc.instances, {"method": "ours", "reseed_grown": 1})
+
+
 def test_unknown_method_and_params_are_refused(scene_far):
     sc = scene_far
     with pytest.raises(MogafError):

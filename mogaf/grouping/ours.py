@@ -25,7 +25,10 @@ as in the paper.
 Conflicts (memory bank as in Gaga): a Gaussian belongs to at most one group
 and keeps the first group it joins, so a Gaussian seeded by a mask at a
 later keyframe, or grown into by a second group, stays where it was. Within
-one keyframe a Gaussian projects to one pixel and hence one mask.
+one keyframe a Gaussian projects to one pixel and hence one mask. With
+`reseed_grown`, a front Gaussian of mask k that only region growing had put
+in another group moves to k instead (mask evidence over feature-space
+growth; this repairs growth that leaked across a contact between objects).
 
 Efficiency: one KD-tree over all features is built once (features do not
 change); every member remembers the radius it has been queried with and is
@@ -152,9 +155,17 @@ def _nearest_distance(features: np.ndarray, sources: np.ndarray, targets: np.nda
     return np.asarray(d)
 
 
-def seed(labels: np.ndarray, stage: np.ndarray, idx: np.ndarray, inst: np.ndarray) -> int:
-    """Unassigned front Gaussians join their mask's group (first group kept)."""
+def seed(labels: np.ndarray, stage: np.ndarray, idx: np.ndarray, inst: np.ndarray,
+         queried: np.ndarray | None = None) -> int:
+    """Front Gaussians join their mask's group. Unassigned ones always; with
+    `queried` given (reseed_grown), also those that only region growing had
+    put in another group, and their growth radius cache is reset so they grow
+    for their new group. A Gaussian seeded by a mask keeps its first group."""
     free = labels[idx] < 0
+    if queried is not None:
+        moved = (stage[idx] == GROW) & (labels[idx] != inst)
+        queried[idx[moved]] = 0.0
+        free |= moved
     labels[idx[free]] = inst[free]
     stage[idx[free]] = SEED
     return int(free.sum())
@@ -188,7 +199,7 @@ def group_ours(model, masks: np.ndarray, frames: MaskFrames, instance_ids: np.nd
             np.asarray(traj[:, frames.time_index[f]], dtype=np.float64), masks[f], frames.K[f], frames.w2c[f],
             instance_ids, float(params["front_fraction"]), int(params["front_patches"]),
         )
-        diag["seeded"].append(seed(labels, stage, idx, inst))
+        diag["seeded"].append(seed(labels, stage, idx, inst, queried if params["reseed_grown"] else None))
 
     seed_at(int(order[0]))
     for f in order[1:]:
