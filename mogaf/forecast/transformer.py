@@ -71,7 +71,7 @@ DEFAULTS: dict[str, Any] = {
     "weight_decay": 0.03,  # L2 on all weights (Adam). A group's sequences are near copies after instance
     # normalisation, so one-target training is under-determined; without decay the free directions of the
     # flatten head make the autoregressive rollout blow up (GT benchmark, ratio 0.6: default/sphere 1.55 -> 0.39 m,
-    # hard/box_extra_1 1.87 -> 0.13 m). 0.1 damps further but bends periodic motion (circular test 3% -> 15%)
+    # hard/box_extra_1 1.87 -> 0.11 m). 0.1 damps further but bends periodic motion (circular test 3% -> 15%)
     "grad_clip": 1.0,  # global grad-norm clip
     # --- runtime ---
     "num_threads": 1,  # tiny tensors: one intra-op thread is as fast and never oversubscribes parallel jobs (0 = torch's default)
