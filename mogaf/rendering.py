@@ -1,8 +1,8 @@
 """Render a 4D model: dynamic Gaussians at given poses + the static background.
 
 Used wherever a stage renders a stored model (evaluation of forecasts,
-grouping quality, reconstruction quality at held-out views). Training code
-renders its own parameter tensors through the same `gaussians_at`.
+grouping quality, reconstruction quality at held-out views). Colours follow
+`mogaf.sh`, the convention the reconstruction is trained with.
 """
 
 from __future__ import annotations
@@ -11,42 +11,7 @@ import numpy as np
 import torch
 
 from .representation import GaussianSet, Model4D
-
-# Real spherical-harmonics constants (degree <= 3), as in 3DGS.
-SH_C0 = 0.28209479177387814
-SH_C1 = 0.4886025119029199
-SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
-
-
-def sh_to_rgb(color_logits: torch.Tensor, sh_rest: torch.Tensor | None, dirs: torch.Tensor | None, degree: int) -> torch.Tensor:
-    """Colour in [0, 1] = sigmoid(DC logits + SH terms of the view direction).
-
-    Degree 0 ignores `dirs`. Higher bands follow the 3DGS basis; the sigmoid
-    keeps colours in range (Shape-of-Motion activates colours the same way).
-    """
-    x = color_logits
-    if degree > 0 and sh_rest is not None and dirs is not None:
-        d = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        dx, dy, dz = d[:, 0:1], d[:, 1:2], d[:, 2:3]
-        basis = [-SH_C1 * dy, SH_C1 * dz, -SH_C1 * dx]
-        if degree > 1:
-            xx, yy, zz, xy, yz, xz = dx * dx, dy * dy, dz * dz, dx * dy, dy * dz, dx * dz
-            basis += [SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * xz, SH_C2[4] * (xx - yy)]
-            if degree > 2:
-                basis += [
-                    SH_C3[0] * dy * (3 * xx - yy), SH_C3[1] * xy * dz, SH_C3[2] * dy * (4 * zz - xx - yy),
-                    SH_C3[3] * dz * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * dx * (4 * zz - xx - yy),
-                    SH_C3[5] * dz * (xx - yy), SH_C3[6] * dx * (xx - 3 * yy),
-                ]
-        b = torch.cat(basis, dim=-1)  # (N, M)
-        x = x + torch.einsum("nm,nmc->nc", b, sh_rest[:, : b.shape[1]]) / SH_C0
-    return torch.sigmoid(x)
-
-
-def num_sh_rest(degree: int) -> int:
-    return (degree + 1) ** 2 - 1
+from .sh import gaussian_colors
 
 
 def _tensor(a: np.ndarray | torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
@@ -60,7 +25,9 @@ def gaussians_at(gs: GaussianSet, means: np.ndarray | torch.Tensor, quats: np.nd
     R = torch.as_tensor(np.asarray(w2c)[:3, :3], dtype=dtype)
     t = torch.as_tensor(np.asarray(w2c)[:3, 3], dtype=dtype)
     centre = -(R.T @ t)
-    rgb = sh_to_rgb(_tensor(gs.color_logits, dtype), None if gs.sh_rest is None else _tensor(gs.sh_rest, dtype), m - centre, degree)
+    # degree is the model's; sh_rest carries exactly its bands
+    sh = None if gs.sh_rest is None or degree == 0 else _tensor(gs.sh_rest, dtype)
+    rgb = gaussian_colors(_tensor(gs.color_logits, dtype), sh, m, centre)
     return {
         "means": m,
         "quats": _tensor(quats, dtype),

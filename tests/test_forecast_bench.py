@@ -62,3 +62,21 @@ def test_cli_errors_are_one_line(capsys):
     assert bench.main(["--sets", "static", "--methods", "lstm"]) == 1
     err = capsys.readouterr().err
     assert "unknown set 'nope'" in err and "unknown method(s) lstm" in err
+
+
+def test_cli_resume_keeps_finished_rows_and_only_filters(tmp_path, capsys):
+    out_json = tmp_path / "rows.json"
+    base = ["--sets", "static,rigid_box", "--only", "stat*", "--gaussians", "6", "--frames", "20", "--ratios", "0.6",
+            "--json", str(out_json)]
+    assert bench.main(base + ["--methods", "frozen"]) == 0
+    doc = json.loads(out_json.read_text())
+    assert [(r["set"], r["method"]) for r in doc["rows"]] == [("static", "frozen")]
+    doc["rows"][0]["epe"] = 123.0  # a kept row must come back unchanged, not recomputed
+    out_json.write_text(json.dumps(doc))
+    assert bench.main(base + ["--methods", "frozen,constant_velocity", "--resume"]) == 0
+    rows = json.loads(out_json.read_text())["rows"]
+    assert [(r["method"], r["epe"]) for r in rows][0] == ("frozen", 123.0)
+    assert [r["method"] for r in rows] == ["frozen", "constant_velocity"] and rows[1]["epe"] < 1e-9
+    capsys.readouterr()
+    assert bench.main(base + ["--methods", "frozen", "--resume", "--seed", "1"]) == 1
+    assert "written with another seed" in capsys.readouterr().err

@@ -244,6 +244,30 @@ def test_render_model_reproduces_training_view(tiny, tiny_run):
         render_model(m, T - 1, fr.K[1], fr.w2c[1], W, H)
 
 
+def test_evaluation_renderer_matches_training_colours_with_sh(tiny, tiny_run):
+    """Evaluation (mogaf.rendering) and recon rendering share one SH convention."""
+    import dataclasses
+
+    from mogaf.recon import render_model
+    from mogaf.rendering import observed_pose, render_model_at
+    from mogaf.representation import load_model
+    from mogaf.sh import num_sh_rest
+    from mogaf.split import load_frames
+
+    m = load_model(tiny_run)
+    gen = np.random.default_rng(0)
+    with_sh = lambda g: dataclasses.replace(g, sh_rest=gen.normal(0, 0.5, (len(g), num_sh_rest(3), 3)).astype(np.float32))  # noqa: E731
+    m = dataclasses.replace(m, sh_degree=3, fg=with_sh(m.fg), bg=None if m.bg is None else with_sh(m.bg))
+    fr = load_frames(tiny[0], read_split(tiny[1]), "observed")
+    t = int(fr.time_index[1])
+    a = render_model(m, t, fr.K[1], fr.w2c[1], W, H).features.numpy()
+    means, quats = observed_pose(m, t)
+    b = render_model_at(m, means, quats, fr.K[1], fr.w2c[1], W, H).features.numpy()
+    plain = render_model(dataclasses.replace(m, sh_degree=0, fg=dataclasses.replace(m.fg, sh_rest=None), bg=None if m.bg is None else dataclasses.replace(m.bg, sh_rest=None)), t, fr.K[1], fr.w2c[1], W, H)
+    assert np.abs(a - plain.features.numpy()).max() > 0.05  # the SH terms do change the image
+    np.testing.assert_allclose(b, a, atol=1e-4)
+
+
 def test_static_scene_psnr_rises(tmp_path):
     """Training must improve a sparse, translucent start substantially (this can fail)."""
     from mogaf.recon import run_recon_stage

@@ -24,11 +24,13 @@ at its defaults.
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import importlib
 import json
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -68,9 +70,11 @@ def evaluate_trajectories(
     methods: Sequence[str] = METHODS,
     params: Mapping[str, Mapping[str, Any]] | None = None,
     seed: int = 0,
+    progress: Callable[[dict[str, Any]], None] | None = None,
 ) -> list[dict[str, Any]]:
     """Fit every method on the observed part of `traj` (G, T_total, 7) and
-    score its forecast of the rest. One row per method."""
+    score its forecast of the rest. One row per method, each passed to
+    `progress` as soon as it is scored."""
     obs, fut = split(traj, ratio)
     rows = []
     for method in methods:
@@ -95,6 +99,8 @@ def evaluate_trajectories(
                 "flags": flags,
             }
         )
+        if progress:
+            progress(rows[-1])
     return rows
 
 
@@ -105,16 +111,28 @@ def run_benchmark(
     params: Mapping[str, Mapping[str, Any]] | None = None,
     seed: int = 0,
     progress: Callable[[dict[str, Any]], None] | None = None,
+    done: Sequence[Mapping[str, Any]] = (),
 ) -> list[dict[str, Any]]:
-    rows = []
+    """Rows of every (set, ratio, method); rows in `done` (same set, ratio and
+    method) are kept as they are and not recomputed."""
+    finished = {(r["set"], float(r["ratio"]), r["method"]): dict(r) for r in done}
+    rows: list[dict[str, Any]] = []
     for name, src in sources.items():
-        traj = src() if callable(src) else src
+        traj = None
         for ratio in ratios:
-            for row in evaluate_trajectories(traj, ratio, methods, params, seed):
-                row = {"set": name, **row}
-                rows.append(row)
-                if progress:
-                    progress(row)
+            todo = [m for m in methods if (name, float(ratio), m) not in finished]
+            fresh: dict[str, dict[str, Any]] = {}
+            if todo:
+                traj = (src() if callable(src) else src) if traj is None else traj
+
+                def report(row: dict[str, Any], name: str = name) -> None:
+                    row = {"set": name, **row}
+                    fresh[row["method"]] = row
+                    if progress:
+                        progress(row)
+
+                evaluate_trajectories(traj, ratio, todo, params, seed, report)
+            rows.extend(fresh.get(m) or finished[(name, float(ratio), m)] for m in methods)
     return rows
 
 
@@ -227,7 +245,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--params", default="{}", help='JSON {method: {param: value}} overrides')
     ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads for every method (0 = torch default)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--json", help="also write the rows here")
+    ap.add_argument("--only", default="", help="comma-separated glob patterns: keep only the sets whose name matches one")
+    ap.add_argument("--json", help="also write the rows here (rewritten after every row)")
+    ap.add_argument("--resume", action="store_true",
+                    help="keep the rows already in --json (same budget, parameters and seed) and compute only the missing ones")
     args = ap.parse_args(list(argv) if argv is not None else None)
 
     try:
@@ -270,12 +291,26 @@ def main(argv: Sequence[str] | None = None) -> int:
                 raise MogafError(f"{path}: cannot read ({exc})") from None
         for spec in args.source:
             sources.update(_load_source(spec))
+        if args.only:
+            patterns = [x.strip() for x in args.only.split(",") if x.strip()]
+            sources = {k: v for k, v in sources.items() if any(fnmatch.fnmatchcase(k, pat) for pat in patterns)}
         if not sources:
             raise MogafError("bench forecast: no trajectory sets selected")
+        header = {"budget": args.budget, "params": params, "seed": args.seed}
+        done: list[dict[str, Any]] = []
+        if args.resume:  # may widen header["params"] by the file's other methods
+            if not args.json:
+                raise MogafError("bench forecast: --resume needs --json (the file the rows are kept in)")
+            done = _resumable_rows(Path(args.json), header)
 
         print(f"forecast benchmark: budget={args.budget}, threads={args.threads}, seed={args.seed}", flush=True)
 
+        kept = list(done)
+
         def progress(row: dict[str, Any]) -> None:
+            if args.json:
+                kept.append(row)
+                _write_json(Path(args.json), {**header, "rows": kept})
             print(
                 f"  {row['set']} ratio={row['ratio']:.2f} {row['method']}: EPE {row['epe']:.4f} "
                 f"rot {row['rot_err_deg']:.2f} deg, train {row['train_s']:.1f} s",
@@ -283,15 +318,42 @@ def main(argv: Sequence[str] | None = None) -> int:
                 flush=True,
             )
 
-        rows = run_benchmark(sources, ratios, methods, params, args.seed, progress)
+        rows = run_benchmark(sources, ratios, methods, params, args.seed, progress, done)
     except MogafError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     print(format_table(rows, reduced))
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump({"budget": args.budget, "params": params, "rows": rows}, fh, indent=1)
+    if args.json:  # every row so far, also kept rows of sets or methods not run this time
+        _write_json(Path(args.json), {**header, "rows": kept})
     return 0
+
+
+def _write_json(path: Path, obj: Mapping[str, Any]) -> None:
+    """Whole file or nothing: a run stopped mid-write leaves the previous rows."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=1) + "\n")
+    tmp.replace(path)
+
+
+def _resumable_rows(path: Path, header: Mapping[str, Any]) -> list[dict[str, Any]]:
+    if not path.exists():
+        return []
+    try:
+        old = json.loads(path.read_text())
+        rows = list(old["rows"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise MogafError(f"{path}: not a forecast benchmark file ({exc})") from None
+    want = json.loads(json.dumps(header))  # as JSON would give it back
+    for key in ("budget", "seed"):
+        if old.get(key) != want[key]:
+            raise MogafError(f"{path}: written with another {key} ({old.get(key)!r}); remove it or drop --resume")
+    old_params = old.get("params") or {}
+    for method, p in want["params"].items():
+        if method in old_params and old_params[method] != p:
+            raise MogafError(f"{path}: written with other {method} parameters ({old_params[method]!r}); remove it or drop --resume")
+    # rows of methods no longer asked for stay in the file with their parameters
+    header["params"] = {**old_params, **header["params"]}
+    return rows
 
 
 if __name__ == "__main__":
