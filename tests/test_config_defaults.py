@@ -119,11 +119,12 @@ def test_config_validates():
     validate(load_config())
 
 
-def test_paper_grid_and_ablation_variants_validate():
+def test_layered_configs_and_ablation_variants_validate():
     import mogaf.config as mcfg
 
     base = load_config()
-    validate(mcfg.deep_merge(base, mcfg.load_yaml(REPO / "config" / "paper.yaml")))
+    for overlay in ("paper.yaml", "demo.yaml", "mujoco.yaml"):  # the files the README layers over config.yaml
+        validate(mcfg.deep_merge(base, mcfg.load_yaml(REPO / "config" / overlay)))
     variants = mcfg.load_yaml(REPO / "config" / "ablations.yaml")["variants"]
     for name in variants:
         validate(mcfg.variant_config(base, variants, name))
