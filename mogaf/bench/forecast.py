@@ -335,7 +335,9 @@ def _write_json(path: Path, obj: Mapping[str, Any]) -> None:
     tmp.replace(path)
 
 
-def _resumable_rows(path: Path, header: Mapping[str, Any]) -> list[dict[str, Any]]:
+def _resumable_rows(path: Path, header: dict[str, Any]) -> list[dict[str, Any]]:
+    """The file's rows, after checking they were made with these settings; widens
+    header["params"] by the file's other methods so a rewrite keeps them."""
     if not path.exists():
         return []
     try:
