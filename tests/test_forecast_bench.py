@@ -80,3 +80,8 @@ def test_cli_resume_keeps_finished_rows_and_only_filters(tmp_path, capsys):
     capsys.readouterr()
     assert bench.main(base + ["--methods", "frozen", "--resume", "--seed", "1"]) == 1
     assert "written with another seed" in capsys.readouterr().err
+    assert bench.main(base + ["--methods", "frozen"]) == 1  # no silent overwrite without --resume
+    assert "exists; pass --resume" in capsys.readouterr().err
+    longer = [a if a != "20" else "30" for a in base]  # other trajectories under the same set name
+    assert bench.main(longer + ["--methods", "frozen", "--resume"]) == 1
+    assert "was scored on 6 Gaussians x 12 observed frames" in capsys.readouterr().err

@@ -121,9 +121,19 @@ def run_benchmark(
         traj = None
         for ratio in ratios:
             todo = [m for m in methods if (name, float(ratio), m) not in finished]
+            kept = [finished[(name, float(ratio), m)] for m in methods if m not in todo]
             fresh: dict[str, dict[str, Any]] = {}
-            if todo:
+            if todo or kept:
                 traj = (src() if callable(src) else src) if traj is None else traj
+            for row in kept:  # a kept row must have been scored on these same trajectories
+                t_obs = split(traj, ratio)[0].shape[1]
+                if (row.get("gaussians"), row.get("observed_frames")) != (traj.shape[0], t_obs):
+                    raise MogafError(
+                        f"bench forecast: the kept row {name} ratio {ratio} {row['method']} was scored on "
+                        f"{row.get('gaussians')} Gaussians x {row.get('observed_frames')} observed frames, this set has "
+                        f"{traj.shape[0]} x {t_obs}; remove the --json file or drop --resume"
+                    )
+            if todo:
 
                 def report(row: dict[str, Any], name: str = name) -> None:
                     row = {"set": name, **row}
@@ -302,6 +312,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             if not args.json:
                 raise MogafError("bench forecast: --resume needs --json (the file the rows are kept in)")
             done = _resumable_rows(Path(args.json), header)
+        elif args.json and Path(args.json).exists():
+            # rows of a paper-budget run cost hours: never overwrite them by accident
+            raise MogafError(f"{args.json}: exists; pass --resume to go on with it, or remove it")
 
         print(f"forecast benchmark: budget={args.budget}, threads={args.threads}, seed={args.seed}", flush=True)
 
@@ -347,6 +360,8 @@ def _resumable_rows(path: Path, header: dict[str, Any]) -> list[dict[str, Any]]:
         raise MogafError(f"{path}: not a forecast benchmark file ({exc})") from None
     want = json.loads(json.dumps(header))  # as JSON would give it back
     for key in ("budget", "seed"):
+        if key not in old:
+            raise MogafError(f"{path}: has no '{key}' (written before --resume existed); remove it or drop --resume")
         if old.get(key) != want[key]:
             raise MogafError(f"{path}: written with another {key} ({old.get(key)!r}); remove it or drop --resume")
     old_params = old.get("params") or {}
