@@ -13,10 +13,11 @@ Trajectory sources are pluggable:
     mapping name -> array;
   * from Python: evaluate_trajectories(array, ...) / run_benchmark({name: array}).
 
-Budgets: the baselines at their upstream settings (--budget paper) take tens of
-minutes per group on 2 CPU cores (GCN: 2001 epochs of a 6-block GCN over 100
-control points; ODE: 40 epochs of a 4-layer d=128 transformer encoder over
-every (window, Gaussian) pair). The default --budget cpu shortens only their
+Budgets: the baselines at their upstream settings (--budget paper) take about
+an hour (GCN: 2001 epochs of a 6-block GCN over 100 control points) and 5-13 min
+(ODE: 40 epochs of a 4-layer d=128 transformer encoder over every (window,
+Gaussian) pair of a 256-Gaussian set) per group on one CPU core; --json with
+--resume keeps finished rows across runs. The default --budget cpu shortens only their
 epochs (REDUCED below) and marks them with '*' in the table; MoGaF always runs
 at its defaults.
 """
