@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from mogaf.artefact import atomic_path
 from mogaf.errors import MogafError
 from mogaf.forecast import METHODS, fit_and_rollout, quat
 from mogaf.forecast.synthetic import TRAJECTORY_SETS
@@ -119,21 +120,22 @@ def run_benchmark(
     finished = {(r["set"], float(r["ratio"]), r["method"]): dict(r) for r in done}
     rows: list[dict[str, Any]] = []
     for name, src in sources.items():
-        traj = None
+        traj = src() if callable(src) else src
         for ratio in ratios:
-            todo = [m for m in methods if (name, float(ratio), m) not in finished]
-            kept = [finished[(name, float(ratio), m)] for m in methods if m not in todo]
-            fresh: dict[str, dict[str, Any]] = {}
-            if todo or kept:
-                traj = (src() if callable(src) else src) if traj is None else traj
-            for row in kept:  # a kept row must have been scored on these same trajectories
-                t_obs = split(traj, ratio)[0].shape[1]
-                if (row.get("gaussians"), row.get("observed_frames")) != (traj.shape[0], t_obs):
+            t_obs = split(traj, ratio)[0].shape[1]
+            todo = []
+            for m in methods:
+                row = finished.get((name, float(ratio), m))
+                if row is None:
+                    todo.append(m)
+                elif (row.get("gaussians"), row.get("observed_frames")) != (traj.shape[0], t_obs):
+                    # a kept row must have been scored on these same trajectories
                     raise MogafError(
-                        f"bench forecast: the kept row {name} ratio {ratio} {row['method']} was scored on "
+                        f"bench forecast: the kept row {name} ratio {ratio} {m} was scored on "
                         f"{row.get('gaussians')} Gaussians x {row.get('observed_frames')} observed frames, this set has "
                         f"{traj.shape[0]} x {t_obs}; remove the --json file or drop --resume"
                     )
+            fresh: dict[str, dict[str, Any]] = {}
             if todo:
 
                 def report(row: dict[str, Any], name: str = name) -> None:
@@ -343,10 +345,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _write_json(path: Path, obj: Mapping[str, Any]) -> None:
-    """Whole file or nothing: a run stopped mid-write leaves the previous rows."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1) + "\n")
-    tmp.replace(path)
+    """Whole file or nothing: a run stopped mid-write leaves the previous rows.
+    (Not mogaf.artefact.write_json: a row may hold a NaN final loss.)"""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(obj, indent=1) + "\n")
 
 
 def _resumable_rows(path: Path, header: dict[str, Any]) -> list[dict[str, Any]]:
