@@ -19,7 +19,6 @@ every stage that produced each method's result (Snakemake benchmark files).
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -35,7 +34,7 @@ from . import __version__
 from .artefact import read_artefact, write_json
 from .errors import MogafError, input_error
 from .representation import Model4D, load_model
-from .rendering import observed_pose, render_model_at, to_uint8
+from .rendering import render_model, render_poses
 from .split import Split, load_frames, load_ground_truth, read_split
 
 log = logging.getLogger(__name__)
@@ -135,6 +134,11 @@ def _round(obj: Any, digits: int = 6) -> Any:
     return obj
 
 
+def to_uint8(img: np.ndarray) -> np.ndarray:
+    """[0, 1] float image -> uint8."""
+    return np.clip(np.round(np.asarray(img) * 255.0), 0, 255).astype(np.uint8)
+
+
 def _save_png(path: Path, img: np.ndarray) -> None:
     import imageio.v3 as iio
 
@@ -166,7 +170,7 @@ def render_forecast_views(model: Model4D, fc: dict[str, Any], frames, params: Ma
     renders = []
     for f in range(frames.num_frames):
         i = index[int(frames.time_index[f])]
-        out = render_model_at(model, fc["means"][:, i], fc["quats"][:, i], frames.K[f], frames.w2c[f], frames.width, frames.height)
+        out = render_poses(model, fc["means"][:, i], fc["quats"][:, i], frames.K[f], frames.w2c[f], frames.width, frames.height)
         renders.append(np.clip(out.features[..., :3].detach().cpu().numpy().astype(np.float64), 0.0, 1.0))
     return renders
 
@@ -248,7 +252,7 @@ def tracking_section(model: Model4D, fc: dict[str, Any], scene_h5: str, split: S
                 continue
             uv, z = project(pred3d[:, i], frames.K[f], frames.w2c[f])
             pred2d[:, i] = uv
-            out = render_model_at(model, fc["means"][:, i], fc["quats"][:, i], frames.K[f], frames.w2c[f], frames.width, frames.height)
+            out = render_poses(model, fc["means"][:, i], fc["quats"][:, i], frames.K[f], frames.w2c[f], frames.width, frames.height)
             depth = out.depth[..., 0].detach().cpu().numpy()
             col = np.clip(np.floor(uv[:, 0]).astype(int), 0, frames.width - 1)
             row = np.clip(np.floor(uv[:, 1]).astype(int), 0, frames.height - 1)
@@ -278,8 +282,7 @@ def reconstruction_section(model: Model4D, scene_h5: str, split: Split, params: 
     masks = _frame_masks(frames)
     per = []
     for f in range(frames.num_frames):
-        means, quats = observed_pose(model, int(frames.time_index[f]))
-        out = render_model_at(model, means, quats, frames.K[f], frames.w2c[f], frames.width, frames.height)
+        out = render_model(model, int(frames.time_index[f]), frames.K[f], frames.w2c[f], frames.width, frames.height)
         pred = np.clip(out.features[..., :3].detach().cpu().numpy().astype(np.float64), 0, 1)
         per.append(image_metrics(pred, frames.images[f] / 255.0, None if masks is None else masks[f], masked, use_lpips=False))
     return {"heldout_observed": _mean_metrics(per), "num_frames": int(frames.num_frames)}

@@ -8,6 +8,7 @@ directly (the observed frames' masks, depth and the cluster's 2D tracks).
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import h5py
@@ -15,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from mogaf.artefact import config_digest, read_artefact, write_artefact
+from mogaf.artefact import read_artefact, write_artefact
 from mogaf.scene import SPLIT_CODES, Scene, save_scene
 from mogaf.split import read_split, split_scene, write_split
 
@@ -244,28 +245,35 @@ def test_render_model_reproduces_training_view(tiny, tiny_run):
         render_model(m, T - 1, fr.K[1], fr.w2c[1], W, H)
 
 
-def test_evaluation_renderer_matches_training_colours_with_sh(tiny, tiny_run):
-    """Evaluation (mogaf.rendering) and recon rendering share one SH convention."""
-    import dataclasses
+def test_stored_model_renders_as_trained_with_sh(tiny):
+    """The render of a stored model (evaluation, grouping, benchmarks: mogaf.rendering)
+    equals the trainer's own differentiable render, SH bands included."""
+    from mogaf.recon.params import resolve_params
+    from mogaf.recon.stage import build_trainer, prepare_data
+    from mogaf.recon.data import load_train_data
+    from mogaf.rendering import render_model
 
-    from mogaf.recon import render_model
-    from mogaf.rendering import observed_pose, render_model_at
-    from mogaf.representation import load_model
-    from mogaf.sh import num_sh_rest
-    from mogaf.split import load_frames
-
-    m = load_model(tiny_run)
-    gen = np.random.default_rng(0)
-    with_sh = lambda g: dataclasses.replace(g, sh_rest=gen.normal(0, 0.5, (len(g), num_sh_rest(3), 3)).astype(np.float32))  # noqa: E731
-    m = dataclasses.replace(m, sh_degree=3, fg=with_sh(m.fg), bg=None if m.bg is None else with_sh(m.bg))
-    fr = load_frames(tiny[0], read_split(tiny[1]), "observed")
-    t = int(fr.time_index[1])
-    a = render_model(m, t, fr.K[1], fr.w2c[1], W, H).features.numpy()
-    means, quats = observed_pose(m, t)
-    b = render_model_at(m, means, quats, fr.K[1], fr.w2c[1], W, H).features.numpy()
-    plain = render_model(dataclasses.replace(m, sh_degree=0, fg=dataclasses.replace(m.fg, sh_rest=None), bg=None if m.bg is None else dataclasses.replace(m.bg, sh_rest=None)), t, fr.K[1], fr.w2c[1], W, H)
-    assert np.abs(a - plain.features.numpy()).max() > 0.05  # the SH terms do change the image
-    np.testing.assert_allclose(b, a, atol=1e-4)
+    p = resolve_params({**TINY_PARAMS, "sh_degree": 3, "iterations": 4})
+    split = read_split(tiny[1])
+    data = load_train_data(tiny[0], split, tiny[2], downscale=p["downscale"])
+    prepare_data(data, p)
+    trainer, _ = build_trainer(data, p, seed=3)
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():  # visible view-dependent colours, as after long training
+        for part in (trainer.model.fg, trainer.model.bg):
+            if part is not None and "sh_rest" in part.params:
+                sh = part.params["sh_rest"]
+                sh.copy_(0.5 * torch.randn(sh.shape, generator=gen))
+        f = 1
+        trained = trainer.render_frame(f, with_mask=False)[0].features[..., :3].numpy()
+    model = trainer.model.to_model4d(split.observed_timesteps, data.background)
+    t = int(split.observed_timesteps[int(trainer.tidx[f])])
+    stored = render_model(model, t, trainer.K[f], trainer.w2c[f], trainer.W, trainer.H).features.numpy()
+    assert model.sh_degree == 3 and model.fg.sh_rest is not None
+    np.testing.assert_allclose(stored, trained, atol=1e-4)
+    plain = dataclasses.replace(model, sh_degree=0, fg=dataclasses.replace(model.fg, sh_rest=None),
+                                bg=None if model.bg is None else dataclasses.replace(model.bg, sh_rest=None))
+    assert np.abs(render_model(plain, t, trainer.K[f], trainer.w2c[f], trainer.W, trainer.H).features.numpy() - stored).max() > 0.05
 
 
 def test_static_scene_psnr_rises(tmp_path):

@@ -20,54 +20,29 @@ Protocol (held-out cameras at observed times, split role
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
-import torch
 from sklearn.metrics import adjusted_rand_score
 
 from .core import Groups, resolve_params
 
 
-def _sigmoid(x: np.ndarray) -> np.ndarray:
-    return 1.0 / (1.0 + np.exp(-np.asarray(x, dtype=np.float64)))
+def render_group_labels(model, group_id: np.ndarray, num_groups: int, timestep: int, K: np.ndarray, w2c: np.ndarray,
+                        width: int, height: int, alpha_threshold: float = 0.5, backend: str = "auto") -> np.ndarray:
+    """(H,W) int64 label image at an observed time step: 0 background, k+1 for group k."""
+    from ..rendering import render_model
 
-
-def render_group_labels(model, group_id: np.ndarray, num_groups: int, column: int, K: np.ndarray, w2c: np.ndarray,
-                        width: int, height: int, alpha_threshold: float = 0.5, backend: str = "auto",
-                        rasterize: Callable | None = None) -> np.ndarray:
-    """(H,W) int64 label image: 0 background, k+1 for group k."""
-    if rasterize is None:
-        from ..render import rasterize as _r
-
-        rasterize = _r
-    fg = model.fg
-    means = [np.asarray(model.trajectory_means[:, column], dtype=np.float64)]
-    quats = [np.asarray(model.trajectory_quats[:, column], dtype=np.float64)]
-    scales = [np.exp(np.asarray(fg.log_scales, dtype=np.float64))]
-    opac = [_sigmoid(fg.opacity_logits).reshape(-1)]
-    C = num_groups + 1
-    onehot = np.zeros((len(fg), C))
-    if len(fg):
-        onehot[np.arange(len(fg)), np.asarray(group_id) + 1] = 1.0
-    feats = [onehot]
-    if model.bg is not None and len(model.bg):
-        bg = model.bg
-        means.append(np.asarray(bg.means, dtype=np.float64))
-        quats.append(np.asarray(bg.quats, dtype=np.float64))
-        scales.append(np.exp(np.asarray(bg.log_scales, dtype=np.float64)))
-        opac.append(_sigmoid(bg.opacity_logits).reshape(-1))
-        b = np.zeros((len(bg), C))
-        b[:, 0] = 1.0
-        feats.append(b)
-    t = lambda arrs: torch.from_numpy(np.concatenate(arrs, 0)).to(torch.float32)  # noqa: E731
-    if sum(len(m) for m in means) == 0:
+    n_fg = len(model.fg)
+    n_bg = 0 if model.bg is None else len(model.bg)
+    if n_fg + n_bg == 0:
         return np.zeros((height, width), dtype=np.int64)
-    with torch.no_grad():
-        out = rasterize(t(means), t(quats), t(scales), t(opac), t(feats),
-                        torch.from_numpy(np.asarray(w2c, dtype=np.float64)).float(),
-                        torch.from_numpy(np.asarray(K, dtype=np.float64)).float(), int(width), int(height),
-                        backend=backend)
+    C = num_groups + 1
+    onehot = np.zeros((n_fg + n_bg, C))
+    if n_fg:
+        onehot[np.arange(n_fg), np.asarray(group_id) + 1] = 1.0
+    onehot[n_fg:, 0] = 1.0  # background Gaussians occlude as in the RGB render
+    out = render_model(model, int(timestep), K, w2c, width, height, features=onehot, backend=backend)
     img = out.features.detach().cpu().numpy().reshape(height, width, C)
     alpha = out.alpha.detach().cpu().numpy().reshape(height, width)
     label = np.argmax(img, axis=-1).astype(np.int64)
@@ -97,7 +72,7 @@ def adjusted_rand_index(gt: np.ndarray, pred: np.ndarray) -> float:
 
 
 def grouping_quality(model, groups: Groups, frames, params: dict[str, Any] | None = None, *,
-                     backend: str = "auto", rasterize: Callable | None = None) -> dict[str, Any]:
+                     backend: str = "auto") -> dict[str, Any]:
     """Per-object IoU and ARI of rendered group labels against GT masks.
 
     frames: a mogaf.scene.Scene (e.g. split role "evaluation_observed") with
@@ -107,8 +82,7 @@ def grouping_quality(model, groups: Groups, frames, params: dict[str, Any] | Non
     p = resolve_params(params)
     if frames is None or frames.instance_mask is None or frames.num_frames == 0:
         return {}
-    steps = np.asarray(model.timesteps, dtype=np.int64)
-    column_of = {int(s): i for i, s in enumerate(steps)}
+    observed_steps = {int(s) for s in np.asarray(model.timesteps, dtype=np.int64)}
     if frames.instances is not None and len(frames.instances.ids):
         object_ids = np.asarray(frames.instances.ids, dtype=np.int64)
         names = list(frames.instances.names)
@@ -123,13 +97,13 @@ def grouping_quality(model, groups: Groups, frames, params: dict[str, Any] | Non
     pr_all: list[np.ndarray] = []
     used = 0
     for f in range(frames.num_frames):
-        col = column_of.get(int(frames.time_index[f]))
-        if col is None:
+        step = int(frames.time_index[f])
+        if step not in observed_steps:
             continue
         gt = np.asarray(frames.instance_mask[f], dtype=np.int64)
         H, W = gt.shape
-        label = render_group_labels(model, groups.group_id, groups.num_groups, col, frames.K[f], frames.w2c[f], W, H,
-                                    float(p["quality_alpha"]), backend, rasterize)
+        label = render_group_labels(model, groups.group_id, groups.num_groups, step, frames.K[f], frames.w2c[f], W, H,
+                                    float(p["quality_alpha"]), backend)
         pred_inst = inst_of_group[label]
         pred_inst[label == 0] = 0
         i, u = per_object_iou(gt, pred_inst, object_ids)

@@ -12,7 +12,7 @@ Entry points:
 """
 
 from .params import DEFAULT_PARAMS, resolve_params
-from .render import render_model, render_poses
+from ..rendering import render_model, render_poses
 from .stage import run_recon_stage, stage_digest
 
 __all__ = ["DEFAULT_PARAMS", "resolve_params", "render_model", "render_poses", "run_recon_stage", "stage_digest"]

@@ -33,7 +33,7 @@ from .densify import DensifyRules, DensityStats, control_step
 from .init import InitResult, camera_centers
 from .losses import basis_smoothness, gradient_loss, masked_l1, rgb_loss, z_velocity_loss, accel_loss
 from .model import ReconModel, gaussian_colors
-from .render import rasterize
+from ..rendering import rasterize
 
 CHECKPOINT_VERSION = 1
 
