@@ -13,6 +13,10 @@ forecaster", (b)).
 Choices where the paper is silent (each a parameter, see DEFAULTS):
   * Training data: exactly one window per Gaussian (frames 1..T-1 -> T); the
     paper trains on "the discrepancy ... at time T" only, so no other windows.
+    A rigid group's sequences are near copies after instance normalisation,
+    so the fit then holds about one example and learns mostly the normalised
+    level of the next pose: exact for constant velocity, wrong where the
+    motion accelerates (a thrown sphere past its apex is rolled upwards).
   * Masking: a contiguous span of round(r * (T-1)) input frames at a random
     position is replaced by a learned [MASK] embedding (after the linear
     embedding, before positions are added); r goes linearly 0.4 -> 0 over the
