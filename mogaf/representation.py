@@ -206,6 +206,18 @@ def save_model(path: str | os.PathLike, stage: str, model: Model4D, *, config_di
     return write_artefact(path, stage, data, config_digest=config_digest, attrs=all_attrs)
 
 
+def _check_sh_bands(path: Path, name: str, part: GaussianSet | None, sh_degree: int) -> None:
+    """sh_rest must carry exactly the bands of the model's degree (renderers use what is stored)."""
+    from .sh import num_sh_rest
+
+    if part is None or len(part) == 0:
+        return
+    bands = 0 if part.sh_rest is None else int(np.asarray(part.sh_rest).shape[1])
+    if bands != num_sh_rest(sh_degree):
+        raise input_error(path, f"entry '{name}/sh_rest' holds {bands} SH coefficients per colour, "
+                                f"expected {num_sh_rest(sh_degree)} for sh_degree {sh_degree}")
+
+
 def load_model(path: str | os.PathLike, stages: tuple[str, ...] = MODEL_STAGES) -> Model4D:
     art = read_artefact(path, stages, required=["fg/means", "fg/motion_coef_logits", "motion/rot6d", "trajectories/means"])
     p = Path(path)
@@ -220,6 +232,10 @@ def load_model(path: str | os.PathLike, stages: tuple[str, ...] = MODEL_STAGES) 
     for key, shape in checks.items():
         if tuple(art[key].shape) != shape:
             raise input_error(p, f"entry '{key}' has shape {tuple(art[key].shape)}, expected {shape}")
+    sh_degree = int(art.attrs.get("sh_degree", 0))
+    bg = _gaussians_from(art["bg"], p, "bg") if "bg" in art else None
+    for name, part in (("fg", fg), ("bg", bg)):
+        _check_sh_bands(p, name, part, sh_degree)
     known = {"sh_degree", "num_bases", "background", "scene_scale"}
     return Model4D(
         fg=fg,
@@ -229,8 +245,8 @@ def load_model(path: str | os.PathLike, stages: tuple[str, ...] = MODEL_STAGES) 
         timesteps=np.asarray(art["motion/timesteps"], dtype=np.int64),
         trajectory_means=art["trajectories/means"],
         trajectory_quats=art["trajectories/quats"],
-        bg=_gaussians_from(art["bg"], p, "bg") if "bg" in art else None,
-        sh_degree=int(art.attrs.get("sh_degree", 0)),
+        bg=bg,
+        sh_degree=sh_degree,
         background=tuple(art.attrs.get("background", (1.0, 1.0, 1.0))),
         scene_scale=float(art.attrs.get("scene_scale", 1.0)),
         training=art.get("training", {}) or {},

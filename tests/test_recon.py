@@ -253,7 +253,8 @@ def test_stored_model_renders_as_trained_with_sh(tiny):
     from mogaf.recon.data import load_train_data
     from mogaf.rendering import render_model
 
-    p = resolve_params({**TINY_PARAMS, "sh_degree": 3, "iterations": 4})
+    # CPU and one rasterizer for both renders, also on a machine with CUDA
+    p = resolve_params({**TINY_PARAMS, "sh_degree": 3, "iterations": 4, "device": "cpu", "backend": "torch"})
     split = read_split(tiny[1])
     data = load_train_data(tiny[0], split, tiny[2], downscale=p["downscale"])
     prepare_data(data, p)
@@ -268,12 +269,28 @@ def test_stored_model_renders_as_trained_with_sh(tiny):
         trained = trainer.render_frame(f, with_mask=False)[0].features[..., :3].numpy()
     model = trainer.model.to_model4d(split.observed_timesteps, data.background)
     t = int(split.observed_timesteps[int(trainer.tidx[f])])
-    stored = render_model(model, t, trainer.K[f], trainer.w2c[f], trainer.W, trainer.H).features.numpy()
+    stored = render_model(model, t, trainer.K[f], trainer.w2c[f], trainer.W, trainer.H, backend="torch").features.numpy()
     assert model.sh_degree == 3 and model.fg.sh_rest is not None
     np.testing.assert_allclose(stored, trained, atol=1e-4)
     plain = dataclasses.replace(model, sh_degree=0, fg=dataclasses.replace(model.fg, sh_rest=None),
                                 bg=None if model.bg is None else dataclasses.replace(model.bg, sh_rest=None))
-    assert np.abs(render_model(plain, t, trainer.K[f], trainer.w2c[f], trainer.W, trainer.H).features.numpy() - stored).max() > 0.05
+    assert np.abs(render_model(plain, t, trainer.K[f], trainer.w2c[f], trainer.W, trainer.H, backend="torch").features.numpy()
+                  - stored).max() > 0.05
+
+
+def test_load_model_refuses_sh_bands_of_another_degree(tiny_run, tmp_path):
+    """A stored model whose sh_rest does not match its sh_degree fails on load, naming the entry."""
+    import shutil
+
+    from mogaf.errors import MogafError
+    from mogaf.representation import load_model
+
+    bad = tmp_path / "recon.h5"
+    shutil.copy(tiny_run, bad)
+    with h5py.File(bad, "r+") as fh:
+        fh.attrs["sh_degree"] = 2  # the tiny model is stored at degree 0, without sh_rest
+    with pytest.raises(MogafError, match="fg/sh_rest.*0 SH coefficients.*expected 8 for sh_degree 2"):
+        load_model(bad)
 
 
 def test_static_scene_psnr_rises(tmp_path):
