@@ -134,25 +134,24 @@ def _round(obj: Any, digits: int = 6) -> Any:
     return obj
 
 
-def to_uint8(img: np.ndarray) -> np.ndarray:
-    """[0, 1] float image -> uint8."""
-    return np.clip(np.round(np.asarray(img) * 255.0), 0, 255).astype(np.uint8)
-
-
 def _save_png(path: Path, img: np.ndarray) -> None:
     import imageio.v3 as iio
 
+    from .datasets.images import to_uint8
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, to_uint8(img))
+    iio.imwrite(path, to_uint8(np.asarray(img) * 255.0))
 
 
 def _write_video(path: Path, panels: list[np.ndarray], fps: int) -> None:
     """GT | forecast | error panels as mp4 (gif when ffmpeg is unavailable)."""
     import imageio.v2 as iio2
 
+    from .datasets.images import to_uint8
+
     frames = []
     for p in panels:
-        img = to_uint8(p)
+        img = to_uint8(np.asarray(p) * 255.0)
         h, w = img.shape[:2]
         img = np.pad(img, ((0, h % 2), (0, w % 2), (0, 0)))  # even sizes for yuv420p
         frames.append(img)

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..camera import camera_centers
 from ..errors import MogafError
 from ..representation import matrix_to_rot6d, rot6d_to_matrix
 from .data import TrainData
@@ -80,11 +81,6 @@ def project(points: np.ndarray, K: np.ndarray, w2c: np.ndarray) -> tuple[np.ndar
     uvw = cam @ K.T
     uv = uvw[:, :2] / np.where(np.abs(z) < 1e-9, 1e-9, z)[:, None]
     return uv, z
-
-
-def camera_centers(w2c: np.ndarray) -> np.ndarray:
-    R, t = w2c[:, :3, :3], w2c[:, :3, 3]
-    return -np.einsum("fji,fj->fi", R, t)
 
 
 def knn_scale(points: np.ndarray, k: int = 3, clamp: bool = True) -> np.ndarray:

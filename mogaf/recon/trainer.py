@@ -30,7 +30,8 @@ import torch.nn.functional as F
 
 from .data import TrainData
 from .densify import DensifyRules, DensityStats, control_step
-from .init import InitResult, camera_centers
+from ..camera import camera_centers
+from .init import InitResult
 from .losses import basis_smoothness, gradient_loss, masked_l1, rgb_loss, z_velocity_loss, accel_loss
 from .model import ReconModel, gaussian_colors
 from ..rendering import rasterize
