@@ -85,3 +85,42 @@ def test_cli_resume_keeps_finished_rows_and_only_filters(tmp_path, capsys):
     longer = [a if a != "20" else "30" for a in base]  # other trajectories under the same set name
     assert bench.main(longer + ["--methods", "frozen", "--resume"]) == 1
     assert "was scored on 6 Gaussians x 12 observed frames" in capsys.readouterr().err
+
+
+def _bench_file(path, budget, rows):
+    base = {"gaussians": 4, "observed_frames": 12, "rot_err_deg": 0.0, "flags": []}
+    doc = {"budget": budget, "params": {}, "seed": 0, "rows": [{**base, **r} for r in rows]}
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def test_comparison_table_merges_files_and_refuses_disagreement(tmp_path, capsys):
+    box = {"set": "default/box", "ratio": 0.6}
+    cpu = _bench_file(tmp_path / "cpu.json", "cpu", [
+        {**box, "method": "frozen", "epe": 0.2, "train_s": 0.0},
+        {**box, "method": "gcn", "epe": 0.5, "train_s": 30.0},
+    ])
+    paper = _bench_file(tmp_path / "paper.json", "paper", [
+        {**box, "method": "gcn", "epe": 0.1, "train_s": 3600.0, "flags": ["window_clipped"]},
+        {**box, "method": "frozen", "epe": 0.2, "train_s": 0.0},  # the same row twice is fine
+        {"set": "default/box", "ratio": 0.8, "method": "frozen", "epe": 0.3, "train_s": 0.0},
+    ])
+    assert bench.main(["--from-json", str(cpu), "--from-json", str(paper)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "| set | ratio | gcn EPE | gcn* EPE | frozen EPE | gcn train s | gcn* train s |"
+    assert lines[2] == "| default/box | 0.60 | **0.1000 (window_clipped)** | 0.5000 | 0.2000 | 3,600 | 30 |"
+    assert lines[3] == "| default/box | 0.80 | – | – | **0.3000** | – | – |"
+    assert "shortened training" in lines[-1] and "gcn" in lines[-1]
+
+    other = _bench_file(tmp_path / "other.json", "paper", [{**box, "method": "frozen", "epe": 0.25, "train_s": 0.0}])
+    with pytest.raises(MogafError, match=r"other\.json: default/box ratio 0\.6 frozen has EPE 0\.25, .*cpu\.json has 0\.2"):
+        bench.comparison_table([cpu, other])
+    longer = tmp_path / "longer.json"
+    longer.write_text(json.dumps({"budget": "paper", "rows": [{**box, "method": "ode", "epe": 0.1, "train_s": 1.0,
+                                                                "gaussians": 4, "observed_frames": 13}]}))
+    with pytest.raises(MogafError, match="scored on other trajectories"):
+        bench.comparison_table([cpu, longer])
+    broken = tmp_path / "broken.json"
+    broken.write_text(json.dumps({"rows": [{"set": "x", "ratio": 0.6, "method": "frozen"}]}))
+    assert bench.main(["--from-json", str(broken)]) == 1
+    assert "broken.json: row 0 has no epe, train_s" in capsys.readouterr().err

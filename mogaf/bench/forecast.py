@@ -20,6 +20,11 @@ Gaussian) pair of a 256-Gaussian set) per group on one CPU core; --json with
 --resume keeps finished rows across runs. The default --budget cpu shortens only their
 epochs (REDUCED below) and marks them with '*' in the table; MoGaF always runs
 at its defaults.
+
+--from-json A.json B.json ... runs nothing and prints one Markdown comparison
+table (a line per set and ratio, a column per method) from such files, e.g.
+MoGaF and the references at defaults from one run and each baseline at its
+paper budget from another.
 """
 
 from __future__ import annotations
@@ -165,6 +170,70 @@ def format_table(rows: Sequence[Mapping[str, Any]], reduced: Mapping[str, Mappin
     return "\n".join(lines)
 
 
+def read_rows(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """(header, rows) of a --json file written by this benchmark."""
+    try:
+        doc = json.loads(Path(path).read_text())
+        rows = [dict(r) for r in doc["rows"]]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise MogafError(f"{path}: not a forecast benchmark file ({exc})") from None
+    for i, r in enumerate(rows):
+        missing = [k for k in ("set", "ratio", "method", "epe", "train_s") if k not in r]
+        if missing:
+            raise MogafError(f"{path}: row {i} has no {', '.join(missing)}")
+    return {k: v for k, v in doc.items() if k != "rows"}, rows
+
+
+def comparison_table(paths: Sequence[str | Path]) -> str:
+    """One Markdown table from several --json files: a line per (set, ratio),
+    a future-EPE column per method (lowest in bold) and the training time of
+    the learned methods. A baseline from a --budget cpu file is its own column,
+    marked '*'. The same row in two files must agree."""
+    cells: dict[tuple[str, float], dict[str, dict[str, Any]]] = {}
+    origin: dict[tuple[str, float, str], str] = {}
+    shapes: dict[tuple[str, float], tuple[Any, Any]] = {}
+    columns: set[str] = set()
+    for path in paths:
+        header, rows = read_rows(Path(path))
+        for r in rows:
+            key, method = (str(r["set"]), float(r["ratio"])), str(r["method"])
+            col = method + ("*" if header.get("budget") == "cpu" and method in REDUCED else "")
+            shape = (r.get("gaussians"), r.get("observed_frames"))
+            if shapes.setdefault(key, shape) != shape:
+                raise MogafError(f"{path}: {key[0]} ratio {key[1]} was scored on other trajectories than in an earlier file")
+            old = cells.setdefault(key, {}).get(col)
+            if old is not None and old["epe"] != r["epe"]:
+                raise MogafError(
+                    f"{path}: {key[0]} ratio {key[1]} {col} has EPE {r['epe']:.6g}, "
+                    f"{origin[(*key, col)]} has {old['epe']:.6g}"
+                )
+            cells[key][col] = r
+            origin[(*key, col)] = str(path)
+            columns.add(col)
+    if not cells:
+        raise MogafError("bench forecast: the --from-json files hold no rows")
+    order = [c for m in METHODS for c in (m, m + "*") if c in columns]
+    timed = [c for c in order if c.rstrip("*") in TORCH_METHODS]
+    head = ["set", "ratio"] + [f"{c} EPE" for c in order] + [f"{c} train s" for c in timed]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for (name, ratio), row in cells.items():
+        best = min(r["epe"] for r in row.values())
+        out = [name, f"{ratio:.2f}"]
+        for c in order:
+            r = row.get(c)
+            if r is None:
+                out.append("–")
+                continue
+            text = f"{r['epe']:.4f}" + (f" ({', '.join(r['flags'])})" if r.get("flags") else "")
+            out.append(f"**{text}**" if r["epe"] == best else text)
+        out += [f"{row[c]['train_s']:,.0f}" if c in row else "–" for c in timed]
+        lines.append("| " + " | ".join(out) + " |")
+    if any(c.endswith("*") for c in order):
+        lines.append("")
+        lines.append("\\* shortened training (--budget cpu): " + "; ".join(f"{m}: {REDUCED[m]}" for m in REDUCED))
+    return "\n".join(lines)
+
+
 def _local_rotations(points: np.ndarray, k: int = 8) -> np.ndarray:
     """(P, T, 4) wxyz rotation of each point's k-neighbourhood (nearest at
     frame 0) from frame 0 to every frame: the best rigid fit, det = +1."""
@@ -262,9 +331,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--json", help="also write the rows here (rewritten after every row)")
     ap.add_argument("--resume", action="store_true",
                     help="keep the rows already in --json (same budget, parameters and seed) and compute only the missing ones")
+    ap.add_argument("--from-json", action="append", default=[], metavar="FILE",
+                    help="run nothing: print one Markdown table (set x ratio, a column per method) from these --json files")
     args = ap.parse_args(list(argv) if argv is not None else None)
 
     try:
+        if args.from_json:
+            print(comparison_table(args.from_json))
+            return 0
         methods = [m.strip() for m in args.methods.split(",") if m.strip()]
         bad = [m for m in methods if m not in METHODS]
         if bad:
