@@ -80,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_common(p)
     p = sub.add_parser("forecast", help="merge a method's group jobs into forecast/{method}.h5 "
                                         "(constant_velocity / frozen: computed here)")
-    for option in ("model-h5", "groups-h5", "split-h5", "scene-h5", "out", "method"):
+    for option in ("model-h5", "groups-h5", "split-h5", "out", "method"):
         p.add_argument(f"--{option}", required=True)
     p.add_argument("--parts", nargs="*", default=[], help="forecast/{method}/group{k}.h5 files")
     _add_common(p)
@@ -151,7 +151,7 @@ def _run_extra(args: argparse.Namespace) -> int:
     cfg = _config_for(args)
     if args.command == "forecast":
         stages.run_stage(stages.forecast_merge, None, threads=args.threads, model=args.model_h5, groups=args.groups_h5,
-                         split=args.split_h5, scene=args.scene_h5, parts=list(args.parts), out=args.out,
+                         split=args.split_h5, parts=list(args.parts), out=args.out,
                          params=cfg["forecast"], method=args.method, seed=int(cfg["seed"]))
     elif args.command == "evaluate":
         ids = {"dataset": args.dataset or "", "scene": args.scene or "", "ratio": args.ratio}

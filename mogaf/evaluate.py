@@ -59,7 +59,7 @@ DEFAULT_PARAMS: dict[str, Any] = {
 def read_forecast(path: str | os.PathLike) -> dict[str, Any]:
     art = read_artefact(path, FORECAST_STAGE, required=["timesteps", "means", "quats"])
     return {"timesteps": np.asarray(art["timesteps"], np.int64), "means": art["means"], "quats": art["quats"],
-            "attrs": art.attrs, "path": str(path), "epe_3d_quick": art.attrs.get("epe_3d_quick")}
+            "attrs": art.attrs, "path": str(path)}
 
 
 def _check_forecast(fc: dict[str, Any], model: Model4D, split: Split) -> None:
@@ -177,7 +177,7 @@ def render_forecast_views(model: Model4D, fc: dict[str, Any], frames, params: Ma
 def forecast_summary(attrs: Mapping[str, Any]) -> dict[str, Any]:
     """What metrics.json keeps of a forecast artefact: no wall-clock values
     (they live in the runtime section), so reruns give identical files."""
-    out = {k: attrs[k] for k in ("method", "groupwise", "epe_3d_quick", "num_groups_trained", "params") if k in attrs}
+    out = {k: attrs[k] for k in ("method", "groupwise", "num_groups_trained", "params") if k in attrs}
     jobs = attrs.get("flags") or {}
     out["jobs"] = {job: {k: v for k, v in (info or {}).items() if not k.endswith("_time_s")} for job, info in sorted(jobs.items())}
     return out
@@ -227,16 +227,21 @@ def predicted_gt_tracks(model: Model4D, fc: dict[str, Any], gt_observed: Mapping
     return carry_points(idx, w, off, np.asarray(fc["means"], np.float64), np.asarray(fc["quats"], np.float64))
 
 
-def tracking_section(model: Model4D, fc: dict[str, Any], scene_h5: str, split: Split, params: Mapping[str, Any]) -> dict[str, Any] | None:
+def tracking_section(model: Model4D, fc: dict[str, Any], scene_h5: str, split: Split,
+                     params: Mapping[str, Any]) -> tuple[dict[str, Any] | None, float | None]:
+    """Tracking metrics of the GT surface points carried by the forecast, and
+    the quick 3D check: their mean distance from the GT over every point and
+    forecast step (no visibility, no unit scaling). (None, None) without GT."""
     from . import metrics as M
     from .camera import project
 
     gt_obs = load_ground_truth(scene_h5, split, "observed")
     if "points3d" not in gt_obs:
-        return None
+        return None, None
     gt_fc = load_ground_truth(scene_h5, split, "forecast")
     pred3d = predicted_gt_tracks(model, fc, gt_obs, int(params["tracking_neighbors"]))
     gt3d = np.asarray(gt_fc["points3d"], np.float64)
+    epe_3d_quick = float(np.mean(np.linalg.norm(pred3d - gt3d, axis=-1)))
     P, T = gt3d.shape[:2]
     gt_vis = np.asarray(gt_fc.get("visible", np.ones((P, T), bool)), bool)
     pred2d = gt2d = pred_vis = None
@@ -264,7 +269,7 @@ def tracking_section(model: Model4D, fc: dict[str, Any], scene_h5: str, split: S
         scale=float(params["tracking_scale"]), aj_thresholds=tuple(params["aj_thresholds"]),
         pck_thresholds=tuple(params["delta_thresholds"]), strict=False,
     )
-    return {k: (None if v is None else float(v)) for k, v in res.items()}
+    return {k: (None if v is None else float(v)) for k, v in res.items()}, epe_3d_quick
 
 
 # ------------------------------------------------------------------ stage
@@ -333,8 +338,10 @@ def run_evaluate_stage(*, scene: str, split: str, model: str, groups: str, forec
             per = [image_metrics(renders[f], gts[f], None if masks is None else masks[f], masked, bool(p["lpips"])) for f in range(frames.num_frames)]
             section: dict[str, Any] = {"image": _mean_metrics(per),
                                        "per_view": [{"frame": frames.frame_names[f], "timestep": int(frames.time_index[f]), **per[f]} for f in range(frames.num_frames)]}
-            section["tracking"] = tracking_section(m4, fc, scene, sp, p)
+            section["tracking"], epe_3d_quick = tracking_section(m4, fc, scene, sp, p)
             section["forecast"] = forecast_summary(fc["attrs"])
+            if epe_3d_quick is not None:
+                section["forecast"]["epe_3d_quick"] = epe_3d_quick
             result["methods"][method] = section
             if p["save_renders"]:
                 for f in range(frames.num_frames):

@@ -126,10 +126,10 @@ def forecast_group(model: str, groups: str, split: str, out: str, params: Mappin
     return run_forecast_group(model, groups, split, out, dict(params), method=method, job=group, seed=seed)
 
 
-def forecast_merge(model: str, groups: str, split: str, scene: str, parts: list[str], out: str, params: Mapping[str, Any], method: str, seed: int = 0) -> Path:
+def forecast_merge(model: str, groups: str, split: str, parts: list[str], out: str, params: Mapping[str, Any], method: str, seed: int = 0) -> Path:
     from .forecast.stage import run_forecast_merge
 
-    return run_forecast_merge(model, groups, split, scene, parts, out, dict(params), method=method, seed=seed)
+    return run_forecast_merge(model, groups, split, parts, out, dict(params), method=method, seed=seed)
 
 
 def evaluate(scene: str, split: str, model: str, groups: str, forecasts: Mapping[str, str], benchmarks: Mapping[str, str], out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str, ids: Mapping[str, str]) -> Path:

@@ -21,11 +21,12 @@ import pytest
 
 from mogaf.artefact import read_artefact
 from mogaf.errors import MogafError
+from mogaf.evaluate import DEFAULT_PARAMS as EVAL_PARAMS
+from mogaf.evaluate import tracking_section
 from mogaf.forecast.stage import (
     INLINE_METHODS,
     forecast_jobs,
     method_jobs,
-    quick_epe,
     run_forecast_group,
     run_forecast_merge,
 )
@@ -146,7 +147,7 @@ def mogaf_parts(inputs, tmp_path_factory) -> list[Path]:
 
 
 def _merge(inputs, out: Path, parts: list, method: str, params=None, seed: int = 0) -> Path:
-    return run_forecast_merge(str(inputs["model"]), str(inputs["groups"]), str(inputs["split"]), str(inputs["scene"]),
+    return run_forecast_merge(str(inputs["model"]), str(inputs["groups"]), str(inputs["split"]),
                               [str(p) for p in parts], str(out), params or {}, method=method, seed=seed)
 
 
@@ -258,8 +259,6 @@ def test_merge_inline_constant_velocity(inputs, tmp_path):
     assert art.attrs["method"] == "constant_velocity" and art.attrs["groupwise"] is True
     assert art.attrs["params"] == {}
     assert set(art.attrs["flags"]) == {str(RIGID), str(NONRIGID)}
-    # the GT points ride the rigid group: constant velocity carries them exactly
-    assert art.attrs["epe_3d_quick"] == pytest.approx(0.0, abs=1e-4)
 
 
 def test_merge_inline_not_groupwise_and_frozen(inputs, tmp_path):
@@ -270,9 +269,6 @@ def test_merge_inline_not_groupwise_and_frozen(inputs, tmp_path):
     frozen = read_artefact(_merge(inputs, tmp_path / "frozen.h5", [], "frozen"), "forecast")
     last = load_model(inputs["model"]).trajectory_means[:, -1]
     np.testing.assert_allclose(frozen["means"], np.repeat(last[:, None], T - T_OBS, axis=1), atol=1e-6)
-    # frozen leaves the moving GT points behind: 1..4 steps of the rigid velocity
-    expected = np.linalg.norm(RIGID_VELOCITY) * np.mean(np.arange(1, T - T_OBS + 1))
-    assert frozen.attrs["epe_3d_quick"] == pytest.approx(expected, rel=1e-3)
 
 
 def test_merge_inline_refuses_parts(inputs, tmp_path):
@@ -318,21 +314,24 @@ def test_merge_refuses_missing_overlapping_and_foreign_parts(inputs, mogaf_parts
         assert not (tmp_path / f"{name}.h5").exists()
 
 
-def test_merge_without_ground_truth_has_no_quick_epe(inputs, tmp_path):
-    scene_h5, _ = _write_scene(tmp_path / "nogt", with_gt=False)
-    out = run_forecast_merge(str(inputs["model"]), str(inputs["groups"]), str(inputs["split"]), str(scene_h5), [],
-                             str(tmp_path / "cv.h5"), {}, method="constant_velocity")
-    assert "epe_3d_quick" not in read_artefact(out, "forecast").attrs
-
-
-def test_quick_epe_measures_the_error(inputs):
+def test_evaluation_quick_epe_measures_the_error(inputs, tmp_path):
+    """The quick 3D check lives in evaluation: the forecast stage never opens the scene (its future)."""
     model = load_model(inputs["model"])
     split = read_split(inputs["split"])
     pos, quats, _ = _world()
     q = np.repeat(quats[:, None], T - T_OBS, axis=1)
-    assert quick_epe(model, pos[:, T_OBS:], q, str(inputs["scene"]), split) == pytest.approx(0.0, abs=1e-5)
+    scene = str(inputs["scene"])
+    assert tracking_section(model, {"means": pos[:, T_OBS:], "quats": q}, scene, split, EVAL_PARAMS)[1] == pytest.approx(0.0, abs=1e-5)
     shifted = pos[:, T_OBS:] + np.array([0.0, 0.3, 0.0])
-    assert quick_epe(model, shifted, q, str(inputs["scene"]), split) == pytest.approx(0.3, abs=1e-5)
+    assert tracking_section(model, {"means": shifted, "quats": q}, scene, split, EVAL_PARAMS)[1] == pytest.approx(0.3, abs=1e-5)
+    # frozen leaves the GT points riding the rigid group behind by 1..4 steps of its velocity
+    frozen = read_artefact(_merge(inputs, tmp_path / "frozen.h5", [], "frozen"), "forecast")
+    fc = {"means": np.asarray(frozen["means"]), "quats": np.asarray(frozen["quats"])}
+    expected = np.linalg.norm(RIGID_VELOCITY) * np.mean(np.arange(1, T - T_OBS + 1))
+    assert tracking_section(model, fc, scene, split, EVAL_PARAMS)[1] == pytest.approx(expected, rel=1e-3)
+    assert "epe_3d_quick" not in frozen.attrs
+    scene_h5, _ = _write_scene(tmp_path / "nogt", with_gt=False)
+    assert tracking_section(model, fc, str(scene_h5), split, EVAL_PARAMS) == (None, None)
 
 
 # ------------------------------------------------------------------ determinism

@@ -98,6 +98,8 @@ def test_every_method_has_finite_metrics(runs):
         for key in ("psnr", "ssim", "lpips"):
             value = section["image"][key]
             assert isinstance(value, float) and math.isfinite(value), (method, key, value)
+        # the quick 3D check against GT trajectories, computed by evaluation (never by a forecast job)
+        assert math.isfinite(section["forecast"]["epe_3d_quick"]), method
     # the better forecasts beat showing the last observed frame
     assert metrics["methods"]["mogaf"]["image"]["psnr"] > 10
 

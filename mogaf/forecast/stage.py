@@ -12,9 +12,10 @@ Schema of forecast/{method}.h5:
   timesteps (T_fc,)        scene time-grid indices (= split.forecast_timesteps)
   means (N, T_fc, 3), quats (N, T_fc, 4)   per fg Gaussian, wxyz, unit
   group_id (N,)
-attrs: method, groupwise, num_groups_trained, flags (per job), epe_3d_quick
-(when ground truth exists: mean 3D error of the GT surface points carried by
-the forecast, a quick check beside the rendered metrics).
+attrs: method, groupwise, num_groups_trained, flags (per job), params.
+
+No forecast job opens the scene: the future (ground truth included) is read
+only by the evaluation stage, which also computes the quick 3D check.
 """
 
 from __future__ import annotations
@@ -150,7 +151,7 @@ def run_forecast_group(model_h5: str, groups_h5: str, split_h5: str, out: str, p
     )
 
 
-def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, scene_h5: str, parts: list[str], out: str,
+def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, parts: list[str], out: str,
                        params: Mapping[str, Any], *, method: str, seed: int = 0) -> Path:
     """Merge the group jobs' poses into forecast/{method}.h5 (INLINE_METHODS: computed here, group by group)."""
     model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
@@ -191,9 +192,6 @@ def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, scene_h5: s
     mparams = method_params(params, method)
     attrs: dict[str, Any] = {"method": method, "groupwise": bool(params.get("groupwise", True)),
                              "num_groups_trained": len(parts), "flags": flags, "params": mparams}
-    epe = quick_epe(model, means, quats, scene_h5, split)
-    if epe is not None:
-        attrs["epe_3d_quick"] = round(epe, 6)
     return write_artefact(
         out, MERGE_STAGE,
         {"timesteps": split.forecast_timesteps, "means": means, "quats": quats, "group_id": group_id},
@@ -201,20 +199,3 @@ def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, scene_h5: s
                                      "parts": sorted(Path(p).name for p in parts)}),
         attrs=attrs,
     )
-
-
-def quick_epe(model: Model4D, means: np.ndarray, quats: np.ndarray, scene_h5: str, split) -> float | None:
-    """Mean 3D error of GT surface points carried by the forecast (None without GT).
-
-    Runs after every forecast job has finished: nothing here feeds back into
-    a prediction.
-    """
-    from ..evaluate import predicted_gt_tracks
-    from ..split import load_ground_truth
-
-    gt_obs = load_ground_truth(scene_h5, split, "observed")
-    if "points3d" not in gt_obs:
-        return None
-    gt_fc = load_ground_truth(scene_h5, split, "forecast")
-    pred = predicted_gt_tracks(model, {"means": means, "quats": quats}, gt_obs, k=4)
-    return float(np.mean(np.linalg.norm(pred - np.asarray(gt_fc["points3d"], np.float64), axis=-1)))

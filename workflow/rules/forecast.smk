@@ -31,7 +31,6 @@ rule forecast:
         model=forecast_model,
         groups=groups_h5,
         split=split_h5,
-        scene=scene_h5,
         parts=forecast_part_files,
     output:
         "results/{dataset}/{scene}/ratio{ratio}/{prefix}forecast/{method}.h5",

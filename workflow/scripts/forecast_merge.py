@@ -8,7 +8,6 @@ run_stage(
     model=snakemake.input.model,
     groups=snakemake.input.groups,
     split=snakemake.input.split,
-    scene=snakemake.input.scene,
     parts=list(snakemake.input.parts),
     out=snakemake.output[0],
     params=snakemake.params.forecast,
