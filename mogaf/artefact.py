@@ -18,7 +18,7 @@ import glob
 import hashlib
 import json
 import os
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -81,9 +81,13 @@ def remove_stale_temps(path: str | os.PathLike) -> None:
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path; rename it to `path` only if the block succeeds."""
     final = Path(path)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    remove_stale_temps(final)
     tmp = _temp_name(final)
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temps(final)
+        open(tmp, "wb").close()  # fail here, with the output's name, where it cannot be written
+    except OSError as exc:
+        raise MogafError(f"{final}: cannot be written ({exc.strerror or exc})") from None
     try:
         yield tmp
         os.replace(tmp, final)
@@ -251,6 +255,18 @@ def _normalise_stages(stage: str | Iterable[str] | None) -> tuple[str, ...] | No
     return tuple(stage)
 
 
+class ArtefactAttrs(dict):
+    """An artefact's attrs; a missing one is an input error naming the file."""
+
+    def __init__(self, path: Path, stage: str, items: Mapping[str, Any]) -> None:
+        super().__init__(items)
+        self._where = (path, stage)
+
+    def __missing__(self, key: str) -> Any:
+        path, stage = self._where
+        raise input_error(path, f"has no attribute '{key}' (stage {stage})")
+
+
 @dataclass
 class Artefact:
     """An artefact read into memory: nested dict of arrays plus attrs."""
@@ -289,19 +305,23 @@ class Artefact:
             return default
 
 
-def _read_tree(group: h5py.Group, path: Path, prefix: str = "") -> dict[str, Any]:
+def _read_tree(group: h5py.Group, path: Path, prefix: str = "",
+               selection: Callable[[str, h5py.Dataset], Any] | None = None) -> dict[str, Any]:
+    """Every dataset under `group`, finite-checked. `selection(key, dataset)`
+    may return an index to read only part of a dataset (None: all of it)."""
     out: dict[str, Any] = {}
     for key, item in group.items():
         name = f"{prefix}{key}"
         if isinstance(item, h5py.Group):
-            out[key] = _read_tree(item, path, prefix=f"{name}/")
+            out[key] = _read_tree(item, path, prefix=f"{name}/", selection=selection)
             continue
         try:
             if h5py.check_string_dtype(item.dtype) is not None:
                 arr = item.asstr()[()]
                 out[key] = arr.tolist() if isinstance(arr, np.ndarray) else arr
                 continue
-            arr = item[()]
+            sel = selection(key, item) if selection is not None else None
+            arr = item[()] if sel is None else item[sel]
         except (OSError, RuntimeError) as exc:
             raise input_error(path, f"entry '{name}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})") from None
         if isinstance(arr, np.ndarray) and arr.dtype.kind in "fc" and not np.all(np.isfinite(arr)):
@@ -321,11 +341,12 @@ def read_artefact(
     p = Path(path)
     with _open(p) as fh:
         _check_header(fh, p, _normalise_stages(stage), expected_config_digest)
-        attrs = {k: _decode_attr(v) for k, v in fh.attrs.items() if k not in RESERVED_ATTRS}
+        stage_name = _decode_attr(fh.attrs[ATTR_STAGE])
+        attrs = ArtefactAttrs(p, stage_name, {k: _decode_attr(v) for k, v in fh.attrs.items() if k not in RESERVED_ATTRS})
         data = _read_tree(fh, p)
         art = Artefact(
             path=p,
-            stage=_decode_attr(fh.attrs[ATTR_STAGE]),
+            stage=stage_name,
             config_digest=_decode_attr(fh.attrs.get(ATTR_DIGEST, "")),
             package_version=_decode_attr(fh.attrs.get(ATTR_PACKAGE, "")),
             created_utc=_decode_attr(fh.attrs.get(ATTR_CREATED, "")),
@@ -354,6 +375,10 @@ def open_artefact(
     try:
         _check_header(fh, p, _normalise_stages(stage), expected_config_digest)
         yield fh
+    except KeyError as exc:
+        # h5py's KeyError for an absent entry or attribute: one line naming the file
+        detail = exc.args[0] if exc.args else exc
+        raise input_error(p, f"lacks an entry or attribute its reader needs ({detail})") from None
     finally:
         fh.close()
 

@@ -38,7 +38,8 @@ STAGES: dict[str, tuple[Callable[..., Any], dict[str, str], str | None]] = {
     "forecast-group": (stages.forecast_group, {"model-h5": "model", "groups-h5": "groups", "split-h5": "split", "out": "out"}, "forecast"),
 }
 OPTIONAL_PATHS = {"rigid-h5"}
-SEEDED = {"priors", "recon", "refine", "forecast-group"}
+SEEDED = {"priors", "recon", "group", "refine", "forecast-group"}
+SCHEMA = Path("config/schema.yaml")  # beside the default config; the workflow validates against the same file
 DEVICE = {"recon", "refine"}
 
 
@@ -50,7 +51,26 @@ def _config_for(args: argparse.Namespace) -> dict[str, Any]:
     merged = mcfg.variant_config(cfg, variants, args.variant)
     if args.dataset and args.scene:
         merged = mcfg.scene_config(merged, args.dataset, args.scene)
+    _validate(merged, args.configfile)
     return merged
+
+
+def _validate(cfg: dict[str, Any], configfile: str) -> None:
+    """The workflow's schema check (config/schema.yaml, where it is found), so
+    a config the workflow would refuse fails here with one line, not a traceback."""
+    if not SCHEMA.is_file():
+        return
+    try:
+        import jsonschema
+    except ImportError:  # the `workflow` extra is not installed; the stages check their own parameters
+        return
+    from . import config as mcfg
+
+    try:
+        jsonschema.validate(cfg, mcfg.load_yaml(SCHEMA))
+    except jsonschema.ValidationError as exc:
+        where = ".".join(str(k) for k in exc.absolute_path) or "top level"
+        raise MogafError(f"{configfile}: {where}: {exc.message}") from None
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
@@ -122,9 +142,11 @@ def _run(args: argparse.Namespace) -> int:
     if args.command == "split":
         kwargs["ratio"] = args.ratio
     if args.command == "synthesize":
-        if not args.scene:
-            raise MogafError("synthesize needs --scene (a key of the config's `synthetic` section)")
-        kwargs["params"] = cfg["synthetic"][args.scene]
+        scenes = cfg.get("synthetic") or {}
+        if args.scene not in scenes:
+            raise MogafError(f"{args.configfile}: synthesize --scene must be a key of its `synthetic` section "
+                             f"({', '.join(scenes) or 'none'}), got {args.scene!r}")
+        kwargs["params"] = scenes[args.scene]
     if args.command == "ingest":
         from . import config as mcfg
 

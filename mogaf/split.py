@@ -21,12 +21,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import h5py
 import numpy as np
 
-from .artefact import config_digest, read_artefact, write_artefact
+from .artefact import _read_tree, config_digest, open_artefact, read_artefact, read_rows, write_artefact
 from .errors import MogafError, input_error
 from .scene import SCENE_STAGE, SPLIT_CODES, Scene, load_scene
-from .artefact import open_artefact, read_rows
 
 SPLIT_STAGE = "split"
 ROLES = ("observed", "evaluation", "evaluation_observed", "train_future")
@@ -147,23 +147,18 @@ def load_frames(scene_h5: str | os.PathLike, split: Split | str | os.PathLike, r
     if role not in ROLES:
         raise ValueError(f"unknown split role {role!r}; expected one of {ROLES}")
     sp = split if isinstance(split, Split) else read_split(split)
-    return load_scene(scene_h5, sp.frame_ids[role])
-
-
-def _cut_time_axis(tree: Any, T_total: int, steps: np.ndarray, time_axis_keys: dict[str, int]) -> Any:
-    """Slice arrays of a nested tree along their declared time axis."""
-    out: dict[str, Any] = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            out[key] = _cut_time_axis(value, T_total, steps, time_axis_keys)
-        elif key in time_axis_keys and isinstance(value, np.ndarray):
-            axis = time_axis_keys[key]
-            if value.shape[axis] != T_total:
-                raise MogafError(f"ground-truth entry '{key}' has {value.shape[axis]} time steps, scene has {T_total}")
-            out[key] = np.take(value, steps, axis=axis)
-        else:
-            out[key] = value
-    return out
+    frames = load_scene(scene_h5, sp.frame_ids[role])
+    # A split made for another scene would hand an observed role future frames.
+    if frames.num_timesteps != sp.num_timesteps:
+        raise input_error(scene_h5, f"has {frames.num_timesteps} time steps, the split has {sp.num_timesteps}: "
+                                    "the split was made for another scene")
+    steps = sp.observed_timesteps if role in ("observed", "evaluation_observed") else sp.forecast_timesteps
+    outside = ~np.isin(frames.time_index, steps)
+    if outside.any():
+        f = int(np.flatnonzero(outside)[0])
+        raise input_error(scene_h5, f"frame {int(sp.frame_ids[role][f])} of split role '{role}' is at time step "
+                                    f"{int(frames.time_index[f])}, outside the role's steps: the split was made for another scene")
+    return frames
 
 
 # Time axes of ground-truth arrays written by the synthetic generator.
@@ -177,6 +172,28 @@ def load_ground_truth(scene_h5: str | os.PathLike, split: Split, part: str) -> d
     """
     if part not in ("observed", "forecast"):
         raise ValueError("part must be 'observed' or 'forecast'")
-    scene = load_scene(scene_h5, np.zeros(0, dtype=np.int64), with_ground_truth=True)
-    steps = split.observed_timesteps if part == "observed" else split.forecast_timesteps
-    return _cut_time_axis(scene.ground_truth, split.num_timesteps, steps, GROUND_TRUTH_TIME_AXES)
+    steps = np.asarray(split.observed_timesteps if part == "observed" else split.forecast_timesteps, np.int64)
+    T = int(split.num_timesteps)
+    # Only the asked steps come off disk: a contiguous range is one slice, any other set a sorted index.
+    if steps.size and np.array_equal(steps, np.arange(steps[0], steps[-1] + 1)):
+        on_time_axis: Any = slice(int(steps[0]), int(steps[-1]) + 1)
+    else:
+        on_time_axis = np.unique(steps)
+        if on_time_axis.size != steps.size:
+            raise MogafError("load_ground_truth: the split repeats a time step")
+
+    def selection(key: str, ds: h5py.Dataset) -> Any:
+        axis = GROUND_TRUTH_TIME_AXES.get(key)
+        if axis is None:
+            return None
+        if ds.ndim <= axis or ds.shape[axis] != T:
+            raise input_error(scene_h5, f"ground-truth entry '{key}' has shape {ds.shape}, expected {T} time steps on axis {axis}")
+        return (slice(None),) * axis + (on_time_axis,)
+
+    with open_artefact(scene_h5, SCENE_STAGE) as fh:
+        if int(fh.attrs["num_timesteps"]) != T:
+            raise input_error(scene_h5, f"has {int(fh.attrs['num_timesteps'])} time steps, the split has {T}: "
+                                        "the split was made for another scene")
+        if "ground_truth" not in fh:
+            return {}
+        return _read_tree(fh["ground_truth"], Path(scene_h5), prefix="ground_truth/", selection=selection)

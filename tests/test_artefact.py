@@ -43,6 +43,20 @@ def test_roundtrip_attrs_and_nested(tmp_path):
     assert "g/b" in art and "g/zz" not in art
 
 
+def test_missing_entry_or_attribute_is_an_input_error_naming_the_file(tmp_path):
+    path = _write(tmp_path / "x.h5")
+    art = read_artefact(path, "demo")
+    with pytest.raises(MogafError, match=r"x\.h5: has no attribute 'ratio' \(stage demo\)"):
+        art.attrs["ratio"]
+    assert art.attrs.get("ratio") is None and art.attrs["note"] == "hi"
+    with pytest.raises(MogafError, match=r"x\.h5: lacks an entry or attribute its reader needs .*zz"):
+        with open_artefact(path, "demo") as fh:
+            fh["g/zz"]
+    with pytest.raises(MogafError, match=r"x\.h5: lacks an entry or attribute its reader needs .*ratio"):
+        with open_artefact(path, "demo") as fh:
+            fh.attrs["ratio"]
+
+
 def test_refuses_non_finite_and_leaves_nothing(tmp_path):
     path = tmp_path / "bad.h5"
     with pytest.raises(MogafError, match="non-finite values in 'g/x'"):

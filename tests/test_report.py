@@ -280,4 +280,5 @@ def test_load_metrics_rejects_foreign_json(tmp_path):
     bad.write_text("{not json")
     with pytest.raises(MogafError, match="not readable JSON"):
         load_metrics([bad])
-    assert load_metrics([tmp_path / "absent.json"]) == []
+    with pytest.raises(MogafError, match=r"absent\.json: no such metrics file"):  # a mistyped path is not "no result"
+        load_metrics([tmp_path / "absent.json"])

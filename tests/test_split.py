@@ -95,3 +95,29 @@ def test_ground_truth_cut_to_its_part(tmp_path):
     fut = load_ground_truth(scene_h5, sp, "forecast")
     np.testing.assert_allclose(obs["points3d"], scene.ground_truth["points3d"][:, :4])
     np.testing.assert_allclose(fut["points3d"], scene.ground_truth["points3d"][:, 4:])
+
+
+def test_ground_truth_reads_only_its_part_from_disk(tmp_path):
+    scene_h5 = save_scene(tmp_path / "scene.h5", _tiny_scene(), config_digest="d")
+    sp = split_scene(scene_h5, 0.5)
+    with h5py.File(scene_h5, "r+") as fh:  # poison the future steps: reading them would fail the finite check
+        fh["ground_truth/points3d"][:, 4:] = np.nan
+    obs = load_ground_truth(scene_h5, sp, "observed")
+    assert obs["points3d"].shape == (4, 4, 3) and np.all(np.isfinite(obs["points3d"]))
+    with pytest.raises(MogafError, match="points3d' contains non-finite values"):
+        load_ground_truth(scene_h5, sp, "forecast")
+
+
+def test_a_split_of_another_scene_is_refused(tmp_path):
+    scene_h5 = save_scene(tmp_path / "a.h5", _tiny_scene(), config_digest="d")
+    sp = split_scene(scene_h5, 0.5)
+    reversed_scene = _tiny_scene()
+    reversed_scene.time_index = reversed_scene.time_index[::-1].copy()  # same rows, other time steps
+    reversed_scene.time = reversed_scene.time[::-1].copy()
+    other = save_scene(tmp_path / "b.h5", reversed_scene, config_digest="d")
+    with pytest.raises(MogafError, match=r"b\.h5: frame 0 of split role 'observed' is at time step 7, outside .*another scene"):
+        load_frames(other, sp, "observed")
+    longer = save_scene(tmp_path / "c.h5", _tiny_scene(T=10), config_digest="d")
+    for call in (lambda: load_frames(longer, sp, "observed"), lambda: load_ground_truth(longer, sp, "observed")):
+        with pytest.raises(MogafError, match=r"c\.h5: has 10 time steps, the split has 8"):
+            call()

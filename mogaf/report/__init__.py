@@ -26,8 +26,8 @@ def load_metrics(paths: list[str | os.PathLike]) -> list[dict[str, Any]]:
     out = []
     for path in sorted({str(p) for p in paths}):
         p = Path(path)
-        if not p.exists():
-            continue
+        if not p.is_file():
+            raise input_error(p, "no such metrics file")
         try:
             data = json.loads(p.read_text())
         except (OSError, json.JSONDecodeError) as exc:

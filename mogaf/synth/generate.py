@@ -55,6 +55,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..errors import MogafError
 from .params import resolve_params
 from .render import Renderer, camera_origin
 from .world import LOOK_AT, UP, World, build_world
@@ -258,11 +259,14 @@ def generate_scene(out_dir: str | os.PathLike, params: Mapping[str, Any] | None 
     """
     p = resolve_params(params)
     out = Path(out_dir)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    for stale in out.parent.glob(f".{out.name}.tmp-*"):
-        shutil.rmtree(stale, ignore_errors=True)
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
-    tmp.mkdir()
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        for stale in out.parent.glob(f".{out.name}.tmp-*"):
+            shutil.rmtree(stale, ignore_errors=True)
+        tmp.mkdir()
+    except OSError as exc:
+        raise MogafError(f"{out}: cannot be written ({exc.strerror or exc})") from None
     try:
         _write_layout(tmp, p)
         if out.exists():

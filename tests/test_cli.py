@@ -1,0 +1,82 @@
+"""`python -m mogaf ...`: bad configs, names and outputs fail with one line, and
+every seeded stage gets the config's seed."""
+
+from __future__ import annotations
+
+import pytest
+import yaml
+
+from conftest import REPO
+from mogaf import cli
+
+
+@pytest.fixture
+def in_repo(monkeypatch):
+    monkeypatch.chdir(REPO)  # the CLI finds config/ relative to the working folder, as the workflow does
+
+
+def _config(tmp_path, edit) -> str:
+    cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    edit(cfg)
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return str(path)
+
+
+def _one_line_error(capsys, *argv: str) -> str:
+    with pytest.raises(SystemExit) as exc:
+        rc = cli.main(list(argv))
+        raise SystemExit(rc)
+    assert exc.value.code == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("mogaf: error: ") and "\n" not in err, err
+    return err
+
+
+def _stage_args(tmp_path, command: str, configfile: str) -> list[str]:
+    paths = {option: str(tmp_path / f"{option}.h5") for option in cli.STAGES[command][1]}
+    return [command, *[x for option, path in paths.items() for x in (f"--{option}", path)], "--configfile", configfile]
+
+
+def test_config_the_schema_refuses_fails_with_one_line(in_repo, tmp_path, capsys):
+    bad_seed = _config(tmp_path, lambda c: c.update(seed=-5))
+    err = _one_line_error(capsys, *_stage_args(tmp_path, "priors", bad_seed))
+    assert "cfg.yaml: seed:" in err
+    no_priors = _config(tmp_path, lambda c: c.pop("priors"))
+    err = _one_line_error(capsys, *_stage_args(tmp_path, "priors", no_priors))
+    assert "cfg.yaml: top level:" in err and "'priors' is a required property" in err
+
+
+def test_unknown_synthetic_scene_names_the_choices(in_repo, tmp_path, capsys):
+    err = _one_line_error(capsys, "synthesize", "--out", str(tmp_path / "s"), "--scene", "nope")
+    assert "config/config.yaml: synthesize --scene must be a key of its `synthetic` section" in err
+    assert "default" in err and "'nope'" in err
+
+
+def test_output_that_cannot_be_written_names_it(in_repo, tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    out = blocker / "scene"  # a folder inside a file
+    err = _one_line_error(capsys, "synthesize", "--out", str(out), "--scene", "default")
+    assert f"{out}: cannot be written" in err
+
+
+def test_tables_refuse_a_missing_metrics_file(in_repo, tmp_path, capsys):
+    err = _one_line_error(capsys, "tables", str(tmp_path / "nope.json"), "--out-dir", str(tmp_path / "t"))
+    assert "nope.json: no such metrics file" in err
+    assert not (tmp_path / "t").exists()
+
+
+@pytest.mark.parametrize("command", sorted(cli.SEEDED))
+def test_seeded_stages_get_the_config_seed(in_repo, tmp_path, monkeypatch, command):
+    seen = {}
+    monkeypatch.setattr(cli.stages, "run_stage", lambda fn, log, threads=None, **kw: seen.update(kw))
+    extra = ["--method", "mogaf", "--group", "1"] if command == "forecast-group" else []
+    configfile = _config(tmp_path, lambda c: c.update(seed=7))
+    assert cli.main(_stage_args(tmp_path, command, configfile) + extra) == 0
+    assert seen["seed"] == 7
+
+
+def test_every_stage_using_randomness_is_seeded():
+    # priors (track sampling), recon, group (PCA, priority order), refine and the forecasters draw random numbers
+    assert {"priors", "recon", "group", "refine", "forecast-group"} <= cli.SEEDED
