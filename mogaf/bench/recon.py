@@ -79,7 +79,9 @@ def _finish_inputs(root: Path, reader, ratio: float) -> tuple[Path, Path, Path]:
     return scene_h5, split_h5, priors_h5
 
 
-def heldout_psnr(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[float, float | None]:
+def heldout_psnr(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[float, float | None, float | None]:
+    """Held-out PSNR, mPSNR (co-visible pixels) and the % of held-out pixels
+    the training camera never sees (None without a co-visibility mask)."""
     from mogaf.metrics.image import mpsnr, psnr
     from mogaf.recon import render_model
     from mogaf.representation import load_model
@@ -87,15 +89,17 @@ def heldout_psnr(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[float,
 
     model = load_model(recon_h5)
     frames = load_frames(scene_h5, read_split(split_h5), "evaluation_observed")
-    ps, mps = [], []
+    ps, mps, unseen = [], [], []
     for i in range(frames.num_frames):
         out = render_model(model, int(frames.time_index[i]), frames.K[i], frames.w2c[i], frames.width, frames.height)
         img = out.features.numpy().clip(0, 1).astype(np.float64)
         gt = frames.images[i].astype(np.float64) / 255.0
         ps.append(psnr(img, gt))
-        if frames.covisible is not None and (frames.covisible[i] > 0).any():
-            mps.append(mpsnr(img, gt, frames.covisible[i] > 0))
-    return float(np.mean(ps)), (float(np.mean(mps)) if mps else None)
+        if frames.covisible is not None:
+            unseen.append(100.0 * float(np.mean(frames.covisible[i] == 0)))
+            if (frames.covisible[i] > 0).any():
+                mps.append(mpsnr(img, gt, frames.covisible[i] > 0))
+    return float(np.mean(ps)), (float(np.mean(mps)) if mps else None), (float(np.mean(unseen)) if unseen else None)
 
 
 def trajectory_error(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[float, float] | None:
@@ -136,38 +140,64 @@ def run_case(name: str, inputs: tuple[Path, Path, Path], out_dir: Path, params: 
     run_recon_stage(scene_h5, split_h5, priors_h5, out, params, seed=seed, progress=progress)
     wall = time.perf_counter() - t0
     load1 = os.getloadavg()[0]
-    model = load_model(out)
-    ho, mho = heldout_psnr(scene_h5, split_h5, out)
-    traj = trajectory_error(scene_h5, split_h5, out)
+    return {**score_model(name, scene_h5, split_h5, out), "wall_s": wall, "load": (load0, load1)}
+
+
+def score_model(name: str, scene_h5: Path, split_h5: Path, model_h5: Path) -> dict[str, Any]:
+    """Every column but wall time and load, for a stored model (recon.h5 or refined.h5)."""
+    from mogaf.representation import load_model
+    from mogaf.split import read_split
+
+    model = load_model(model_h5)
+    ho, mho, unseen = heldout_psnr(scene_h5, split_h5, model_h5)
+    traj = trajectory_error(scene_h5, split_h5, model_h5)
     return {
         "scene": name,
         "ratio": read_split(split_h5).ratio,
         "iterations": int(model.attrs.get("iterations", 0)),
         "gaussians": len(model.fg) + (0 if model.bg is None else len(model.bg)),
-        "wall_s": wall,
+        "wall_s": None,
         "train_psnr": float(model.attrs.get("train_psnr", float("nan"))),
         "heldout_psnr": ho,
         "heldout_mpsnr": mho,
+        "unseen_pct": unseen,
         "traj_err": None if traj is None else traj[0],
         "traj_err_pct": None if traj is None else traj[1],
-        "load": (load0, load1),
+        "load": None,
     }
 
 
+def score_results(folder: Path) -> list[dict[str, Any]]:
+    """Rows for the models a pipeline results folder (results/<dataset>/<scene>/ratio<r>) holds."""
+    from mogaf.errors import MogafError
+
+    scene_h5, split_h5 = folder.parent / "scene.h5", folder / "split.h5"
+    for need in (scene_h5, split_h5):
+        if not need.is_file():
+            raise MogafError(f"{need}: missing (--score takes a results/<dataset>/<scene>/ratio<r> folder)")
+    models = [folder / n for n in ("recon.h5", "refined.h5") if (folder / n).is_file()]
+    if not models:
+        raise MogafError(f"{folder}: holds neither recon.h5 nor refined.h5")
+    return [score_model(f"{folder.parent.name}/{folder.name}/{m.name}", scene_h5, split_h5, m) for m in models]
+
+
 def _fmt(v: Any, spec: str) -> str:
-    return "-" if v is None else format(v, spec)
+    return format(v, spec) if v is not None else "-".rjust(int(spec.split(".")[0]))
 
 
 def print_table(rows: list[dict[str, Any]]) -> None:
-    head = f"{'scene':28s} {'ratio':>5s} {'iters':>6s} {'gauss':>7s} {'wall s':>7s} {'train':>6s} {'heldout':>7s} {'h-mPSNR':>7s} {'traj err':>9s} {'traj %':>6s} {'load':>9s}"
+    head = (f"{'scene':28s} {'ratio':>5s} {'iters':>6s} {'gauss':>7s} {'wall s':>7s} {'train':>6s} {'heldout':>7s} "
+            f"{'h-mPSNR':>7s} {'unseen%':>7s} {'traj err':>9s} {'traj %':>6s} {'load':>9s}")
     print(head)
     print("-" * len(head))
     for r in rows:
-        print(f"{r['scene']:28s} {r['ratio']:5.2f} {r['iterations']:6d} {r['gaussians']:7d} {r['wall_s']:7.1f} "
+        load = "-" if r["load"] is None else f"{r['load'][0]:4.1f}/{r['load'][1]:<4.1f}"
+        print(f"{r['scene']:28s} {r['ratio']:5.2f} {r['iterations']:6d} {r['gaussians']:7d} {_fmt(r['wall_s'], '7.1f')} "
               f"{r['train_psnr']:6.2f} {r['heldout_psnr']:7.2f} {_fmt(r['heldout_mpsnr'], '7.2f')} "
-              f"{_fmt(r['traj_err'], '9.4f')} {_fmt(r['traj_err_pct'], '6.2f')} {r['load'][0]:4.1f}/{r['load'][1]:<4.1f}")
-    print("PSNR in dB; held-out = evaluation_observed frames; h-mPSNR with the co-visibility mask; traj err in scene units "
-          "(synthetic: metres) and % of the GT points' bounding-box diagonal; load = 1-min load average at start/end.")
+              f"{_fmt(r['unseen_pct'], '7.1f')} {_fmt(r['traj_err'], '9.4f')} {_fmt(r['traj_err_pct'], '6.2f')} {load:>9s}")
+    print("PSNR in dB; held-out = evaluation_observed frames; h-mPSNR with the co-visibility mask; unseen% = held-out "
+          "pixels the training camera never sees (outside that mask); traj err in scene units (synthetic: metres) and % "
+          "of the GT points' bounding-box diagonal; load = 1-min load average at start/end.")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -180,8 +210,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--progress", action="store_true")
     ap.add_argument("--json", default=None, help="also write the rows to this JSON file")
+    ap.add_argument("--score", action="append", default=[], metavar="RESULTS_DIR",
+                    help="train nothing: score the recon.h5 / refined.h5 of a results/<dataset>/<scene>/ratio<r> folder")
     args = ap.parse_args(argv)
+    from mogaf.errors import MogafError
     from mogaf.paths import cache_dir
+
+    if args.score:
+        try:
+            rows = [row for folder in args.score for row in score_results(Path(folder))]
+        except MogafError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        print_table(rows)
+        _write_rows(args.json, rows)
+        return 0
 
     work = Path(args.workdir) if args.workdir else cache_dir("bench_recon")
     work.mkdir(parents=True, exist_ok=True)
@@ -206,9 +249,16 @@ def main(argv: list[str] | None = None) -> int:
         print_table(rows[-1:])
     print()
     print_table(rows)
-    if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=2) + "\n")
+    _write_rows(args.json, rows)
     return 0
+
+
+def _write_rows(path: str | None, rows: list[dict[str, Any]]) -> None:
+    if path:
+        from mogaf.artefact import atomic_path
+
+        with atomic_path(path) as tmp:
+            tmp.write_text(json.dumps(rows, indent=2) + "\n")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,31 @@
+"""`python -m mogaf.bench recon --score`: stored models of a results folder, scored without training."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+
+from mogaf.bench import recon as bench
+from mogaf.split import read_split
+from test_forecast_stage import _write_model, _write_scene
+
+
+def test_score_results_folder(tmp_path, capsys):
+    scene_h5, split_h5 = _write_scene(tmp_path / "fc", with_gt=True)
+    ratio_dir = tmp_path / "fc" / "ratio0.5"
+    ratio_dir.mkdir()
+    shutil.move(split_h5, ratio_dir / "split.h5")
+    _write_model(ratio_dir / "refined.h5", read_split(ratio_dir / "split.h5").observed_timesteps)
+    assert bench.main(["--score", str(ratio_dir)]) == 0
+    out = capsys.readouterr().out
+    assert "fc/ratio0.5/refined.h5" in out and "recon.h5" not in out
+    (row,) = bench.score_results(ratio_dir)
+    # the GT points sit 0.01 from the rigid group's Gaussians and move with them
+    assert row["traj_err"] == pytest.approx(0.01, abs=1e-6)
+    assert row["ratio"] == 0.5 and row["wall_s"] is None and row["unseen_pct"] is None
+
+
+def test_score_refuses_a_folder_that_is_not_a_results_folder(tmp_path, capsys):
+    assert bench.main(["--score", str(tmp_path)]) == 1
+    assert "scene.h5: missing (--score takes a results/<dataset>/<scene>/ratio<r> folder)" in capsys.readouterr().err
