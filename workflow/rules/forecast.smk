@@ -1,5 +1,7 @@
 # Group-wise motion forecasting (paper Sec. 4.3): one job per dynamic group and
-# method, merged into forecast/{method}.h5. Static groups keep their last pose.
+# trained method (one job "all" when forecast.groupwise is off), merged into
+# forecast/{method}.h5. Static groups keep their last pose; constant velocity
+# and frozen train nothing and are computed in the merge job.
 
 
 rule forecast_group:

@@ -1,4 +1,5 @@
-# Rigid initialisation: per rigid group and observed time, weighted Procrustes.
+# Rigid initialisation: per rigid group and observed time, Procrustes (uniform
+# weights as in the paper, or opacity-weighted: rigid_init.weights).
 # Never runs for a scene without rigid groups (see refine's input function).
 
 
