@@ -14,9 +14,10 @@ Trajectory sources are pluggable:
   * from Python: evaluate_trajectories(array, ...) / run_benchmark({name: array}).
 
 Budgets: the baselines at their upstream settings (--budget paper) take about
-an hour (GCN: 2001 epochs of a 6-block GCN over 100 control points) and 5-13 min
+an hour (GCN: 2001 epochs of a 6-block GCN over 100 control points) and 5-33 min
 (ODE: 40 epochs of a 4-layer d=128 transformer encoder over every (window,
-Gaussian) pair of a 256-Gaussian set) per group on one CPU core; --json with
+Gaussian) pair of a 256-Gaussian set, 36-72 observed frames) per group on one
+loaded CPU core; --json with
 --resume keeps finished rows across runs. The default --budget cpu shortens only their
 epochs (REDUCED below) and marks them with '*' in the table; MoGaF always runs
 at its defaults.
