@@ -13,6 +13,7 @@ Guarantees:
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import datetime as _dt
 import glob
 import hashlib
@@ -36,7 +37,11 @@ ATTR_STAGE = "mogaf_stage"
 ATTR_DIGEST = "mogaf_config_digest"
 ATTR_PACKAGE = "mogaf_package_version"
 ATTR_CREATED = "mogaf_created_utc"
-RESERVED_ATTRS = (ATTR_FORMAT, ATTR_STAGE, ATTR_DIGEST, ATTR_PACKAGE, ATTR_CREATED)
+# Lineage: a digest of the artefact's config digest and its inputs' lineage
+# digests, and those inputs' lineage digests by stage (see `stage_inputs`).
+ATTR_LINEAGE = "mogaf_lineage_digest"
+ATTR_INPUTS = "mogaf_input_digests"
+RESERVED_ATTRS = (ATTR_FORMAT, ATTR_STAGE, ATTR_DIGEST, ATTR_PACKAGE, ATTR_CREATED, ATTR_LINEAGE, ATTR_INPUTS)
 
 
 # ---------------------------------------------------------------- digests
@@ -168,6 +173,64 @@ def _attr_value(value: Any) -> Any:
     return value
 
 
+# ---------------------------------------------------------------- lineage
+@dataclass(frozen=True)
+class Lineage:
+    path: Path
+    stage: str
+    digest: str  # "" when the file predates lineage records
+    inputs: Mapping[str, tuple[str, ...]]  # input stage -> lineage digests of the inputs it was made from
+
+
+_STAGE_INPUTS: contextvars.ContextVar[tuple[Lineage, ...]] = contextvars.ContextVar("mogaf_stage_inputs", default=())
+
+
+def read_lineage(path: str | os.PathLike) -> Lineage:
+    p = Path(path)
+    with _open(p) as fh:
+        _check_header(fh, p, None, None)
+        inputs = _decode_attr(fh.attrs.get(ATTR_INPUTS, "json:{}"))
+        return Lineage(p, _decode_attr(fh.attrs[ATTR_STAGE]), _decode_attr(fh.attrs.get(ATTR_LINEAGE, "")),
+                       {str(k): tuple(v) for k, v in dict(inputs).items()})
+
+
+def check_lineage(artefacts: Iterable[Lineage]) -> None:
+    """Inputs read together must come from one run of the stages before them:
+    an artefact made from another upstream artefact (another config, another
+    scene, a stale file) is refused with one line naming both files."""
+    given = list(artefacts)
+    for a in given:
+        for b in given:
+            made_from = a.inputs.get(b.stage)
+            if b is a or made_from is None or not b.digest:
+                continue
+            if b.digest not in made_from:
+                raise input_error(a.path, f"was made from another '{b.stage}' artefact than {b.path} "
+                                          "(other settings or inputs); rerun the stages after it")
+
+
+@contextlib.contextmanager
+def stage_inputs(*paths: str | os.PathLike | None) -> Iterator[tuple[Lineage, ...]]:
+    """Declare the artefacts a stage reads. They are checked to share one
+    lineage, and every artefact written inside the block records them."""
+    found = tuple(read_lineage(p) for p in paths if p is not None and Path(p).is_file())
+    check_lineage(found)
+    token = _STAGE_INPUTS.set(found)
+    try:
+        yield found
+    finally:
+        _STAGE_INPUTS.reset(token)
+
+
+def _lineage_attrs(stage: str, digest: str) -> dict[str, str]:
+    inputs: dict[str, list[str]] = {}
+    for item in _STAGE_INPUTS.get():
+        inputs.setdefault(item.stage, []).append(item.digest)
+    inputs = {k: sorted(v) for k, v in sorted(inputs.items())}
+    lineage = config_digest({"stage": stage, "config": digest, "inputs": inputs})
+    return {ATTR_LINEAGE: lineage, ATTR_INPUTS: "json:" + json.dumps(inputs, sort_keys=True)}
+
+
 def write_artefact(
     path: str | os.PathLike,
     stage: str,
@@ -193,6 +256,8 @@ def write_artefact(
             fh.attrs[ATTR_DIGEST] = config_digest
             fh.attrs[ATTR_PACKAGE] = __version__
             fh.attrs[ATTR_CREATED] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+            for key, value in _lineage_attrs(stage, config_digest).items():
+                fh.attrs[key] = value
             for key, value in attrs.items():
                 if value is not None:
                     fh.attrs[key] = _attr_value(value)

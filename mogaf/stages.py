@@ -3,6 +3,8 @@
 The Snakemake scripts in workflow/scripts/ and the CLI (`python -m mogaf`)
 call these and nothing else. Each writes its artefact atomically; a bad input
 raises MogafError, which `run_stage` turns into one line and exit status 1.
+Each declares the artefacts it reads (`mogaf.artefact.stage_inputs`): they
+must share one lineage, and what it writes records them.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from .artefact import config_digest
+from .artefact import config_digest, stage_inputs
 from .errors import MogafError
 
 log = logging.getLogger("mogaf")
@@ -87,58 +89,67 @@ def split(scene: str, out: str, ratio: str | float) -> Path:
     except ValueError:
         raise MogafError(f"observation ratio '{ratio}' is not a number (target folder ratio<r> needs r in (0, 1))") from None
     check_ratio(r)
-    return write_split(out, split_scene(scene, r))
+    with stage_inputs(scene):
+        return write_split(out, split_scene(scene, r))
 
 
 def priors(scene: str, split: str, out: str, params: Mapping[str, Any], seed: int) -> Path:
     from .priors import run_priors_stage
 
-    return run_priors_stage(scene, split, out, {**params, "seed": seed})
+    with stage_inputs(scene, split):
+        return run_priors_stage(scene, split, out, {**params, "seed": seed})
 
 
 def recon(scene: str, split: str, priors: str, out: str, params: Mapping[str, Any], seed: int, device: str = "auto", checkpoint: str | None = None) -> Path:
     from .recon import run_recon_stage
 
-    return run_recon_stage(scene, split, priors, out, {**params, "device": device}, seed=seed, checkpoint=checkpoint, progress=False)
+    with stage_inputs(scene, split, priors):
+        return run_recon_stage(scene, split, priors, out, {**params, "device": device}, seed=seed, checkpoint=checkpoint, progress=False)
 
 
 def group(model: str, priors: str, scene: str, split: str, out: str, params: Mapping[str, Any], seed: int = 0) -> Path:
     from .grouping import run_group_stage
 
-    return run_group_stage(model, priors, scene, split, out, {**params, "seed": seed})
+    with stage_inputs(model, priors, scene, split):
+        return run_group_stage(model, priors, scene, split, out, {**params, "seed": seed})
 
 
 def rigid_init(model: str, groups: str, out: str, params: Mapping[str, Any]) -> Path:
     from .grouping import run_rigid_init_stage
 
-    return run_rigid_init_stage(model, groups, out, dict(params))
+    with stage_inputs(model, groups):
+        return run_rigid_init_stage(model, groups, out, dict(params))
 
 
 def refine(model: str, groups: str, rigid: str | None, priors: str, scene: str, split: str, out: str, params: Mapping[str, Any], seed: int, device: str = "auto", checkpoint: str | None = None) -> Path:
     from .refine import run_refine_stage
 
-    return run_refine_stage(model, groups, rigid, priors, scene, split, out, {**params, "device": device}, seed=seed, checkpoint=checkpoint, progress=False)
+    with stage_inputs(model, groups, rigid, priors, scene, split):
+        return run_refine_stage(model, groups, rigid, priors, scene, split, out, {**params, "device": device}, seed=seed, checkpoint=checkpoint, progress=False)
 
 
 def forecast_group(model: str, groups: str, split: str, out: str, params: Mapping[str, Any], method: str, group: str, seed: int) -> Path:
     from .forecast.stage import run_forecast_group
 
-    return run_forecast_group(model, groups, split, out, dict(params), method=method, job=group, seed=seed)
+    with stage_inputs(model, groups, split):
+        return run_forecast_group(model, groups, split, out, dict(params), method=method, job=group, seed=seed)
 
 
 def forecast_merge(model: str, groups: str, split: str, parts: list[str], out: str, params: Mapping[str, Any], method: str, seed: int = 0) -> Path:
     from .forecast.stage import run_forecast_merge
 
-    return run_forecast_merge(model, groups, split, parts, out, dict(params), method=method, seed=seed)
+    with stage_inputs(model, groups, split, *parts):
+        return run_forecast_merge(model, groups, split, parts, out, dict(params), method=method, seed=seed)
 
 
 def evaluate(scene: str, split: str, model: str, groups: str, forecasts: Mapping[str, str], benchmarks: Mapping[str, str], out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str, ids: Mapping[str, str]) -> Path:
     from .evaluate import run_evaluate_stage
 
-    return run_evaluate_stage(
-        scene=scene, split=split, model=model, groups=groups, forecasts=dict(forecasts), benchmarks=dict(benchmarks),
-        out_metrics=out_metrics, out_renders=out_renders, params=dict(params), variant=variant, ids=dict(ids),
-    )
+    with stage_inputs(scene, split, model, groups, *forecasts.values()):
+        return run_evaluate_stage(
+            scene=scene, split=split, model=model, groups=groups, forecasts=dict(forecasts), benchmarks=dict(benchmarks),
+            out_metrics=out_metrics, out_renders=out_renders, params=dict(params), variant=variant, ids=dict(ids),
+        )
 
 
 def tables(metrics_files: list[str], out_files: list[str], params: Mapping[str, Any], ablations: Mapping[str, Any]) -> list[Path]:

@@ -174,3 +174,31 @@ def test_write_json_refuses_nan(tmp_path):
     assert not (tmp_path / "m.json").exists()
     write_json(tmp_path / "m.json", {"b": 1, "a": [0.5]})
     assert (tmp_path / "m.json").read_text() == '{\n  "a": [\n    0.5\n  ],\n  "b": 1\n}\n'
+
+
+def test_lineage_is_recorded_and_mismatched_inputs_are_refused(tmp_path):
+    from mogaf.artefact import read_lineage, stage_inputs
+
+    scene = write_artefact(tmp_path / "scene.h5", "ingest", {}, config_digest="scene-a")
+    other_scene = write_artefact(tmp_path / "other.h5", "ingest", {}, config_digest="scene-b")
+    with stage_inputs(scene):
+        split = write_artefact(tmp_path / "split.h5", "split", {}, config_digest="r0.6")
+    with stage_inputs(scene, split):
+        priors = write_artefact(tmp_path / "priors.h5", "priors", {}, config_digest="p")
+    lin = read_lineage(priors)
+    assert lin.inputs == {"ingest": (read_lineage(scene).digest,), "split": (read_lineage(split).digest,)}
+    # one lineage: same configs give the same digest (determinism), another upstream config another digest
+    with stage_inputs(scene, split):
+        again = write_artefact(tmp_path / "priors2.h5", "priors", {}, config_digest="p")
+    assert read_lineage(again).digest == lin.digest
+    with pytest.raises(MogafError, match=r"split\.h5: was made from another 'ingest' artefact than .*other\.h5"):
+        with stage_inputs(other_scene, split):  # a split of one scene read with another scene
+            pass
+    with pytest.raises(MogafError, match=r"priors\.h5: was made from another 'split' artefact"):
+        with stage_inputs(scene, tmp_path / "priors.h5", write_artefact(tmp_path / "split9.h5", "split", {}, config_digest="r0.9")):
+            pass
+    # an artefact written outside any stage records no inputs and is never refused for it
+    plain = write_artefact(tmp_path / "plain.h5", "priors", {}, config_digest="p")
+    assert read_lineage(plain).inputs == {}
+    with stage_inputs(other_scene, plain):
+        pass
