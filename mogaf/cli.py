@@ -32,7 +32,7 @@ STAGES: dict[str, tuple[Callable[..., Any], dict[str, str], str | None]] = {
     "split": (stages.split, {"scene-h5": "scene", "out": "out"}, None),
     "priors": (stages.priors, {"scene-h5": "scene", "split-h5": "split", "out": "out"}, "priors"),
     "recon": (stages.recon, {"scene-h5": "scene", "split-h5": "split", "priors-h5": "priors", "out": "out"}, "recon"),
-    "group": (stages.group, {"model-h5": "model", "priors-h5": "priors", "scene-h5": "scene", "split-h5": "split", "out": "out"}, "grouping"),
+    "group": (stages.group, {"model-h5": "model", "priors-h5": "priors", "scene-h5": "scene", "out": "out"}, "grouping"),
     "rigid-init": (stages.rigid_init, {"model-h5": "model", "groups-h5": "groups", "out": "out"}, "rigid_init"),
     "refine": (stages.refine, {"model-h5": "model", "groups-h5": "groups", "rigid-h5": "rigid", "priors-h5": "priors", "scene-h5": "scene", "split-h5": "split", "out": "out"}, "refine"),
     "forecast-group": (stages.forecast_group, {"model-h5": "model", "groups-h5": "groups", "split-h5": "split", "out": "out"}, "forecast"),
@@ -107,6 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="render forecasts at the evaluation views, write metrics.json")
     for option in ("scene-h5", "split-h5", "model-h5", "groups-h5", "out", "renders"):
         p.add_argument(f"--{option}", required=True)
+    p.add_argument("--grouped-model-h5", help="the model the grouping was made on (default: --model-h5)")
     p.add_argument("--forecast", action="append", default=[], metavar="METHOD=PATH", required=True)
     p.add_argument("--benchmark", action="append", default=[], metavar="STAGE=TSV", help="Snakemake benchmark files")
     p.add_argument("--ratio", required=True)
@@ -178,7 +179,8 @@ def _run_extra(args: argparse.Namespace) -> int:
     elif args.command == "evaluate":
         ids = {"dataset": args.dataset or "", "scene": args.scene or "", "ratio": args.ratio}
         stages.run_stage(stages.evaluate, None, threads=args.threads, scene=args.scene_h5, split=args.split_h5,
-                         model=args.model_h5, groups=args.groups_h5, forecasts=_pairs(args.forecast, "forecast"),
+                         model=args.model_h5, grouped_model=args.grouped_model_h5 or args.model_h5, groups=args.groups_h5,
+                         forecasts=_pairs(args.forecast, "forecast"),
                          benchmarks=_pairs(args.benchmark, "benchmark"), out_metrics=args.out, out_renders=args.renders,
                          params=cfg["evaluate"], variant=args.variant or "default", ids=ids)
     else:

@@ -107,11 +107,11 @@ def recon(scene: str, split: str, priors: str, out: str, params: Mapping[str, An
         return run_recon_stage(scene, split, priors, out, {**params, "device": device}, seed=seed, checkpoint=checkpoint, progress=False)
 
 
-def group(model: str, priors: str, scene: str, split: str, out: str, params: Mapping[str, Any], seed: int = 0) -> Path:
+def group(model: str, priors: str, scene: str, out: str, params: Mapping[str, Any], seed: int = 0) -> Path:
     from .grouping import run_group_stage
 
-    with stage_inputs(model, priors, scene, split):
-        return run_group_stage(model, priors, scene, split, out, {**params, "seed": seed})
+    with stage_inputs(model, priors, scene):
+        return run_group_stage(model, priors, scene, out, {**params, "seed": seed})
 
 
 def rigid_init(model: str, groups: str, out: str, params: Mapping[str, Any]) -> Path:
@@ -142,12 +142,12 @@ def forecast_merge(model: str, groups: str, split: str, parts: list[str], out: s
         return run_forecast_merge(model, groups, split, parts, out, dict(params), method=method, seed=seed)
 
 
-def evaluate(scene: str, split: str, model: str, groups: str, forecasts: Mapping[str, str], benchmarks: Mapping[str, str], out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str, ids: Mapping[str, str]) -> Path:
+def evaluate(scene: str, split: str, model: str, grouped_model: str, groups: str, forecasts: Mapping[str, str], benchmarks: Mapping[str, str], out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str, ids: Mapping[str, str]) -> Path:
     from .evaluate import run_evaluate_stage
 
-    with stage_inputs(scene, split, model, groups, *forecasts.values()):
+    with stage_inputs(scene, split, model, grouped_model, groups, *forecasts.values()):
         return run_evaluate_stage(
-            scene=scene, split=split, model=model, groups=groups, forecasts=dict(forecasts), benchmarks=dict(benchmarks),
+            scene=scene, split=split, model=model, grouped_model=grouped_model, groups=groups, forecasts=dict(forecasts), benchmarks=dict(benchmarks),
             out_metrics=out_metrics, out_renders=out_renders, params=dict(params), variant=variant, ids=dict(ids),
         )
 

@@ -7,6 +7,8 @@ import pytest
 from sklearn.metrics import adjusted_rand_score
 
 from mogaf.artefact import read_artefact, write_artefact
+from mogaf.evaluate import DEFAULT_PARAMS as EVAL_PARAMS
+from mogaf.evaluate import grouping_section
 from mogaf.grouping import (
     has_rigid_groups,
     load_groups,
@@ -69,10 +71,9 @@ def toy_files(tmp_path_factory):
 
 
 @pytest.mark.parametrize("method", ["ours", "gaga4d"])
-def test_group_stage_writes_groups_h5_with_quality(toy_files, method):
+def test_group_stage_writes_groups_h5(toy_files, method):
     out = toy_files["root"] / f"groups_{method}.h5"
-    run_group_stage(toy_files["recon"], toy_files["priors"], toy_files["scene"], toy_files["split"], out,
-                    {"method": method, "quality_max_frames": 4}, quality_backend="torch")
+    run_group_stage(toy_files["recon"], toy_files["priors"], toy_files["scene"], out, {"method": method})
     art = read_artefact(out, "group")
     K = int(art.attrs["num_groups"])
     assert art["group_id"].dtype == np.int64 and art["group_id"].shape == (len(toy_files["labels"]),)
@@ -88,19 +89,20 @@ def test_group_stage_writes_groups_h5_with_quality(toy_files, method):
         assert g.names == ["sphere", "box"]
         # sphere: label from the dataset; box: unknown -> estimated (rigid motion).
         assert g.rigid_source == ["label", "estimated"] and list(g.rigid) == [1, 1]
-        q = g.quality
+        # quality at held-out views: measured by evaluation, from the files the pipeline gives it
+        split = read_split(toy_files["split"])
+        params = {**EVAL_PARAMS, "grouping_max_frames": 4}
+        q = grouping_section(str(toy_files["recon"]), str(out), str(toy_files["scene"]), split, params)
+        assert q["method"] == "ours" and q["num_groups"] == K
         assert q["ari"] > 0.6 and min(q["per_object_iou"]) > 0.6 and q["num_frames"] == 4
-        assert float(art["quality/ari"]) == pytest.approx(q["ari"])
-        assert isinstance(art.attrs["ari"], float) and art.attrs["ari"] == pytest.approx(q["ari"])
-        assert art.attrs["mean_iou"] == pytest.approx(q["mean_iou"])
-        assert list(art["quality/object_ids"]) == [1, 2]
+        assert q["object_ids"] == [1, 2]
+    assert "quality" not in art and "ari" not in art.attrs  # the group stage opens no held-out view
     assert has_rigid_groups(out) == bool(np.any(g.rigid == 1))
 
 
 def test_rigid_init_stage(toy_files):
     groups_h5 = toy_files["root"] / "groups_for_rigid.h5"
-    run_group_stage(toy_files["recon"], toy_files["priors"], toy_files["scene"], toy_files["split"], groups_h5,
-                    {"quality_max_frames": 2}, quality_backend="torch")
+    run_group_stage(toy_files["recon"], toy_files["priors"], toy_files["scene"], groups_h5, {})
     assert has_rigid_groups(groups_h5)
     out = run_rigid_init_stage(toy_files["recon"], groups_h5, toy_files["root"] / "rigid.h5", {})
     r = read_rigid_init(out)
@@ -129,11 +131,11 @@ def test_quality_metric_parts(toy_files):
                      instance_id=np.array([1, 2]), names=["sphere", "box"], rigid_source=["label"] * 2,
                      method="ours", params=dict(DEFAULT_PARAMS))
     frames = load_scene(toy_files["scene"], read_split(toy_files["split"]).frame_ids["evaluation_observed"][::4])
-    q = grouping_quality(toy_files["model"], perfect, frames, {"quality_pixels": "all"}, backend="torch")
+    q = grouping_quality(toy_files["model"], perfect, frames, pixels="all", backend="torch")
     assert q["num_frames"] == 3 and q["ari"] > 0.85 and min(q["per_object_iou"]) > 0.7
-    q_fg = grouping_quality(toy_files["model"], perfect, frames, {}, backend="torch")
+    q_fg = grouping_quality(toy_files["model"], perfect, frames, backend="torch")
     assert q_fg["pixels"] == "foreground" and q_fg["num_pixels"] < q["num_pixels"]
     # Swapping the two groups' identities destroys the IoU, not the ARI.
     swapped = Groups(**{**perfect.__dict__, "instance_id": np.array([2, 1])})
-    q2 = grouping_quality(toy_files["model"], swapped, frames, {}, backend="torch")
+    q2 = grouping_quality(toy_files["model"], swapped, frames, backend="torch")
     assert max(q2["per_object_iou"]) < 0.2 and q2["ari"] == pytest.approx(q_fg["ari"])

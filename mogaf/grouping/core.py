@@ -52,10 +52,6 @@ DEFAULT_PARAMS: dict[str, Any] = {
     "rigidity_max_points": 4096,  # members used for the rigidity estimate (deterministic subsample)
     "static_threshold": 0.01,  # a group is static if its members move less than this fraction of the scene extent
     "static_quantile": 0.95,  # ... measured at this quantile of per-Gaussian displacement in the group
-    # --- grouping quality (held-out views at observed times)
-    "quality_alpha": 0.5,  # a pixel is labelled where the rendered alpha exceeds this
-    "quality_pixels": "foreground",  # ARI over GT-foreground U predicted-foreground pixels ("all": every pixel)
-    "quality_max_frames": 0,  # held-out frames rendered for the quality (evenly spaced); 0 = all
     "seed": 0,
 }
 
@@ -79,8 +75,6 @@ def resolve_params(params: dict[str, Any] | None) -> dict[str, Any]:
             raise MogafError(f"grouping: {key} must be >= 1, got {p[key]!r}")
     if not isinstance(p["reseed_grown"], bool):
         raise MogafError(f"grouping: reseed_grown must be true or false, got {p['reseed_grown']!r}")
-    if p["quality_pixels"] not in ("foreground", "all"):
-        raise MogafError("grouping: quality_pixels must be 'foreground' or 'all'")
     return p
 
 
@@ -128,7 +122,6 @@ class Groups:
     method: str
     params: dict[str, Any]
     diagnostics: dict[str, Any] = field(default_factory=dict)
-    quality: dict[str, Any] = field(default_factory=dict)
     attrs: dict[str, Any] = field(default_factory=dict)
 
     @property

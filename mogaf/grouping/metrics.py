@@ -1,4 +1,5 @@
-"""Grouping quality against ground-truth instance masks.
+"""Grouping quality against ground-truth instance masks (computed by the
+evaluation stage: the group stage never opens held-out views).
 
 Protocol (held-out cameras at observed times, split role
 "evaluation_observed"):
@@ -7,14 +8,14 @@ Protocol (held-out cameras at observed times, split role
   poses (trajectories at that step); background Gaussians, if any, render a
   separate "background" channel so they occlude as in the RGB render;
 - predicted label of a pixel = argmax channel where the rendered alpha
-  exceeds `quality_alpha` (0.5), background otherwise (also where the
+  exceeds `alpha` (0.5), background otherwise (also where the
   background channel wins);
 - per-object IoU: for each GT instance, the pixels of all groups whose
   identity (group_instance_id) is that instance against its GT mask,
   intersections and unions summed over all frames (a dataset-level IoU);
 - adjusted Rand index between GT instance ids and predicted group ids
   (fragments of one object count as different clusters) over the pixels
-  that are foreground in the GT or in the prediction (quality_pixels =
+  that are foreground in the GT or in the prediction (pixels =
   "foreground", default) or over all pixels ("all"), pooled over frames.
 """
 
@@ -25,7 +26,8 @@ from typing import Any
 import numpy as np
 from sklearn.metrics import adjusted_rand_score
 
-from .core import Groups, resolve_params
+from ..errors import MogafError
+from .core import Groups
 
 
 def render_group_labels(model, group_id: np.ndarray, num_groups: int, timestep: int, K: np.ndarray, w2c: np.ndarray,
@@ -71,7 +73,7 @@ def adjusted_rand_index(gt: np.ndarray, pred: np.ndarray) -> float:
     return float(adjusted_rand_score(gt, pred))
 
 
-def grouping_quality(model, groups: Groups, frames, params: dict[str, Any] | None = None, *,
+def grouping_quality(model, groups: Groups, frames, *, alpha: float = 0.5, pixels: str = "foreground",
                      backend: str = "auto") -> dict[str, Any]:
     """Per-object IoU and ARI of rendered group labels against GT masks.
 
@@ -79,7 +81,8 @@ def grouping_quality(model, groups: Groups, frames, params: dict[str, Any] | Non
     instance_mask; frames whose time step is not one of the model's
     observed steps are skipped. Returns {} when there is nothing to compare.
     """
-    p = resolve_params(params)
+    if pixels not in ("foreground", "all"):
+        raise MogafError(f"grouping quality: pixels must be 'foreground' or 'all', got {pixels!r}")
     if frames is None or frames.instance_mask is None or frames.num_frames == 0:
         return {}
     observed_steps = {int(s) for s in np.asarray(model.timesteps, dtype=np.int64)}
@@ -103,13 +106,13 @@ def grouping_quality(model, groups: Groups, frames, params: dict[str, Any] | Non
         gt = np.asarray(frames.instance_mask[f], dtype=np.int64)
         H, W = gt.shape
         label = render_group_labels(model, groups.group_id, groups.num_groups, step, frames.K[f], frames.w2c[f], W, H,
-                                    float(p["quality_alpha"]), backend)
+                                    float(alpha), backend)
         pred_inst = inst_of_group[label]
         pred_inst[label == 0] = 0
         i, u = per_object_iou(gt, pred_inst, object_ids)
         inter += i
         union += u
-        sel = (gt != 0) | (label != 0) if p["quality_pixels"] == "foreground" else np.ones_like(gt, dtype=bool)
+        sel = (gt != 0) | (label != 0) if pixels == "foreground" else np.ones_like(gt, dtype=bool)
         gt_all.append(gt[sel])
         pr_all.append(label[sel])
         used += 1
@@ -127,6 +130,6 @@ def grouping_quality(model, groups: Groups, frames, params: dict[str, Any] | Non
         "per_object_iou": [float(v) for v in iou[present]],
         "num_frames": int(used),
         "num_pixels": int(gt_flat.size),
-        "pixels": str(p["quality_pixels"]),
-        "alpha_threshold": float(p["quality_alpha"]),
+        "pixels": str(pixels),
+        "alpha_threshold": float(alpha),
     }

@@ -12,12 +12,11 @@ groups.h5 (stage "group"):
     (relative residual of the rigidity estimate, -1 where a label decided),
     diagnostics/assignment (N,) int8 (0 seeded by a mask, 1 region growing,
     2 KNN voting, 3 single-group fallback)
-  quality/...                       only where GT instance masks exist at held-out
-                                    views: ari, mean_iou, object_ids, object_names,
-                                    per_object_iou, num_frames, num_pixels
   attrs: method, params (JSON), num_groups, scene_extent, static_scene,
-    quality (JSON, {} when absent; numbers as text, read quality/ instead),
-    ari and mean_iou (plain floats, only with quality), method_diagnostics (JSON)
+    method_diagnostics (JSON)
+The grouping's quality against GT instance masks at held-out views is
+measured by the evaluation stage (mogaf.grouping.metrics), not here: the
+group stage reads only the observed frames' masks and cameras.
 
 rigid.h5 (stage "rigid_init"), supplementary "Rigid Motion Initialization":
   group_ids (K_r,) int64            the rigid groups
@@ -77,27 +76,12 @@ def write_groups(path: str | os.PathLike, groups: Groups, *, digest: str | None 
         "group_rigid_source": _strings(groups.rigid_source),
         "diagnostics": diag,
     }
-    q = groups.quality or {}
-    if q:
-        data["quality"] = {
-            "ari": np.float64(q["ari"]),
-            "mean_iou": np.float64(q["mean_iou"]),
-            "object_ids": np.asarray(q["object_ids"], dtype=np.int64),
-            "object_names": _strings(q["object_names"]),
-            "per_object_iou": np.asarray(q["per_object_iou"], dtype=np.float64),
-            "num_frames": np.int64(q["num_frames"]),
-            "num_pixels": np.int64(q["num_pixels"]),
-        }
     attrs = {
         "method": groups.method,
         "params": groups.params,
         "num_groups": groups.num_groups,
-        "quality": q,
         **{k: v for k, v in groups.attrs.items()},
     }
-    if q:
-        attrs["ari"] = float(q["ari"])
-        attrs["mean_iou"] = float(q["mean_iou"])
     digest = digest or config_digest(groups.params)
     return write_artefact(path, GROUP_STAGE, data, config_digest=digest, attrs=attrs)
 
@@ -127,23 +111,6 @@ def _typed_params(raw: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _quality_from(art) -> dict[str, Any]:
-    q = art.get("quality")
-    if not q:
-        return {}
-    out = {k: v for k, v in (art.attrs.get("quality") or {}).items() if k in ("pixels",)}
-    out.update({
-        "ari": float(q["ari"]),
-        "mean_iou": float(q["mean_iou"]),
-        "object_ids": [int(i) for i in np.asarray(q["object_ids"]).reshape(-1)],
-        "object_names": _str_list(q.get("object_names", [])),
-        "per_object_iou": [float(v) for v in np.asarray(q["per_object_iou"]).reshape(-1)],
-        "num_frames": int(q["num_frames"]),
-        "num_pixels": int(q["num_pixels"]),
-    })
-    return out
-
-
 def load_groups(path: str | os.PathLike) -> Groups:
     art = read_artefact(path, GROUP_STAGE, required=["group_id", "group_rigid", "group_static", "group_instance_id"])
     g = Groups(
@@ -156,8 +123,7 @@ def load_groups(path: str | os.PathLike) -> Groups:
         method=str(art.attrs.get("method", "")),
         params=_typed_params(dict(art.attrs.get("params") or {})),
         diagnostics=dict(art.get("diagnostics", {}) or {}),
-        quality=_quality_from(art),
-        attrs={k: v for k, v in art.attrs.items() if k not in ("method", "params", "quality", "ari", "mean_iou")},
+        attrs={k: v for k, v in art.attrs.items() if k not in ("method", "params")},
     )
     K = g.num_groups
     if g.static.size != K or g.instance_id.size != K:
@@ -209,15 +175,8 @@ def read_mask_rows(priors_h5: str | os.PathLike, rows: np.ndarray) -> tuple[np.n
     raise input_error(priors_h5, "has neither masks/instance nor masks/foreground")
 
 
-def _evenly(n: int, k: int) -> np.ndarray:
-    if k <= 0 or k >= n:
-        return np.arange(n)
-    return np.unique(np.round(np.linspace(0, n - 1, k)).astype(np.int64))
-
-
-def run_group_stage(recon_h5, priors_h5, scene_h5, split_h5, out_h5, params: dict[str, Any] | None = None, *,
-                    quality_backend: str = "auto") -> Path:
-    """Group the reconstruction's Gaussians; write groups.h5 (with quality where GT exists)."""
+def run_group_stage(recon_h5, priors_h5, scene_h5, out_h5, params: dict[str, Any] | None = None) -> Path:
+    """Group the reconstruction's Gaussians by the observed frames' masks; write groups.h5."""
     p = resolve_params(params)
     model = load_model(recon_h5)
     pri = read_priors_for_grouping(priors_h5)
@@ -241,28 +200,9 @@ def run_group_stage(recon_h5, priors_h5, scene_h5, split_h5, out_h5, params: dic
     groups = group_gaussians(model, masks, frames, instances, p, rigid_source=rigid_source,
                              frame_order=np.asarray(inverse).reshape(-1))
     del masks
-    groups.quality = _quality(model, groups, scene_h5, split_h5, p, int(p["quality_max_frames"]), quality_backend)
-    log.info("grouping (%s): %d groups, sizes %s, rigid %s, static %s, quality %s", p["method"], groups.num_groups,
-             groups.sizes().tolist(), groups.rigid.tolist(), groups.static.tolist(),
-             {k: groups.quality[k] for k in ("ari", "mean_iou") if k in groups.quality})
+    log.info("grouping (%s): %d groups, sizes %s, rigid %s, static %s", p["method"], groups.num_groups,
+             groups.sizes().tolist(), groups.rigid.tolist(), groups.static.tolist())
     return write_groups(out_h5, groups, digest=config_digest(p))
-
-
-def _quality(model, groups: Groups, scene_h5, split_h5, p: dict, max_frames: int, backend: str) -> dict[str, Any]:
-    from ..scene import load_scene
-    from ..split import read_split
-    from .metrics import grouping_quality
-
-    split = read_split(split_h5)
-    ids = split.frame_ids.get("evaluation_observed", np.zeros(0, np.int64))
-    if ids.size == 0 or groups.num_groups == 0:
-        return {}
-    with open_artefact(scene_h5, SCENE_STAGE) as fh:
-        if "frames/instance_mask" not in fh:
-            return {}
-    sel = ids[_evenly(ids.size, max_frames)]
-    frames = load_scene(scene_h5, sel)
-    return grouping_quality(model, groups, frames, p, backend=backend)
 
 
 # ---------------------------------------------------------------- rigid_init stage

@@ -7,7 +7,6 @@ checkpoint group:
         model=lambda wildcards: stage_path("recon", wildcards),
         priors=lambda wildcards: stage_path("priors", wildcards),
         scene=scene_h5,
-        split=split_h5,
     output:
         "results/{dataset}/{scene}/ratio{ratio}/{prefix}groups.h5",
     params:

@@ -9,7 +9,6 @@ run_stage(
     model=snakemake.input.model,
     priors=snakemake.input.priors,
     scene=snakemake.input.scene,
-    split=snakemake.input.split,
     out=snakemake.output[0],
     params=snakemake.params.grouping,
     seed=snakemake.params.seed,
