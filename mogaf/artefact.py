@@ -7,7 +7,12 @@ Guarantees:
   package version, UTC creation time;
 - non-finite floating-point arrays are refused on write and on read;
 - inputs are opened read-only with HDF5 file locking off (clusters with NFS);
-- a reader checks the attrs and fails with one line naming the file.
+- a reader checks the attrs and fails with one line naming the file;
+- lineage: an artefact written inside `stage_inputs` records the lineage
+  digests of the artefacts it was made from, and its own (its config digest
+  and those); inputs read together must agree (`check_lineage`). Lineage
+  follows config digests, not file contents: a rerun with the same settings
+  keeps its digest (Snakemake's timestamps cover reruns).
 """
 
 from __future__ import annotations
@@ -195,9 +200,11 @@ def read_lineage(path: str | os.PathLike) -> Lineage:
 
 
 def check_lineage(artefacts: Iterable[Lineage]) -> None:
-    """Inputs read together must come from one run of the stages before them:
-    an artefact made from another upstream artefact (another config, another
-    scene, a stale file) is refused with one line naming both files."""
+    """Inputs read together must come from one lineage of settings: an
+    artefact made from another upstream artefact than the one given (other
+    settings, a split of another scene, groups of another reconstruction) is
+    refused with one line naming both files. Files that record no lineage
+    (written outside a stage, or before lineage existed) are not checked."""
     given = list(artefacts)
     for a in given:
         for b in given:
@@ -442,6 +449,12 @@ def open_artefact(
         yield fh
     except KeyError as exc:
         # h5py's KeyError for an absent entry or attribute: one line naming the file
+        # (a KeyError of the caller's own code is left alone: it is not the file's fault)
+        tb = exc.__traceback__
+        while tb is not None and tb.tb_next is not None:
+            tb = tb.tb_next
+        if tb is None or "h5py" not in tb.tb_frame.f_code.co_filename:
+            raise
         detail = exc.args[0] if exc.args else exc
         raise input_error(p, f"lacks an entry or attribute its reader needs ({detail})") from None
     finally:

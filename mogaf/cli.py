@@ -39,7 +39,7 @@ STAGES: dict[str, tuple[Callable[..., Any], dict[str, str], str | None]] = {
 }
 OPTIONAL_PATHS = {"rigid-h5"}
 SEEDED = {"priors", "recon", "group", "refine", "forecast-group"}
-SCHEMA = Path("config/schema.yaml")  # beside the default config; the workflow validates against the same file
+SCHEMA_NAME = "schema.yaml"  # config/schema.yaml, the file the workflow validates against
 DEVICE = {"recon", "refine"}
 
 
@@ -58,7 +58,10 @@ def _config_for(args: argparse.Namespace) -> dict[str, Any]:
 def _validate(cfg: dict[str, Any], configfile: str) -> None:
     """The workflow's schema check (config/schema.yaml, where it is found), so
     a config the workflow would refuse fails here with one line, not a traceback."""
-    if not SCHEMA.is_file():
+    places = (Path(configfile).parent / SCHEMA_NAME, Path("config") / SCHEMA_NAME,
+              Path(__file__).resolve().parents[1] / "config" / SCHEMA_NAME)  # beside it, here, the checkout
+    schema = next((p for p in places if p.is_file()), None)
+    if schema is None:
         return
     try:
         import jsonschema
@@ -67,7 +70,7 @@ def _validate(cfg: dict[str, Any], configfile: str) -> None:
     from . import config as mcfg
 
     try:
-        jsonschema.validate(cfg, mcfg.load_yaml(SCHEMA))
+        jsonschema.validate(cfg, mcfg.load_yaml(schema))
     except jsonschema.ValidationError as exc:
         where = ".".join(str(k) for k in exc.absolute_path) or "top level"
         raise MogafError(f"{configfile}: {where}: {exc.message}") from None
@@ -107,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="render forecasts at the evaluation views, write metrics.json")
     for option in ("scene-h5", "split-h5", "model-h5", "groups-h5", "out", "renders"):
         p.add_argument(f"--{option}", required=True)
-    p.add_argument("--grouped-model-h5", help="the model the grouping was made on (default: --model-h5)")
+    p.add_argument("--grouped-model-h5", required=True, help="the model the grouping was made on (recon.h5)")
     p.add_argument("--forecast", action="append", default=[], metavar="METHOD=PATH", required=True)
     p.add_argument("--benchmark", action="append", default=[], metavar="STAGE=TSV", help="Snakemake benchmark files")
     p.add_argument("--ratio", required=True)
@@ -179,7 +182,7 @@ def _run_extra(args: argparse.Namespace) -> int:
     elif args.command == "evaluate":
         ids = {"dataset": args.dataset or "", "scene": args.scene or "", "ratio": args.ratio}
         stages.run_stage(stages.evaluate, None, threads=args.threads, scene=args.scene_h5, split=args.split_h5,
-                         model=args.model_h5, grouped_model=args.grouped_model_h5 or args.model_h5, groups=args.groups_h5,
+                         model=args.model_h5, grouped_model=args.grouped_model_h5, groups=args.groups_h5,
                          forecasts=_pairs(args.forecast, "forecast"),
                          benchmarks=_pairs(args.benchmark, "benchmark"), out_metrics=args.out, out_renders=args.renders,
                          params=cfg["evaluate"], variant=args.variant or "default", ids=ids)

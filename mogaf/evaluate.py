@@ -19,6 +19,7 @@ every stage that produced each method's result (Snakemake benchmark files).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -296,9 +297,8 @@ def grouping_section(grouped_model_h5: str, groups_h5: str, scene_h5: str, split
     limit = int(params["grouping_max_frames"])
     if 0 < limit < ids.size:
         ids = ids[np.unique(np.round(np.linspace(0, ids.size - 1, limit)).astype(np.int64))]
-    sub = Split(split.ratio, split.protocol, split.num_timesteps, split.observed_timesteps, split.forecast_timesteps,
-                {**split.frame_ids, "evaluation_observed": ids})
-    frames = load_frames(scene_h5, sub, "evaluation_observed")
+    frames = load_frames(scene_h5, dataclasses.replace(split, frame_ids={**split.frame_ids, "evaluation_observed": ids}),
+                         "evaluation_observed")
     quality = grouping_quality(load_model(grouped_model_h5), groups, frames, alpha=float(params["grouping_alpha"]),
                                pixels=str(params["grouping_pixels"]))
     return {**out, **quality}

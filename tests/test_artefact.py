@@ -202,3 +202,19 @@ def test_lineage_is_recorded_and_mismatched_inputs_are_refused(tmp_path):
     assert read_lineage(plain).inputs == {}
     with stage_inputs(other_scene, plain):
         pass
+
+
+def test_output_that_cannot_be_written_is_one_line_naming_it(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    for write in (lambda p: write_json(p, {}), lambda p: write_artefact(p, "demo", {}, config_digest="d")):
+        with pytest.raises(MogafError, match=r"file/sub/out: cannot be written"):
+            write(blocker / "sub" / "out")
+    assert blocker.read_text() == ""
+
+
+def test_a_key_error_of_the_callers_own_code_is_not_blamed_on_the_file(tmp_path):
+    path = _write(tmp_path / "x.h5")
+    with pytest.raises(KeyError, match="mine"):
+        with open_artefact(path, "demo"):
+            {}["mine"]

@@ -24,8 +24,14 @@ def test_score_results_folder(tmp_path, capsys):
     # the GT points sit 0.01 from the rigid group's Gaussians and move with them
     assert row["traj_err"] == pytest.approx(0.01, abs=1e-6)
     assert row["ratio"] == 0.5 and row["wall_s"] is None and row["unseen_pct"] is None
+    # an ablation variant's folder: split and scene are found above it
+    variant = ratio_dir / "ablation" / "rt_fast"
+    variant.mkdir(parents=True)
+    shutil.copy(ratio_dir / "refined.h5", variant / "recon.h5")
+    (row,) = bench.score_results(variant)
+    assert row["scene"] == "fc/ratio0.5/ablation/rt_fast/recon.h5" and row["traj_err"] == pytest.approx(0.01, abs=1e-6)
 
 
 def test_score_refuses_a_folder_that_is_not_a_results_folder(tmp_path, capsys):
     assert bench.main(["--score", str(tmp_path)]) == 1
-    assert "scene.h5: missing (--score takes a results/<dataset>/<scene>/ratio<r> folder)" in capsys.readouterr().err
+    assert "no split.h5 and scene.h5 above it (--score takes a results/<dataset>/<scene>/ratio<r> folder" in capsys.readouterr().err

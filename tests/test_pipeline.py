@@ -102,6 +102,23 @@ def test_every_method_has_finite_metrics(runs):
         assert math.isfinite(section["forecast"]["epe_3d_quick"]), method
     # the better forecasts beat showing the last observed frame
     assert metrics["methods"]["mogaf"]["image"]["psnr"] > 10
+    # grouping quality at held-out views, measured by evaluation
+    grouping = metrics["grouping"]
+    assert 0.0 <= grouping["mean_iou"] <= 1.0 and math.isfinite(grouping["ari"])
+    assert len(grouping["per_object_iou"]) == len(grouping["object_names"]) > 0
+
+
+def test_artefacts_record_their_lineage(runs):
+    from mogaf.artefact import read_lineage
+
+    ratio = runs["first"] / RATIO
+    lineage = {name: read_lineage(ratio / name) for name in ("split.h5", "priors.h5", "recon.h5", "groups.h5", "refined.h5")}
+    scene = read_lineage(runs["first"] / RATIO.parent / "scene.h5")
+    assert lineage["priors.h5"].inputs == {"ingest": (scene.digest,), "split": (lineage["split.h5"].digest,)}
+    refined = lineage["refined.h5"].inputs
+    assert refined["recon"] == (lineage["recon.h5"].digest,) and refined["group"] == (lineage["groups.h5"].digest,)
+    forecast = read_lineage(ratio / "forecast" / "mogaf.h5")
+    assert forecast.inputs["refine"] == (lineage["refined.h5"].digest,)
 
 
 def test_writes_only_results_snakemake_and_cache(runs):

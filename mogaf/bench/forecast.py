@@ -34,6 +34,7 @@ import argparse
 import fnmatch
 import importlib
 import json
+import math
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -185,6 +186,10 @@ def read_rows(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     return {k: v for k, v in doc.items() if k != "rows"}, rows
 
 
+def _same_number(a: float, b: float) -> bool:
+    return a == b or (math.isnan(a) and math.isnan(b))
+
+
 def comparison_table(paths: Sequence[str | Path]) -> str:
     """One Markdown table from several --json files: a line per (set, ratio),
     a future-EPE column per method (lowest in bold) and the training time of
@@ -196,6 +201,8 @@ def comparison_table(paths: Sequence[str | Path]) -> str:
     columns: set[str] = set()
     for path in paths:
         header, rows = read_rows(Path(path))
+        if header.get("budget") not in ("cpu", "paper"):
+            raise MogafError(f"{path}: has no budget 'cpu' or 'paper' (written before budgets were recorded?)")
         for r in rows:
             key, method = (str(r["set"]), float(r["ratio"])), str(r["method"])
             col = method + ("*" if header.get("budget") == "cpu" and method in REDUCED else "")
@@ -203,7 +210,7 @@ def comparison_table(paths: Sequence[str | Path]) -> str:
             if shapes.setdefault(key, shape) != shape:
                 raise MogafError(f"{path}: {key[0]} ratio {key[1]} was scored on other trajectories than in an earlier file")
             old = cells.setdefault(key, {}).get(col)
-            if old is not None and old["epe"] != r["epe"]:
+            if old is not None and not _same_number(old["epe"], r["epe"]):
                 raise MogafError(
                     f"{path}: {key[0]} ratio {key[1]} {col} has EPE {r['epe']:.6g}, "
                     f"{origin[(*key, col)]} has {old['epe']:.6g}"
@@ -213,12 +220,14 @@ def comparison_table(paths: Sequence[str | Path]) -> str:
             columns.add(col)
     if not cells:
         raise MogafError("bench forecast: the --from-json files hold no rows")
-    order = [c for m in METHODS for c in (m, m + "*") if c in columns]
+    known = [c for m in METHODS for c in (m, m + "*")]
+    order = [c for c in known if c in columns] + sorted(columns - set(known))  # methods of other versions last
     timed = [c for c in order if c.rstrip("*") in TORCH_METHODS]
     head = ["set", "ratio"] + [f"{c} EPE" for c in order] + [f"{c} train s" for c in timed]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for (name, ratio), row in cells.items():
-        best = min(r["epe"] for r in row.values())
+        finite = [r["epe"] for r in row.values() if math.isfinite(r["epe"])]
+        best = min(finite) if finite else None
         out = [name, f"{ratio:.2f}"]
         for c in order:
             r = row.get(c)

@@ -168,17 +168,19 @@ def score_model(name: str, scene_h5: Path, split_h5: Path, model_h5: Path) -> di
 
 
 def score_results(folder: Path) -> list[dict[str, Any]]:
-    """Rows for the models a pipeline results folder (results/<dataset>/<scene>/ratio<r>) holds."""
+    """Rows for the models a pipeline results folder holds: results/<dataset>/<scene>/ratio<r>,
+    or one of its ablation/<variant> folders (the split and scene are found above it)."""
     from mogaf.errors import MogafError
 
-    scene_h5, split_h5 = folder.parent / "scene.h5", folder / "split.h5"
-    for need in (scene_h5, split_h5):
-        if not need.is_file():
-            raise MogafError(f"{need}: missing (--score takes a results/<dataset>/<scene>/ratio<r> folder)")
+    ratio_dir = next((d for d in (folder, *folder.parents) if (d / "split.h5").is_file()), None)
+    if ratio_dir is None or not (ratio_dir.parent / "scene.h5").is_file():
+        raise MogafError(f"{folder}: no split.h5 and scene.h5 above it (--score takes a results/<dataset>/<scene>/ratio<r> "
+                         "folder or an ablation folder in it)")
+    scene_h5, split_h5 = ratio_dir.parent / "scene.h5", ratio_dir / "split.h5"
     models = [folder / n for n in ("recon.h5", "refined.h5") if (folder / n).is_file()]
     if not models:
         raise MogafError(f"{folder}: holds neither recon.h5 nor refined.h5")
-    return [score_model(f"{folder.parent.name}/{folder.name}/{m.name}", scene_h5, split_h5, m) for m in models]
+    return [score_model(str(m.relative_to(ratio_dir.parent.parent)), scene_h5, split_h5, m) for m in models]
 
 
 def _fmt(v: Any, spec: str) -> str:

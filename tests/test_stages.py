@@ -1,0 +1,60 @@
+"""mogaf.stages: every stage declares the artefacts it reads, so inputs of
+another lineage are refused before any work (mogaf.artefact.stage_inputs)."""
+
+from __future__ import annotations
+
+import pytest
+
+from mogaf import stages
+from mogaf.artefact import read_lineage, stage_inputs, write_artefact
+from mogaf.errors import MogafError
+
+
+def _chain(folder, recon_digest="recon"):
+    """scene -> split -> priors -> recon -> groups, written as stages would write them."""
+    folder.mkdir(parents=True, exist_ok=True)
+    scene = write_artefact(folder / "scene.h5", "ingest", {}, config_digest="scene")
+    with stage_inputs(scene):
+        split = write_artefact(folder / "split.h5", "split", {}, config_digest="r0.6")
+    with stage_inputs(scene, split):
+        priors = write_artefact(folder / "priors.h5", "priors", {}, config_digest="priors")
+    with stage_inputs(scene, split, priors):
+        recon = write_artefact(folder / "recon.h5", "recon", {}, config_digest=recon_digest)
+    with stage_inputs(recon, priors, scene):
+        groups = write_artefact(folder / "groups.h5", "group", {}, config_digest="groups")
+    return {"scene": scene, "split": split, "priors": priors, "recon": recon, "groups": groups}
+
+
+@pytest.fixture
+def never_run(monkeypatch):
+    """Stage bodies that fail the test if the lineage check lets them run."""
+    import mogaf.evaluate
+    import mogaf.forecast.stage
+    import mogaf.refine
+
+    def body(*args, **kwargs):
+        raise AssertionError("the stage ran on inputs of another lineage")
+
+    for module, name in ((mogaf.refine, "run_refine_stage"), (mogaf.forecast.stage, "run_forecast_group"),
+                         (mogaf.evaluate, "run_evaluate_stage")):
+        monkeypatch.setattr(module, name, body)
+
+
+def test_stages_refuse_inputs_of_another_lineage(tmp_path, never_run):
+    a = _chain(tmp_path / "a")
+    b = _chain(tmp_path / "b", recon_digest="recon-other-budget")  # e.g. a run-time sweep variant's reconstruction
+    assert read_lineage(a["recon"]).digest != read_lineage(b["recon"]).digest
+    with pytest.raises(MogafError, match=r"a/groups\.h5: was made from another 'recon' artefact than .*b/recon\.h5"):
+        stages.refine(model=str(b["recon"]), groups=str(a["groups"]), rigid=None, priors=str(a["priors"]),
+                      scene=str(a["scene"]), split=str(a["split"]), out=str(tmp_path / "r.h5"), params={}, seed=0)
+    with pytest.raises(MogafError, match=r"groups\.h5: was made from another 'recon' artefact"):
+        stages.forecast_group(model=str(b["recon"]), groups=str(a["groups"]), split=str(a["split"]),
+                              out=str(tmp_path / "f.h5"), params={}, method="frozen", group="1", seed=0)
+    with stage_inputs(a["recon"], a["groups"], a["split"]):
+        forecast = write_artefact(tmp_path / "frozen.h5", "forecast", {}, config_digest="frozen")
+    with pytest.raises(MogafError, match=r"frozen\.h5: was made from another 'recon' artefact"):
+        stages.evaluate(scene=str(a["scene"]), split=str(a["split"]), model=str(b["recon"]), grouped_model=str(b["recon"]),
+                        groups=str(b["groups"]), forecasts={"frozen": str(forecast)}, benchmarks={},
+                        out_metrics=str(tmp_path / "m.json"), out_renders=str(tmp_path / "renders"), params={},
+                        variant="default", ids={})
+    assert not (tmp_path / "r.h5").exists() and not (tmp_path / "m.json").exists()
