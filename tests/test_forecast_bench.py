@@ -124,3 +124,14 @@ def test_comparison_table_merges_files_and_refuses_disagreement(tmp_path, capsys
     broken.write_text(json.dumps({"rows": [{"set": "x", "ratio": 0.6, "method": "frozen"}]}))
     assert bench.main(["--from-json", str(broken)]) == 1
     assert "broken.json: row 0 has no epe, train_s" in capsys.readouterr().err
+
+
+def test_readme_forecast_table_is_made_from_the_committed_rows():
+    from conftest import REPO
+
+    bench_dir = REPO / "results" / "bench"
+    readme = (REPO / "README.md").read_text()
+    start, end = "<!-- forecast-gt-table -->\n", "\n<!-- /forecast-gt-table -->"
+    shown = readme[readme.index(start) + len(start): readme.index(end)]
+    files = [bench_dir / f"forecast_gt_{name}.json" for name in ("defaults", "paper_gcn", "paper_ode")]
+    assert shown == bench.comparison_table(files)
