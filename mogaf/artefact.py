@@ -235,7 +235,7 @@ def _lineage_attrs(stage: str, digest: str) -> dict[str, str]:
         inputs.setdefault(item.stage, []).append(item.digest)
     inputs = {k: sorted(v) for k, v in sorted(inputs.items())}
     lineage = config_digest({"stage": stage, "config": digest, "inputs": inputs})
-    return {ATTR_LINEAGE: lineage, ATTR_INPUTS: "json:" + json.dumps(inputs, sort_keys=True)}
+    return {ATTR_LINEAGE: lineage, ATTR_INPUTS: _attr_value(inputs)}
 
 
 def write_artefact(
