@@ -377,29 +377,49 @@ class Artefact:
             return default
 
 
-def _read_tree(group: h5py.Group, path: Path, prefix: str = "",
-               selection: Callable[[str, h5py.Dataset], Any] | None = None) -> dict[str, Any]:
+def read_dataset(ds: h5py.Dataset, path: Path, name: str | None = None, sel: Any = None) -> Any:
+    """One dataset (or the part `sel` indexes), finite-checked; strings decoded."""
+    name = name or ds.name.lstrip("/")
+    try:
+        if h5py.check_string_dtype(ds.dtype) is not None:
+            arr = ds.asstr()[()]
+            return arr.tolist() if isinstance(arr, np.ndarray) else arr
+        arr = ds[()] if sel is None else ds[sel]
+    except (OSError, RuntimeError) as exc:
+        raise input_error(path, f"entry '{name}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})") from None
+    if isinstance(arr, np.ndarray) and arr.dtype.kind in "fc" and not np.all(np.isfinite(arr)):
+        raise input_error(path, f"entry '{name}' contains non-finite values (corrupted artefact); rerun the stage")
+    return arr
+
+
+def read_tree(group: h5py.Group, path: Path, prefix: str = "",
+              selection: Callable[[str, h5py.Dataset], Any] | None = None) -> dict[str, Any]:
     """Every dataset under `group`, finite-checked. `selection(key, dataset)`
     may return an index to read only part of a dataset (None: all of it)."""
     out: dict[str, Any] = {}
     for key, item in group.items():
         name = f"{prefix}{key}"
         if isinstance(item, h5py.Group):
-            out[key] = _read_tree(item, path, prefix=f"{name}/", selection=selection)
+            out[key] = read_tree(item, path, prefix=f"{name}/", selection=selection)
             continue
-        try:
-            if h5py.check_string_dtype(item.dtype) is not None:
-                arr = item.asstr()[()]
-                out[key] = arr.tolist() if isinstance(arr, np.ndarray) else arr
-                continue
-            sel = selection(key, item) if selection is not None else None
-            arr = item[()] if sel is None else item[sel]
-        except (OSError, RuntimeError) as exc:
-            raise input_error(path, f"entry '{name}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})") from None
-        if isinstance(arr, np.ndarray) and arr.dtype.kind in "fc" and not np.all(np.isfinite(arr)):
-            raise input_error(path, f"entry '{name}' contains non-finite values (corrupted artefact); rerun the stage")
-        out[key] = arr
+        sel = None
+        if selection is not None and h5py.check_string_dtype(item.dtype) is None:
+            sel = selection(key, item)
+        out[key] = read_dataset(item, path, name, sel)
     return out
+
+
+def time_steps_index(steps: np.ndarray) -> slice | np.ndarray:
+    """Index for a time axis that reads only `steps` off disk: a contiguous
+    range is one slice (fast in HDF5), any other set an increasing index."""
+    steps = np.asarray(steps, np.int64)
+    if not steps.size:
+        return slice(0, 0)
+    if np.array_equal(steps, np.arange(steps[0], steps[-1] + 1)):
+        return slice(int(steps[0]), int(steps[-1]) + 1)
+    if steps.size > 1 and np.any(np.diff(steps) <= 0):
+        raise MogafError("time steps to read are not increasing")
+    return steps
 
 
 def read_artefact(
@@ -415,7 +435,7 @@ def read_artefact(
         _check_header(fh, p, _normalise_stages(stage), expected_config_digest)
         stage_name = _decode_attr(fh.attrs[ATTR_STAGE])
         attrs = ArtefactAttrs(p, stage_name, {k: _decode_attr(v) for k, v in fh.attrs.items() if k not in RESERVED_ATTRS})
-        data = _read_tree(fh, p)
+        data = read_tree(fh, p)
         art = Artefact(
             path=p,
             stage=stage_name,

@@ -175,9 +175,9 @@ def save_scene(path: str | os.PathLike, scene: Scene, *, config_digest: str) -> 
 
 
 def _read_group(fh, key: str) -> dict[str, Any]:
-    from .artefact import _read_tree  # shared tree reader with finiteness checks
+    from .artefact import read_tree  # shared tree reader with finiteness checks
 
-    return _read_tree(fh[key], Path(fh.filename), prefix=f"{key}/") if key in fh else {}
+    return read_tree(fh[key], Path(fh.filename), prefix=f"{key}/") if key in fh else {}
 
 
 def scene_attrs(path: str | os.PathLike) -> dict[str, Any]:

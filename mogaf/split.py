@@ -17,6 +17,7 @@ forecast_timesteps = T_obs .. T-1.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,8 @@ from typing import Any
 import h5py
 import numpy as np
 
-from .artefact import _read_tree, config_digest, open_artefact, read_artefact, read_rows, write_artefact
+from .artefact import (config_digest, open_artefact, read_artefact, read_dataset, read_rows, read_tree,
+                       time_steps_index, write_artefact)
 from .errors import MogafError, input_error
 from .scene import SCENE_STAGE, SPLIT_CODES, Scene, load_scene
 
@@ -165,22 +167,21 @@ def load_frames(scene_h5: str | os.PathLike, split: Split | str | os.PathLike, r
 GROUND_TRUTH_TIME_AXES = {"points3d": 1, "tracks2d": 1, "visible": 1, "object_poses": 1}
 
 
-def load_ground_truth(scene_h5: str | os.PathLike, split: Split, part: str) -> dict[str, Any]:
-    """Ground truth restricted to the observed or the forecast time steps.
+def load_ground_truth(scene_h5: str | os.PathLike, split: Split, part: str,
+                      entries: Iterable[str] | None = None) -> dict[str, Any]:
+    """Ground truth restricted to the observed or the forecast time steps
+    (only `entries` of it, if given; absent ones are left out).
 
     Only the evaluation stage may ask for part="forecast".
     """
     if part not in ("observed", "forecast"):
         raise ValueError("part must be 'observed' or 'forecast'")
-    steps = np.asarray(split.observed_timesteps if part == "observed" else split.forecast_timesteps, np.int64)
+    steps = split.observed_timesteps if part == "observed" else split.forecast_timesteps
     T = int(split.num_timesteps)
-    # Only the asked steps come off disk: a contiguous range is one slice, any other set a sorted index.
-    if steps.size and np.array_equal(steps, np.arange(steps[0], steps[-1] + 1)):
-        on_time_axis: Any = slice(int(steps[0]), int(steps[-1]) + 1)
-    else:
-        if steps.size > 1 and np.any(np.diff(steps) <= 0):
-            raise MogafError("load_ground_truth: the split's time steps are not increasing")
-        on_time_axis = steps
+    try:
+        on_time_axis = time_steps_index(steps)  # only the asked steps come off disk
+    except MogafError as exc:
+        raise MogafError(f"load_ground_truth: the split's {exc}") from None
 
     def selection(key: str, ds: h5py.Dataset) -> Any:
         axis = GROUND_TRUTH_TIME_AXES.get(key)
@@ -196,4 +197,8 @@ def load_ground_truth(scene_h5: str | os.PathLike, split: Split, part: str) -> d
                                         "the split was made for another scene")
         if "ground_truth" not in fh:
             return {}
-        return _read_tree(fh["ground_truth"], Path(scene_h5), prefix="ground_truth/", selection=selection)
+        g = fh["ground_truth"]
+        if entries is None:
+            return read_tree(g, Path(scene_h5), prefix="ground_truth/", selection=selection)
+        return {key: read_dataset(g[key], Path(scene_h5), f"ground_truth/{key}", selection(key, g[key]))
+                for key in entries if key in g and isinstance(g[key], h5py.Dataset)}

@@ -6,6 +6,7 @@ import h5py
 import numpy as np
 import pytest
 
+from mogaf.artefact import time_steps_index
 from mogaf.errors import MogafError
 from mogaf.scene import SPLIT_CODES, Scene, save_scene
 from mogaf.split import load_frames, load_ground_truth, make_split, read_split, split_scene, write_split
@@ -106,6 +107,24 @@ def test_ground_truth_reads_only_its_part_from_disk(tmp_path):
     assert obs["points3d"].shape == (4, 4, 3) and np.all(np.isfinite(obs["points3d"]))
     with pytest.raises(MogafError, match="points3d' contains non-finite values"):
         load_ground_truth(scene_h5, sp, "forecast")
+
+
+def test_ground_truth_entries_are_read_alone(tmp_path):
+    scene_h5 = save_scene(tmp_path / "scene.h5", _tiny_scene(), config_digest="d")
+    sp = split_scene(scene_h5, 0.5)
+    with h5py.File(scene_h5, "r+") as fh:  # an entry not asked for is never read
+        fh["ground_truth/points3d"][...] = np.nan
+    assert load_ground_truth(scene_h5, sp, "observed", entries=("visible", "nope")).keys() == {"visible"}
+    with pytest.raises(MogafError, match="points3d' contains non-finite values"):
+        load_ground_truth(scene_h5, sp, "observed", entries=("points3d",))
+
+
+def test_time_steps_index_reads_a_range_as_one_slice():
+    assert time_steps_index(np.arange(3, 7)) == slice(3, 7)
+    assert time_steps_index(np.zeros(0, np.int64)) == slice(0, 0)
+    np.testing.assert_array_equal(time_steps_index(np.array([1, 4, 5])), [1, 4, 5])
+    with pytest.raises(MogafError, match="not increasing"):
+        time_steps_index(np.array([4, 1]))
 
 
 def test_a_split_of_another_scene_is_refused(tmp_path):

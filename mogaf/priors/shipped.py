@@ -30,7 +30,7 @@ import numpy as np
 from ..artefact import open_artefact
 from ..errors import input_error
 from ..scene import SCENE_STAGE
-from ..split import Split
+from ..split import Split, load_ground_truth
 
 FRAME_INDEXED = ("disparity", "depth", "foreground")
 TRACKS = "tracks_2d"
@@ -123,25 +123,7 @@ def load_observed_shipped(scene_h5: str | os.PathLike, split: Split) -> Observed
     return out
 
 
-def _time_prefix(ds: h5py.Dataset, steps: np.ndarray, T: int, path) -> np.ndarray:
-    if ds.ndim < 2 or ds.shape[1] != T:
-        raise input_error(path, f"entry '{ds.name}' has shape {ds.shape}, expected time on axis 1 ({T} steps)")
-    steps = np.asarray(steps, np.int64)
-    if steps.size and np.array_equal(steps, np.arange(steps[0], steps[-1] + 1)):
-        arr = _read(ds, (slice(None), slice(int(steps[0]), int(steps[-1]) + 1)), path)
-    else:
-        arr = _read(ds, (slice(None), steps), path) if steps.size else np.zeros((ds.shape[0], 0) + ds.shape[2:], ds.dtype)
-    return _checked(arr, path, ds.name)
-
-
 def load_observed_ground_truth_tracks(scene_h5: str | os.PathLike, split: Split) -> dict[str, Any]:
     """ground_truth/{tracks2d, visible} (train camera) at the observed steps ({} if absent)."""
-    with open_artefact(scene_h5, SCENE_STAGE) as fh:
-        if "ground_truth" not in fh or "tracks2d" not in fh["ground_truth"]:
-            return {}
-        T = int(fh.attrs["num_timesteps"])
-        g = fh["ground_truth"]
-        out = {"tracks2d": _time_prefix(g["tracks2d"], split.observed_timesteps, T, scene_h5)}
-        if "visible" in g:
-            out["visible"] = _time_prefix(g["visible"], split.observed_timesteps, T, scene_h5)
-        return out
+    gt = load_ground_truth(scene_h5, split, "observed", entries=("tracks2d", "visible"))
+    return gt if "tracks2d" in gt else {}
