@@ -36,6 +36,7 @@ from .artefact import read_artefact, write_json
 from .errors import MogafError, input_error
 from .representation import Model4D, load_model
 from .rendering import render_model, render_poses
+from .scene import Scene
 from .split import Split, load_frames, load_ground_truth, read_split
 
 log = logging.getLogger(__name__)
@@ -46,7 +47,7 @@ DEFAULT_PARAMS: dict[str, Any] = {
     "save_renders": True,                # PNG per evaluation view and method
     "video": True,                       # GT | forecast | error video per method
     "video_fps": 8,
-    "max_reconstruction_frames": 24,     # held-out views at observed times rendered for reconstruction PSNR
+    "max_reconstruction_frames": 24,     # held-out views at observed times rendered for reconstruction PSNR; 0 = all
     "tracking_neighbors": 4,             # Gaussians a GT point is attached to
     "tracking_scale": 1.0,               # scene units -> metres for delta_3D (SoM evaluates in metres)
     "aj_thresholds": [4, 8, 16, 32, 64],     # px; SoM's evaluation (paper follows SoM's protocol)
@@ -278,6 +279,14 @@ def tracking_section(model: Model4D, fc: dict[str, Any], scene_h5: str, split: S
 
 
 # ------------------------------------------------------------------ stage
+def _evenly_spaced_frames(scene_h5: str, split: Split, role: str, limit: int) -> Scene:
+    """At most `limit` frames of `role`, evenly spaced over it (0: all of them)."""
+    ids = split.frame_ids[role]
+    if 0 < limit < ids.size:
+        ids = ids[np.unique(np.round(np.linspace(0, ids.size - 1, limit)).astype(np.int64))]
+    return load_frames(scene_h5, dataclasses.replace(split, frame_ids={**split.frame_ids, role: ids}), role)
+
+
 def grouping_section(grouped_model_h5: str, groups_h5: str, scene_h5: str, split: Split,
                      params: Mapping[str, Any]) -> dict[str, Any]:
     """The grouping's method and size, and where the scene has GT instance
@@ -294,11 +303,7 @@ def grouping_section(grouped_model_h5: str, groups_h5: str, scene_h5: str, split
         has_masks = "frames/instance_mask" in fh
     if ids.size == 0 or groups.num_groups == 0 or not has_masks:
         return out
-    limit = int(params["grouping_max_frames"])
-    if 0 < limit < ids.size:
-        ids = ids[np.unique(np.round(np.linspace(0, ids.size - 1, limit)).astype(np.int64))]
-    frames = load_frames(scene_h5, dataclasses.replace(split, frame_ids={**split.frame_ids, "evaluation_observed": ids}),
-                         "evaluation_observed")
+    frames = _evenly_spaced_frames(scene_h5, split, "evaluation_observed", int(params["grouping_max_frames"]))
     quality = grouping_quality(load_model(grouped_model_h5), groups, frames, alpha=float(params["grouping_alpha"]),
                                pixels=str(params["grouping_pixels"]))
     return {**out, **quality}
@@ -309,11 +314,7 @@ def reconstruction_section(model: Model4D, scene_h5: str, split: Split, params: 
     ids = split.frame_ids["evaluation_observed"]
     if ids.size == 0:
         return {}
-    limit = int(params["max_reconstruction_frames"])
-    pick = np.linspace(0, ids.size - 1, min(limit, ids.size)).round().astype(int)
-    sub = Split(split.ratio, split.protocol, split.num_timesteps, split.observed_timesteps, split.forecast_timesteps,
-                {**split.frame_ids, "evaluation_observed": ids[np.unique(pick)]})
-    frames = load_frames(scene_h5, sub, "evaluation_observed")
+    frames = _evenly_spaced_frames(scene_h5, split, "evaluation_observed", int(params["max_reconstruction_frames"]))
     masks = _frame_masks(frames)
     per = []
     for f in range(frames.num_frames):
