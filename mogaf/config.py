@@ -32,6 +32,7 @@ STAGE_SECTIONS: dict[str, tuple[str, ...]] = {
     "group": ("grouping",),
     "rigid_init": ("rigid_init",),
     "refine": ("seed", "device", "refine"),
+    "grouping_quality": ("grouping_quality",),
     "evaluate": ("evaluate", "forecast.methods"),
 }
 # Upstream stages of each stage (forecast depends on the method, see below).
@@ -41,6 +42,7 @@ STAGE_UPSTREAM: dict[str, tuple[str, ...]] = {
     "group": ("recon", "priors"),
     "rigid_init": ("group",),
     "refine": ("recon", "group", "rigid_init"),
+    "grouping_quality": ("group", "recon"),
 }
 ARTEFACT_FILES = {
     "priors": "priors.h5",
@@ -48,6 +50,7 @@ ARTEFACT_FILES = {
     "group": "groups.h5",
     "rigid_init": "rigid.h5",
     "refine": "refined.h5",
+    "grouping_quality": "grouping_quality.h5",
     "evaluate": "metrics.json",
 }
 FORECAST_METHODS = ("mogaf", "gcn", "ode", "constant_velocity", "frozen")
@@ -152,7 +155,7 @@ def _upstream(stage: str, config: Mapping[str, Any]) -> tuple[str, ...]:
     if stage.startswith("forecast:"):
         return (forecast_input_stage(config), "group")
     if stage == "evaluate":
-        return tuple(f"forecast:{m}" for m in config["forecast"]["methods"]) + (forecast_input_stage(config),)
+        return tuple(f"forecast:{m}" for m in config["forecast"]["methods"]) + (forecast_input_stage(config), "grouping_quality")
     return STAGE_UPSTREAM[stage]
 
 

@@ -13,13 +13,13 @@ and computes
   forecast poses; 3D EPE, delta_3D, and on the train camera 2D AJ,
   delta_avg and occlusion accuracy (visibility from the rendered depth).
 metrics.json also carries reconstruction quality at held-out views at
-observed times, the grouping quality, and the wall time and peak memory of
+observed times, the grouping quality (copied from grouping_quality.h5,
+mogaf.grouping.quality), and the wall time and peak memory of
 every stage that produced each method's result (Snakemake benchmark files).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import os
@@ -34,10 +34,10 @@ import numpy as np
 from . import __version__
 from .artefact import read_artefact, write_json
 from .errors import MogafError, input_error
+from .grouping.quality import read_grouping_quality
 from .representation import Model4D, load_model
 from .rendering import render_model, render_poses
-from .scene import Scene
-from .split import Split, load_frames, load_ground_truth, read_split
+from .split import Split, load_evenly_spaced_frames, load_frames, load_ground_truth, read_split
 
 log = logging.getLogger(__name__)
 
@@ -54,10 +54,6 @@ DEFAULT_PARAMS: dict[str, Any] = {
     "delta_thresholds": [4, 8, 16, 32, 64],  # px, issue/SoM delta_avg
     "visibility_tolerance": 0.03,        # relative depth slack for predicted visibility
     "runtime_in_metrics": True,          # wall time / memory in metrics.json (off: byte-identical reruns)
-    # grouping quality against GT instance masks at held-out views at observed times (mogaf.grouping.metrics)
-    "grouping_alpha": 0.5,               # a pixel is labelled where the rendered alpha exceeds this
-    "grouping_pixels": "foreground",     # ARI over GT-foreground U predicted-foreground pixels ("all": every pixel)
-    "grouping_max_frames": 0,            # held-out frames rendered (evenly spaced); 0 = all
 }
 
 
@@ -279,42 +275,12 @@ def tracking_section(model: Model4D, fc: dict[str, Any], scene_h5: str, split: S
 
 
 # ------------------------------------------------------------------ stage
-def _evenly_spaced_frames(scene_h5: str, split: Split, role: str, limit: int) -> Scene:
-    """At most `limit` frames of `role`, evenly spaced over it (0: all of them)."""
-    ids = split.frame_ids[role]
-    if 0 < limit < ids.size:
-        ids = ids[np.unique(np.round(np.linspace(0, ids.size - 1, limit)).astype(np.int64))]
-    return load_frames(scene_h5, dataclasses.replace(split, frame_ids={**split.frame_ids, role: ids}), role)
-
-
-def grouping_section(grouped_model_h5: str, groups_h5: str, scene_h5: str, split: Split,
-                     params: Mapping[str, Any]) -> dict[str, Any]:
-    """The grouping's method and size, and where the scene has GT instance
-    masks, its quality at held-out views at observed times, rendered with the
-    model that was grouped (per-object IoU, ARI; mogaf.grouping.metrics)."""
-    from .artefact import open_artefact
-    from .grouping import grouping_quality, load_groups
-    from .scene import SCENE_STAGE
-
-    groups = load_groups(groups_h5)
-    out: dict[str, Any] = {"method": groups.method, "num_groups": groups.num_groups}
-    ids = split.frame_ids.get("evaluation_observed", np.zeros(0, np.int64))
-    with open_artefact(scene_h5, SCENE_STAGE) as fh:
-        has_masks = "frames/instance_mask" in fh
-    if ids.size == 0 or groups.num_groups == 0 or not has_masks:
-        return out
-    frames = _evenly_spaced_frames(scene_h5, split, "evaluation_observed", int(params["grouping_max_frames"]))
-    quality = grouping_quality(load_model(grouped_model_h5), groups, frames, alpha=float(params["grouping_alpha"]),
-                               pixels=str(params["grouping_pixels"]))
-    return {**out, **quality}
-
-
 def reconstruction_section(model: Model4D, scene_h5: str, split: Split, params: Mapping[str, Any], masked: bool) -> dict[str, Any]:
     """Quality of the 4D model itself at held-out views at observed times."""
     ids = split.frame_ids["evaluation_observed"]
     if ids.size == 0:
         return {}
-    frames = _evenly_spaced_frames(scene_h5, split, "evaluation_observed", int(params["max_reconstruction_frames"]))
+    frames = load_evenly_spaced_frames(scene_h5, split, "evaluation_observed", int(params["max_reconstruction_frames"]))
     masks = _frame_masks(frames)
     per = []
     for f in range(frames.num_frames):
@@ -334,12 +300,12 @@ def runtime_section(benchmarks: Mapping[str, str], methods: list[str]) -> dict[s
     return {"stages": stages, "total_wall_s": per_method}
 
 
-def run_evaluate_stage(*, scene: str, split: str, model: str, grouped_model: str, groups: str, forecasts: Mapping[str, str],
+def run_evaluate_stage(*, scene: str, split: str, model: str, grouping_quality: str, forecasts: Mapping[str, str],
                        benchmarks: Mapping[str, str], out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str,
                        ids: Mapping[str, str]) -> Path:
     """metrics.json and renders of every forecast. `model`: the model the
     forecasts start from (refined.h5, or recon.h5 without refinement);
-    `grouped_model`: the one the grouping was made on (recon.h5)."""
+    `grouping_quality`: grouping_quality.h5 of the grouping the forecasts used."""
     p = {**DEFAULT_PARAMS, **dict(params)}
     unknown = set(params) - set(DEFAULT_PARAMS)
     if unknown:
@@ -386,7 +352,7 @@ def run_evaluate_stage(*, scene: str, split: str, model: str, grouped_model: str
                 panels = [np.concatenate([gts[f], renders[f], np.abs(renders[f] - gts[f])], axis=1) for f in range(frames.num_frames)]
                 _write_video(renders_tmp / f"{method}.mp4", panels, int(p["video_fps"]))
         result["reconstruction"] = reconstruction_section(m4, scene, sp, p, masked)
-        result["grouping"] = grouping_section(grouped_model, groups, scene, sp, p)
+        result["grouping"] = read_grouping_quality(grouping_quality)
         if p["runtime_in_metrics"]:
             rt = runtime_section(benchmarks, methods)
             rt["stages"]["evaluate"] = {"wall_s": round(time.perf_counter() - start, 3), "max_rss_mb": None}

@@ -16,6 +16,7 @@ forecast_timesteps = T_obs .. T-1.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -161,6 +162,14 @@ def load_frames(scene_h5: str | os.PathLike, split: Split | str | os.PathLike, r
         raise input_error(scene_h5, f"frame {int(sp.frame_ids[role][f])} of split role '{role}' is at time step "
                                     f"{int(frames.time_index[f])}, outside the role's steps: the split was made for another scene")
     return frames
+
+
+def load_evenly_spaced_frames(scene_h5: str | os.PathLike, split: Split, role: str, limit: int) -> Scene:
+    """At most `limit` frames of `role`, evenly spaced over it (0: all of them)."""
+    ids = split.frame_ids[role]
+    if 0 < limit < ids.size:
+        ids = ids[np.unique(np.round(np.linspace(0, ids.size - 1, limit)).astype(np.int64))]
+    return load_frames(scene_h5, dataclasses.replace(split, frame_ids={**split.frame_ids, role: ids}), role)
 
 
 # Time axes of ground-truth arrays written by the synthetic generator.

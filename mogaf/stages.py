@@ -142,12 +142,19 @@ def forecast_merge(model: str, groups: str, split: str, parts: list[str], out: s
         return run_forecast_merge(model, groups, split, parts, out, dict(params), method=method, seed=seed)
 
 
-def evaluate(scene: str, split: str, model: str, grouped_model: str, groups: str, forecasts: Mapping[str, str], benchmarks: Mapping[str, str], out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str, ids: Mapping[str, str]) -> Path:
+def grouping_quality(grouped_model: str, groups: str, scene: str, split: str, out: str, params: Mapping[str, Any]) -> Path:
+    from .grouping.quality import run_grouping_quality_stage
+
+    with stage_inputs(grouped_model, groups, scene, split):
+        return run_grouping_quality_stage(grouped_model, groups, scene, split, out, dict(params))
+
+
+def evaluate(scene: str, split: str, model: str, grouping_quality: str, forecasts: Mapping[str, str], benchmarks: Mapping[str, str], out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str, ids: Mapping[str, str]) -> Path:
     from .evaluate import run_evaluate_stage
 
-    with stage_inputs(scene, split, model, grouped_model, groups, *forecasts.values()):
+    with stage_inputs(scene, split, model, grouping_quality, *forecasts.values()):
         return run_evaluate_stage(
-            scene=scene, split=split, model=model, grouped_model=grouped_model, groups=groups, forecasts=dict(forecasts), benchmarks=dict(benchmarks),
+            scene=scene, split=split, model=model, grouping_quality=grouping_quality, forecasts=dict(forecasts), benchmarks=dict(benchmarks),
             out_metrics=out_metrics, out_renders=out_renders, params=dict(params), variant=variant, ids=dict(ids),
         )
 

@@ -29,6 +29,7 @@ def library_defaults() -> dict[str, dict[str, Any]]:
     """section path -> the library's default dict, as the stages receive it."""
     import mogaf.evaluate
     import mogaf.grouping
+    import mogaf.grouping.quality
     import mogaf.priors
     import mogaf.recon.params
     import mogaf.refine
@@ -41,6 +42,7 @@ def library_defaults() -> dict[str, dict[str, Any]]:
         "rigid_init": mogaf.grouping.RIGID_INIT_DEFAULTS,
         "refine": mogaf.refine.REFINE_DEFAULTS,
         "evaluate": mogaf.evaluate.DEFAULT_PARAMS,
+        "grouping_quality": mogaf.grouping.quality.DEFAULT_PARAMS,
     }
     out.update({f"forecast.{m}": defaults(m) for m in METHODS})
     return {name: {k: v for k, v in d.items() if k not in INJECTED.get(name, set())} for name, d in out.items()}

@@ -1,4 +1,4 @@
-"""Stage entries: groups.h5 (with quality at held-out views) and rigid.h5."""
+"""Stage entries: groups.h5, its quality at held-out views (grouping_quality.h5) and rigid.h5."""
 
 from __future__ import annotations
 
@@ -7,8 +7,6 @@ import pytest
 from sklearn.metrics import adjusted_rand_score
 
 from mogaf.artefact import read_artefact, write_artefact
-from mogaf.evaluate import DEFAULT_PARAMS as EVAL_PARAMS
-from mogaf.evaluate import grouping_section
 from mogaf.grouping import (
     has_rigid_groups,
     load_groups,
@@ -18,6 +16,7 @@ from mogaf.grouping import (
 )
 from mogaf.grouping.core import DEFAULT_PARAMS, Groups
 from mogaf.grouping.metrics import adjusted_rand_index, grouping_quality, per_object_iou
+from mogaf.grouping.quality import read_grouping_quality, run_grouping_quality_stage
 from mogaf.grouping.toy import look_at, model_from_points, splat_instance_masks, two_object_scene
 from mogaf.representation import save_model
 from mogaf.scene import Instances, Scene, load_scene, save_scene
@@ -89,13 +88,14 @@ def test_group_stage_writes_groups_h5(toy_files, method):
         assert g.names == ["sphere", "box"]
         # sphere: label from the dataset; box: unknown -> estimated (rigid motion).
         assert g.rigid_source == ["label", "estimated"] and list(g.rigid) == [1, 1]
-        # quality at held-out views: measured by evaluation, from the files the pipeline gives it
-        split = read_split(toy_files["split"])
-        params = {**EVAL_PARAMS, "grouping_max_frames": 4}
-        q = grouping_section(str(toy_files["recon"]), str(out), str(toy_files["scene"]), split, params)
+        # quality at held-out views: its own stage, from the files the pipeline gives it
+        quality_h5 = run_grouping_quality_stage(toy_files["recon"], out, toy_files["scene"], toy_files["split"],
+                                                toy_files["root"] / "grouping_quality.h5", {"max_frames": 4})
+        q = read_grouping_quality(quality_h5)
         assert q["method"] == "ours" and q["num_groups"] == K
         assert q["ari"] > 0.6 and min(q["per_object_iou"]) > 0.6 and q["num_frames"] == 4
         assert q["object_ids"] == [1, 2]
+        np.testing.assert_allclose(read_artefact(quality_h5, "grouping_quality")["per_object_iou"], q["per_object_iou"])
     assert "quality" not in art and "ari" not in art.attrs  # the group stage opens no held-out view
     assert has_rigid_groups(out) == bool(np.any(g.rigid == 1))
 

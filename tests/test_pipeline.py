@@ -102,7 +102,7 @@ def test_every_method_has_finite_metrics(runs):
         assert math.isfinite(section["forecast"]["epe_3d_quick"]), method
     # the better forecasts beat showing the last observed frame
     assert metrics["methods"]["mogaf"]["image"]["psnr"] > 10
-    # grouping quality at held-out views, measured by evaluation
+    # grouping quality at held-out views (grouping_quality stage), copied into metrics.json
     grouping = metrics["grouping"]
     assert 0.0 <= grouping["mean_iou"] <= 1.0 and math.isfinite(grouping["ari"])
     assert len(grouping["per_object_iou"]) == len(grouping["object_names"]) > 0
@@ -117,6 +117,8 @@ def test_artefacts_record_their_lineage(runs):
     assert lineage["priors.h5"].inputs == {"ingest": (scene.digest,), "split": (lineage["split.h5"].digest,)}
     refined = lineage["refined.h5"].inputs
     assert refined["recon"] == (lineage["recon.h5"].digest,) and refined["group"] == (lineage["groups.h5"].digest,)
+    quality = read_lineage(ratio / "grouping_quality.h5").inputs
+    assert quality["recon"] == (lineage["recon.h5"].digest,) and quality["group"] == (lineage["groups.h5"].digest,)
     forecast = read_lineage(ratio / "forecast" / "mogaf.h5")
     assert forecast.inputs["refine"] == (lineage["refined.h5"].digest,)
 

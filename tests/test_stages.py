@@ -30,13 +30,14 @@ def never_run(monkeypatch):
     """Stage bodies that fail the test if the lineage check lets them run."""
     import mogaf.evaluate
     import mogaf.forecast.stage
+    import mogaf.grouping.quality
     import mogaf.refine
 
     def body(*args, **kwargs):
         raise AssertionError("the stage ran on inputs of another lineage")
 
     for module, name in ((mogaf.refine, "run_refine_stage"), (mogaf.forecast.stage, "run_forecast_group"),
-                         (mogaf.evaluate, "run_evaluate_stage")):
+                         (mogaf.grouping.quality, "run_grouping_quality_stage"), (mogaf.evaluate, "run_evaluate_stage")):
         monkeypatch.setattr(module, name, body)
 
 
@@ -52,9 +53,14 @@ def test_stages_refuse_inputs_of_another_lineage(tmp_path, never_run):
                               out=str(tmp_path / "f.h5"), params={}, method="frozen", group="1", seed=0)
     with stage_inputs(a["recon"], a["groups"], a["split"]):
         forecast = write_artefact(tmp_path / "frozen.h5", "forecast", {}, config_digest="frozen")
+    with stage_inputs(b["recon"], b["groups"], b["scene"], b["split"]):
+        quality = write_artefact(tmp_path / "grouping_quality.h5", "grouping_quality", {}, config_digest="q")
+    with pytest.raises(MogafError, match=r"a/groups\.h5: was made from another 'recon' artefact"):
+        stages.grouping_quality(grouped_model=str(b["recon"]), groups=str(a["groups"]), scene=str(a["scene"]),
+                                split=str(a["split"]), out=str(tmp_path / "q.h5"), params={})
     with pytest.raises(MogafError, match=r"frozen\.h5: was made from another 'recon' artefact"):
-        stages.evaluate(scene=str(a["scene"]), split=str(a["split"]), model=str(b["recon"]), grouped_model=str(b["recon"]),
-                        groups=str(b["groups"]), forecasts={"frozen": str(forecast)}, benchmarks={},
+        stages.evaluate(scene=str(a["scene"]), split=str(a["split"]), model=str(b["recon"]),
+                        grouping_quality=str(quality), forecasts={"frozen": str(forecast)}, benchmarks={},
                         out_metrics=str(tmp_path / "m.json"), out_renders=str(tmp_path / "renders"), params={},
                         variant="default", ids={})
-    assert not (tmp_path / "r.h5").exists() and not (tmp_path / "m.json").exists()
+    assert not any((tmp_path / name).exists() for name in ("r.h5", "q.h5", "m.json"))

@@ -148,6 +148,14 @@ def _groups_tree(root: Path, rigid: list[int]) -> None:
     write_groups(ratio / "groups.h5", groups, digest="d")
 
 
+def test_sweep_measures_its_shared_grouping_once(tmp_path):
+    _groups_tree(tmp_path, [1, 0])  # past the checkpoint, the evaluate jobs' inputs are known
+    res = snakemake(["-n", "sweep_groupwise"], tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    counts = job_counts(res.stdout)
+    assert counts["evaluate"] == 9 and counts["grouping_quality"] == 1
+
+
 @pytest.mark.parametrize("rigid, expect", [([0, 0], False), ([1, 0], True)])
 def test_rigid_init_runs_only_with_rigid_groups(tmp_path, rigid, expect):
     _groups_tree(tmp_path, rigid)

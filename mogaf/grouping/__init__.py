@@ -8,6 +8,7 @@ Modules
 - voting:    KNN voting for unassigned Gaussians.
 - rigidity:  tau_k (label / config / estimated) and static flags.
 - metrics:   grouping_quality: per-object IoU and ARI at held-out views.
+- quality:   run_grouping_quality_stage -> grouping_quality.h5, read_grouping_quality.
 - api:       group_gaussians (both methods, flags, compaction).
 - stage:     run_group_stage -> groups.h5, run_rigid_init_stage -> rigid.h5,
              has_rigid_groups, load_groups, read_rigid_init.

@@ -1,5 +1,6 @@
 """Grouping quality against ground-truth instance masks (computed by the
-evaluation stage: the group stage never opens held-out views).
+grouping_quality stage, mogaf.grouping.quality: the group stage never opens
+held-out views).
 
 Protocol (held-out cameras at observed times, split role
 "evaluation_observed"):

@@ -15,8 +15,8 @@ groups.h5 (stage "group"):
   attrs: method, params (JSON), num_groups, scene_extent, static_scene,
     method_diagnostics (JSON)
 The grouping's quality against GT instance masks at held-out views is
-measured by the evaluation stage (mogaf.grouping.metrics), not here: the
-group stage reads only the observed frames' masks and cameras.
+measured by its own stage (mogaf.grouping.quality), not here: the group
+stage reads only the observed frames' masks and cameras.
 
 rigid.h5 (stage "rigid_init"), supplementary "Rigid Motion Initialization":
   group_ids (K_r,) int64            the rigid groups

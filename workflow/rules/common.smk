@@ -284,8 +284,7 @@ def evaluate_inputs(wildcards):
         "scene": scene_h5(wildcards),
         "split": split_h5(wildcards),
         "model": forecast_model(wildcards),
-        "grouped_model": stage_path("recon", wildcards),
-        "groups": groups_h5(wildcards),
+        "grouping_quality": stage_path("grouping_quality", wildcards),
     }
     for method in cfg["forecast"]["methods"]:
         inputs[f"forecast_{method}"] = forecast_h5(wildcards, method)

@@ -1,0 +1,87 @@
+"""Stage grouping_quality (-> grouping_quality.h5): the grouping's quality
+against GT instance masks at held-out views at observed times.
+
+Its own stage, not part of evaluation, so that the ablations sharing one
+grouping (forecast-only variants) render its held-out views once. It reads
+the model that was grouped (recon.h5), groups.h5, the split and scene.h5's
+"evaluation_observed" frames: held-out cameras, observed times only.
+
+grouping_quality.h5 (stage "grouping_quality"):
+  per_object_iou (M,) float64       IoU of each GT object present (mogaf.grouping.metrics)
+  object_ids (M,) int64
+  attrs: method, num_groups, params (JSON), quality (JSON: the whole
+    section evaluation copies into metrics.json["grouping"]; only method and
+    num_groups where the scene has no instance masks or no held-out view)
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..artefact import config_digest, open_artefact, read_artefact, write_artefact
+from ..errors import MogafError, input_error
+from ..representation import load_model
+from ..scene import SCENE_STAGE
+from ..split import Split, load_evenly_spaced_frames, read_split
+from .metrics import grouping_quality
+from .stage import load_groups
+
+GROUPING_QUALITY_STAGE = "grouping_quality"
+DEFAULT_PARAMS: dict[str, Any] = {
+    "alpha": 0.5,             # a pixel is labelled where the rendered alpha exceeds this
+    "pixels": "foreground",   # ARI over GT-foreground U predicted-foreground pixels ("all": every pixel)
+    "max_frames": 0,          # held-out frames rendered (evenly spaced); 0 = all
+}
+
+
+def _resolve(params: Mapping[str, Any] | None) -> dict[str, Any]:
+    unknown = set(params or {}) - set(DEFAULT_PARAMS)
+    if unknown:
+        raise MogafError(f"grouping_quality: unknown parameter(s) {', '.join(sorted(unknown))}")
+    return {**DEFAULT_PARAMS, **dict(params or {})}
+
+
+def measure_grouping_quality(grouped_model_h5: str | os.PathLike, groups_h5: str | os.PathLike,
+                             scene_h5: str | os.PathLike, split: Split,
+                             params: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The grouping's method and size, and where the scene has GT instance
+    masks and held-out views at observed times, its per-object IoU and ARI,
+    rendered with the model that was grouped."""
+    p = _resolve(params)
+    groups = load_groups(groups_h5)
+    out: dict[str, Any] = {"method": groups.method, "num_groups": groups.num_groups}
+    ids = split.frame_ids.get("evaluation_observed", np.zeros(0, np.int64))
+    with open_artefact(scene_h5, SCENE_STAGE) as fh:
+        has_masks = "frames/instance_mask" in fh
+    if ids.size == 0 or groups.num_groups == 0 or not has_masks:
+        return out
+    frames = load_evenly_spaced_frames(scene_h5, split, "evaluation_observed", int(p["max_frames"]))
+    quality = grouping_quality(load_model(grouped_model_h5), groups, frames, alpha=float(p["alpha"]), pixels=str(p["pixels"]))
+    return {**out, **quality}
+
+
+def run_grouping_quality_stage(grouped_model_h5: str | os.PathLike, groups_h5: str | os.PathLike,
+                               scene_h5: str | os.PathLike, split_h5: str | os.PathLike, out: str | os.PathLike,
+                               params: Mapping[str, Any] | None = None) -> Path:
+    p = _resolve(params)
+    quality = measure_grouping_quality(grouped_model_h5, groups_h5, scene_h5, read_split(split_h5), p)
+    data = {
+        "per_object_iou": np.asarray(quality.get("per_object_iou", []), np.float64),
+        "object_ids": np.asarray(quality.get("object_ids", []), np.int64),
+    }
+    attrs = {"method": quality["method"], "num_groups": int(quality["num_groups"]), "params": p, "quality": quality}
+    return write_artefact(out, GROUPING_QUALITY_STAGE, data, config_digest=config_digest(p), attrs=attrs)
+
+
+def read_grouping_quality(path: str | os.PathLike) -> dict[str, Any]:
+    """The section metrics.json["grouping"] carries."""
+    art = read_artefact(path, GROUPING_QUALITY_STAGE, required=("per_object_iou", "object_ids"))
+    quality = dict(art.attrs["quality"])
+    if not np.allclose(np.asarray(quality.get("per_object_iou", []), np.float64), art["per_object_iou"]):
+        raise input_error(path, "attribute 'quality' disagrees with entry 'per_object_iou' (corrupted artefact)")
+    return quality

@@ -1,0 +1,22 @@
+# Grouping quality against GT instance masks at held-out views at observed
+# times (per-object IoU, ARI; Supp. grouping ablation). Its own rule so that
+# the variants sharing one grouping render these views once.
+
+
+rule grouping_quality:
+    input:
+        grouped_model=lambda wildcards: stage_path("recon", wildcards),
+        groups=lambda wildcards: stage_path("group", wildcards),
+        scene=scene_h5,
+        split=split_h5,
+    output:
+        "results/{dataset}/{scene}/ratio{ratio}/{prefix}grouping_quality.h5",
+    params:
+        grouping_quality=params_for("grouping_quality"),
+    threads: 2
+    log:
+        log_file("grouping_quality"),
+    conda:
+        "../../envs/mogaf.yaml"
+    script:
+        "../scripts/grouping_quality.py"
