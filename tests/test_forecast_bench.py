@@ -21,6 +21,15 @@ def test_evaluate_trajectories_scores_references():
         assert r["epe"] < 1e-12 and r["rot_err_deg"] < 1e-6
 
 
+def test_frozen_error_grows_step_by_step_on_a_moving_box():
+    traj = rigid_box(40, 30)
+    (row,) = bench.evaluate_trajectories(traj, 0.6, methods=("frozen",))
+    steps = np.asarray(row["epe_per_step"])
+    assert steps.shape == (12,) and np.all(steps > 0)
+    assert np.isclose(steps.mean(), row["epe"], atol=1e-5)  # the mean EPE is the mean over steps
+    assert steps[-1] > steps[0]  # a held pose falls further behind a moving box
+
+
 def test_split_rejects_bad_input():
     with pytest.raises(MogafError, match="shape"):
         bench.split(np.zeros((3, 10, 6)), 0.6)

@@ -68,9 +68,15 @@ def split(traj: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
 
 def errors(poses: np.ndarray, future: np.ndarray) -> tuple[float, float]:
     """(mean 3D EPE, mean rotation error in degrees)."""
-    epe = float(np.linalg.norm(poses[..., :3] - future[..., :3], axis=-1).mean())
+    epe = float(epe_per_step(poses, future).mean())
     rot = float(np.degrees(quat.angle_between(poses[..., 3:], future[..., 3:])).mean())
     return epe, rot
+
+
+def epe_per_step(poses: np.ndarray, future: np.ndarray) -> np.ndarray:
+    """(T_fc,) 3D EPE at each forecast step, averaged over Gaussians: where a
+    rollout goes wrong (a first-step bias or a slow drift)."""
+    return np.linalg.norm(poses[..., :3] - future[..., :3], axis=-1).mean(axis=0)
 
 
 def evaluate_trajectories(
@@ -102,6 +108,7 @@ def evaluate_trajectories(
                 "forecast_frames": int(fut.shape[1]),
                 "epe": epe,
                 "rot_err_deg": rot,
+                "epe_per_step": [round(float(v), 6) for v in epe_per_step(res.poses, fut)],
                 "train_s": float(res.info.get("train_time_s", 0.0)),
                 "total_s": wall,
                 "final_loss": res.info.get("final_loss"),
