@@ -5,6 +5,8 @@ Each set is a ground-truth array (G, T_total, 7). For every observation ratio
 the first round(ratio * T_total) frames are observed, the rest forecast. EPE is
 the mean over Gaussians and forecast steps of ||mu_hat - mu||; the rotation
 error is the mean geodesic angle (degrees); train time is wall-clock per group.
+A --json row also keeps the EPE at each forecast step (epe_per_step), to tell
+a first-step bias from a drift.
 
 Trajectory sources are pluggable:
   * built-in procedural sets (--sets, mogaf.forecast.synthetic.TRAJECTORY_SETS);
