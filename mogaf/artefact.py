@@ -382,7 +382,7 @@ def read_dataset(ds: h5py.Dataset, path: Path, name: str | None = None, sel: Any
     name = name or ds.name.lstrip("/")
     try:
         if h5py.check_string_dtype(ds.dtype) is not None:
-            arr = ds.asstr()[()]
+            arr = ds.asstr()[()] if sel is None else ds.asstr()[sel]
             return arr.tolist() if isinstance(arr, np.ndarray) else arr
         arr = ds[()] if sel is None else ds[sel]
     except (OSError, RuntimeError) as exc:
@@ -402,19 +402,20 @@ def read_tree(group: h5py.Group, path: Path, prefix: str = "",
         if isinstance(item, h5py.Group):
             out[key] = read_tree(item, path, prefix=f"{name}/", selection=selection)
             continue
-        sel = None
-        if selection is not None and h5py.check_string_dtype(item.dtype) is None:
-            sel = selection(key, item)
-        out[key] = read_dataset(item, path, name, sel)
+        out[key] = read_dataset(item, path, name, None if selection is None else selection(key, item))
     return out
 
 
-def time_steps_index(steps: np.ndarray) -> slice | np.ndarray:
-    """Index for a time axis that reads only `steps` off disk: a contiguous
-    range is one slice (fast in HDF5), any other set an increasing index."""
+def time_steps_index(steps: np.ndarray, num_steps: int | None = None) -> slice | np.ndarray:
+    """Index for a time axis (of `num_steps` steps, if given) that reads only
+    `steps` off disk: a contiguous range is one slice (fast in HDF5), any
+    other set an increasing index."""
     steps = np.asarray(steps, np.int64)
     if not steps.size:
         return slice(0, 0)
+    if steps.min() < 0 or (num_steps is not None and steps.max() >= num_steps):
+        upper = "" if num_steps is None else f" of {num_steps}"
+        raise MogafError(f"time steps {int(steps.min())}..{int(steps.max())} lie outside the time axis{upper}")
     if np.array_equal(steps, np.arange(steps[0], steps[-1] + 1)):
         return slice(int(steps[0]), int(steps[-1]) + 1)
     if steps.size > 1 and np.any(np.diff(steps) <= 0):

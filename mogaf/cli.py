@@ -109,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--parts", nargs="*", default=[], help="forecast/{method}/group{k}.h5 files")
     _add_common(p)
     p = sub.add_parser("evaluate", help="render forecasts at the evaluation views, write metrics.json")
-    for option in ("scene-h5", "split-h5", "model-h5", "grouping-quality-h5", "out", "renders"):
+    for option in ("scene-h5", "split-h5", "model-h5", "groups-h5", "grouping-quality-h5", "out", "renders"):
         p.add_argument(f"--{option}", required=True)
     p.add_argument("--forecast", action="append", default=[], metavar="METHOD=PATH", required=True)
     p.add_argument("--benchmark", action="append", default=[], metavar="STAGE=TSV", help="Snakemake benchmark files")
@@ -182,7 +182,7 @@ def _run_extra(args: argparse.Namespace) -> int:
     elif args.command == "evaluate":
         ids = {"dataset": args.dataset or "", "scene": args.scene or "", "ratio": args.ratio}
         stages.run_stage(stages.evaluate, None, threads=args.threads, scene=args.scene_h5, split=args.split_h5,
-                         model=args.model_h5, grouping_quality=args.grouping_quality_h5,
+                         model=args.model_h5, groups=args.groups_h5, grouping_quality=args.grouping_quality_h5,
                          forecasts=_pairs(args.forecast, "forecast"),
                          benchmarks=_pairs(args.benchmark, "benchmark"), out_metrics=args.out, out_renders=args.renders,
                          params=cfg["evaluate"], variant=args.variant or "default", ids=ids)

@@ -315,6 +315,7 @@ def run_evaluate_stage(*, scene: str, split: str, model: str, grouping_quality: 
         from .metrics.lpips import load_lpips_weights
 
         load_lpips_weights()  # fail before rendering anything when the weights are missing
+    grouping = read_grouping_quality(grouping_quality)  # a bad file fails before any render
     sp = read_split(split)
     m4 = load_model(model)
     frames = load_frames(scene, sp, "evaluation")
@@ -352,7 +353,7 @@ def run_evaluate_stage(*, scene: str, split: str, model: str, grouping_quality: 
                 panels = [np.concatenate([gts[f], renders[f], np.abs(renders[f] - gts[f])], axis=1) for f in range(frames.num_frames)]
                 _write_video(renders_tmp / f"{method}.mp4", panels, int(p["video_fps"]))
         result["reconstruction"] = reconstruction_section(m4, scene, sp, p, masked)
-        result["grouping"] = read_grouping_quality(grouping_quality)
+        result["grouping"] = grouping
         if p["runtime_in_metrics"]:
             rt = runtime_section(benchmarks, methods)
             rt["stages"]["evaluate"] = {"wall_s": round(time.perf_counter() - start, 3), "max_rss_mb": None}

@@ -188,7 +188,7 @@ def load_ground_truth(scene_h5: str | os.PathLike, split: Split, part: str,
     steps = split.observed_timesteps if part == "observed" else split.forecast_timesteps
     T = int(split.num_timesteps)
     try:
-        on_time_axis = time_steps_index(steps)  # only the asked steps come off disk
+        on_time_axis = time_steps_index(steps, T)  # only the asked steps come off disk
     except MogafError as exc:
         raise MogafError(f"load_ground_truth: the split's {exc}") from None
 

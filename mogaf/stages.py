@@ -149,10 +149,12 @@ def grouping_quality(grouped_model: str, groups: str, scene: str, split: str, ou
         return run_grouping_quality_stage(grouped_model, groups, scene, split, out, dict(params))
 
 
-def evaluate(scene: str, split: str, model: str, grouping_quality: str, forecasts: Mapping[str, str], benchmarks: Mapping[str, str], out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str, ids: Mapping[str, str]) -> Path:
+def evaluate(scene: str, split: str, model: str, groups: str, grouping_quality: str, forecasts: Mapping[str, str], benchmarks: Mapping[str, str], out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str, ids: Mapping[str, str]) -> Path:
     from .evaluate import run_evaluate_stage
 
-    with stage_inputs(scene, split, model, grouping_quality, *forecasts.values()):
+    # groups.h5 is read for its lineage only: the forecasts, the model and the
+    # grouping's quality must all come from this one grouping.
+    with stage_inputs(scene, split, model, groups, grouping_quality, *forecasts.values()):
         return run_evaluate_stage(
             scene=scene, split=split, model=model, grouping_quality=grouping_quality, forecasts=dict(forecasts), benchmarks=dict(benchmarks),
             out_metrics=out_metrics, out_renders=out_renders, params=dict(params), variant=variant, ids=dict(ids),

@@ -13,13 +13,14 @@ VARIANTS = mcfg.load_yaml("config/ablations.yaml")["variants"]
 
 def prefixes(variant):
     cfg = mcfg.variant_config(BASE, VARIANTS, variant)
-    stages = ["priors", "recon", "group", "rigid_init", "refine", "forecast:mogaf", "forecast:gcn", "evaluate"]
+    stages = ["priors", "recon", "group", "rigid_init", "refine", "grouping_quality", "forecast:mogaf", "forecast:gcn",
+              "evaluate"]
     return {s: mcfg.artefact_prefix(s, BASE, cfg, variant) for s in stages}
 
 
 def test_forecaster_variant_shares_everything_upstream():
     p = prefixes("no_masking")
-    assert p["priors"] == p["recon"] == p["group"] == p["refine"] == ""
+    assert p["priors"] == p["recon"] == p["group"] == p["refine"] == p["grouping_quality"] == ""
     assert p["forecast:mogaf"] == "ablation/no_masking/"
     assert p["forecast:gcn"] == ""  # another method's forecast is unchanged
 
@@ -27,13 +28,19 @@ def test_forecaster_variant_shares_everything_upstream():
 def test_grouping_variant_shares_reconstruction_only():
     p = prefixes("gaga4d")
     assert p["priors"] == p["recon"] == ""
-    assert p["group"] == p["refine"] == p["forecast:mogaf"] == "ablation/gaga4d/"
+    assert p["group"] == p["refine"] == p["grouping_quality"] == p["forecast:mogaf"] == "ablation/gaga4d/"
 
 
 def test_reconstruction_knob_invalidates_downstream():
     p = prefixes("rt_fast")
     assert p["priors"] == ""
-    assert all(p[s] == "ablation/rt_fast/" for s in ("recon", "group", "refine", "forecast:mogaf", "forecast:gcn"))
+    assert all(p[s] == "ablation/rt_fast/" for s in ("recon", "group", "refine", "grouping_quality", "forecast:mogaf", "forecast:gcn"))
+
+
+def test_grouping_quality_settings_touch_only_the_measurement():
+    cfg = mcfg.variant_config(BASE, {"px": {"overrides": {"grouping_quality": {"pixels": "all"}}}}, "px")
+    p = {s: mcfg.artefact_prefix(s, BASE, cfg, "px") for s in ("group", "refine", "forecast:mogaf", "grouping_quality", "evaluate")}
+    assert p == {"group": "", "refine": "", "forecast:mogaf": "", "grouping_quality": "ablation/px/", "evaluate": "ablation/px/"}
 
 
 def test_unrefined_input_variant():

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import h5py
 import numpy as np
 import pytest
 from sklearn.metrics import adjusted_rand_score
 
 from mogaf.artefact import read_artefact, write_artefact
+from mogaf.errors import MogafError
 from mogaf.grouping import (
     has_rigid_groups,
     load_groups,
@@ -95,7 +97,11 @@ def test_group_stage_writes_groups_h5(toy_files, method):
         assert q["method"] == "ours" and q["num_groups"] == K
         assert q["ari"] > 0.6 and min(q["per_object_iou"]) > 0.6 and q["num_frames"] == 4
         assert q["object_ids"] == [1, 2]
-        np.testing.assert_allclose(read_artefact(quality_h5, "grouping_quality")["per_object_iou"], q["per_object_iou"])
+        with h5py.File(quality_h5, "r+") as fh:  # an entry that disagrees with the section metrics.json copies
+            del fh["per_object_iou"]
+            fh["per_object_iou"] = np.asarray(q["per_object_iou"][:1], np.float64)
+        with pytest.raises(MogafError, match=r"grouping_quality\.h5: attribute 'quality' disagrees with entry 'per_object_iou'"):
+            read_grouping_quality(quality_h5)
     assert "quality" not in art and "ari" not in art.attrs  # the group stage opens no held-out view
     assert has_rigid_groups(out) == bool(np.any(g.rigid == 1))
 

@@ -6,10 +6,10 @@ import h5py
 import numpy as np
 import pytest
 
-from mogaf.artefact import time_steps_index
+from mogaf.artefact import read_dataset, time_steps_index
 from mogaf.errors import MogafError
 from mogaf.scene import SPLIT_CODES, Scene, save_scene
-from mogaf.split import load_frames, load_ground_truth, make_split, read_split, split_scene, write_split
+from mogaf.split import load_evenly_spaced_frames, load_frames, load_ground_truth, make_split, read_split, split_scene, write_split
 
 
 def iphone_meta(T=60):
@@ -125,6 +125,26 @@ def test_time_steps_index_reads_a_range_as_one_slice():
     np.testing.assert_array_equal(time_steps_index(np.array([1, 4, 5])), [1, 4, 5])
     with pytest.raises(MogafError, match="not increasing"):
         time_steps_index(np.array([4, 1]))
+    with pytest.raises(MogafError, match="outside the time axis of 6"):
+        time_steps_index(np.arange(4, 7), 6)  # a slice past the end would silently read fewer steps
+
+
+def test_read_dataset_reads_only_the_selected_strings(tmp_path):
+    with h5py.File(tmp_path / "s.h5", "w") as fh:
+        fh["names"] = np.array(["a", "b", "c"], dtype=h5py.string_dtype())
+    with h5py.File(tmp_path / "s.h5", "r") as fh:
+        assert read_dataset(fh["names"], tmp_path / "s.h5", sel=slice(0, 2)) == ["a", "b"]
+        assert read_dataset(fh["names"], tmp_path / "s.h5") == ["a", "b", "c"]
+
+
+@pytest.mark.parametrize("limit, expect", [(0, 4), (2, 2), (3, 3), (4, 4), (20, 4)])
+def test_evenly_spaced_frames_span_the_role(tmp_path, limit, expect):
+    scene_h5 = save_scene(tmp_path / "scene.h5", _tiny_scene(), config_digest="d")
+    sp = split_scene(scene_h5, 0.5)
+    frames = load_evenly_spaced_frames(scene_h5, sp, "evaluation", limit)
+    assert frames.num_frames == expect
+    rows = sp.frame_ids["evaluation"]
+    assert frames.frame_names[0] == f"1_{int(rows[0]) - 8:05d}" and frames.frame_names[-1] == f"1_{int(rows[-1]) - 8:05d}"
 
 
 def test_a_split_of_another_scene_is_refused(tmp_path):

@@ -59,8 +59,18 @@ def test_stages_refuse_inputs_of_another_lineage(tmp_path, never_run):
         stages.grouping_quality(grouped_model=str(b["recon"]), groups=str(a["groups"]), scene=str(a["scene"]),
                                 split=str(a["split"]), out=str(tmp_path / "q.h5"), params={})
     with pytest.raises(MogafError, match=r"frozen\.h5: was made from another 'recon' artefact"):
-        stages.evaluate(scene=str(a["scene"]), split=str(a["split"]), model=str(b["recon"]),
+        stages.evaluate(scene=str(a["scene"]), split=str(a["split"]), model=str(b["recon"]), groups=str(b["groups"]),
                         grouping_quality=str(quality), forecasts={"frozen": str(forecast)}, benchmarks={},
+                        out_metrics=str(tmp_path / "m.json"), out_renders=str(tmp_path / "renders"), params={},
+                        variant="default", ids={})
+    # the grouping's quality of other groups than the forecasts' (same reconstruction: e.g. Gaga-4D's)
+    with stage_inputs(a["recon"], a["priors"], a["scene"]):
+        other_groups = write_artefact(tmp_path / "gaga" / "groups.h5", "group", {}, config_digest="gaga4d")
+    with stage_inputs(a["recon"], other_groups, a["scene"], a["split"]):
+        other_quality = write_artefact(tmp_path / "gaga" / "grouping_quality.h5", "grouping_quality", {}, config_digest="q")
+    with pytest.raises(MogafError, match=r"gaga/grouping_quality\.h5: was made from another 'group' artefact than .*a/groups\.h5"):
+        stages.evaluate(scene=str(a["scene"]), split=str(a["split"]), model=str(a["recon"]), groups=str(a["groups"]),
+                        grouping_quality=str(other_quality), forecasts={"frozen": str(forecast)}, benchmarks={},
                         out_metrics=str(tmp_path / "m.json"), out_renders=str(tmp_path / "renders"), params={},
                         variant="default", ids={})
     assert not any((tmp_path / name).exists() for name in ("r.h5", "q.h5", "m.json"))

@@ -11,7 +11,8 @@ grouping_quality.h5 (stage "grouping_quality"):
   object_ids (M,) int64
   attrs: method, num_groups, params (JSON), quality (JSON: the whole
     section evaluation copies into metrics.json["grouping"]; only method and
-    num_groups where the scene has no instance masks or no held-out view)
+    num_groups where there is nothing to compare: no GT instance masks, no
+    held-out view at an observed step, or no group)
 """
 
 from __future__ import annotations
@@ -81,7 +82,12 @@ def run_grouping_quality_stage(grouped_model_h5: str | os.PathLike, groups_h5: s
 def read_grouping_quality(path: str | os.PathLike) -> dict[str, Any]:
     """The section metrics.json["grouping"] carries."""
     art = read_artefact(path, GROUPING_QUALITY_STAGE, required=("per_object_iou", "object_ids"))
-    quality = dict(art.attrs["quality"])
-    if not np.allclose(np.asarray(quality.get("per_object_iou", []), np.float64), art["per_object_iou"]):
-        raise input_error(path, "attribute 'quality' disagrees with entry 'per_object_iou' (corrupted artefact)")
-    return quality
+    quality = art.attrs["quality"]
+    if not isinstance(quality, dict) or "method" not in quality or "num_groups" not in quality:
+        raise input_error(path, "attribute 'quality' is not a grouping-quality section (corrupted artefact)")
+    for key, dtype in (("per_object_iou", np.float64), ("object_ids", np.int64)):
+        stored = np.asarray(art[key], dtype)
+        listed = np.asarray(quality.get(key, []), dtype)
+        if listed.shape != stored.shape or not np.array_equal(listed, stored):
+            raise input_error(path, f"attribute 'quality' disagrees with entry '{key}' (corrupted artefact)")
+    return dict(quality)

@@ -284,6 +284,7 @@ def evaluate_inputs(wildcards):
         "scene": scene_h5(wildcards),
         "split": split_h5(wildcards),
         "model": forecast_model(wildcards),
+        "groups": groups_h5(wildcards),  # its lineage only (mogaf.stages.evaluate)
         "grouping_quality": stage_path("grouping_quality", wildcards),
     }
     for method in cfg["forecast"]["methods"]:

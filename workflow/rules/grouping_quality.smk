@@ -16,6 +16,8 @@ rule grouping_quality:
     threads: 2
     log:
         log_file("grouping_quality"),
+    benchmark:
+        benchmark_tsv("grouping_quality")
     conda:
         "../../envs/mogaf.yaml"
     script:
