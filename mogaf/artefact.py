@@ -9,10 +9,11 @@ Guarantees:
 - inputs are opened read-only with HDF5 file locking off (clusters with NFS);
 - a reader checks the attrs and fails with one line naming the file;
 - lineage: an artefact written inside `stage_inputs` records the lineage
-  digests of the artefacts it was made from, and its own (its config digest
-  and those); inputs read together must agree (`check_lineage`). Lineage
-  follows config digests, not file contents: a rerun with the same settings
-  keeps its digest (Snakemake's timestamps cover reruns).
+  digests of the artefacts it was made from, and its own (a digest of its
+  config digest, those, and its arrays' contents); inputs read together must
+  agree (`check_lineage`). A deterministic rerun with the same settings keeps
+  its digest; a rerun that writes other values (another machine, a GPU) gets
+  a new one, so files made from the old one are refused until rerun.
 """
 
 from __future__ import annotations
@@ -123,22 +124,27 @@ def _check_finite(name: str, arr: np.ndarray, path: Path) -> None:
         raise input_error(path, f"refusing to write non-finite values in '{name}' ({bad} of {arr.size})")
 
 
-def _write_tree(group: h5py.Group, data: Mapping[str, Any], path: Path, prefix: str = "") -> None:
-    for key, value in data.items():
+def _write_tree(group: h5py.Group, data: Mapping[str, Any], path: Path, prefix: str = "",
+                content: Any = None) -> None:
+    """Write `data` under `group`; `content` (a hashlib object), if given,
+    takes in every entry's name, type, shape and values in key order."""
+    for key, value in sorted(data.items()):
         if "/" in key:
             raise ValueError(f"artefact key {key!r} may not contain '/': use nested mappings")
         name = f"{prefix}{key}"
         if value is None:
             continue
         if isinstance(value, Mapping):
-            _write_tree(group.create_group(key), value, path, prefix=f"{name}/")
+            _write_tree(group.create_group(key), value, path, prefix=f"{name}/", content=content)
             continue
         if isinstance(value, (list, tuple)) and value and all(isinstance(v, str) for v in value):
-            group.create_dataset(key, data=np.array(value, dtype=h5py.string_dtype()))
-            continue
+            value = np.array(value)
         arr = np.asarray(value)
         if arr.dtype == object:
             raise TypeError(f"artefact entry {name!r} has object dtype")
+        if content is not None:
+            content.update(f"{name}\0{arr.dtype.str}\0{arr.shape}\0".encode())
+            content.update(np.ascontiguousarray(arr))  # the buffer itself: no copy of a big array
         if arr.dtype.kind == "U":
             group.create_dataset(key, data=arr.astype(h5py.string_dtype()))
             continue
@@ -229,12 +235,12 @@ def stage_inputs(*paths: str | os.PathLike | None) -> Iterator[tuple[Lineage, ..
         _STAGE_INPUTS.reset(token)
 
 
-def _lineage_attrs(stage: str, digest: str) -> dict[str, str]:
+def _lineage_attrs(stage: str, digest: str, content: str) -> dict[str, str]:
     inputs: dict[str, list[str]] = {}
     for item in _STAGE_INPUTS.get():
         inputs.setdefault(item.stage, []).append(item.digest)
     inputs = {k: sorted(v) for k, v in sorted(inputs.items())}
-    lineage = config_digest({"stage": stage, "config": digest, "inputs": inputs})
+    lineage = config_digest({"stage": stage, "config": digest, "inputs": inputs, "content": content})
     return {ATTR_LINEAGE: lineage, ATTR_INPUTS: _attr_value(inputs)}
 
 
@@ -263,12 +269,13 @@ def write_artefact(
             fh.attrs[ATTR_DIGEST] = config_digest
             fh.attrs[ATTR_PACKAGE] = __version__
             fh.attrs[ATTR_CREATED] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-            for key, value in _lineage_attrs(stage, config_digest).items():
-                fh.attrs[key] = value
             for key, value in attrs.items():
                 if value is not None:
                     fh.attrs[key] = _attr_value(value)
-            _write_tree(fh, data, final)
+            content = hashlib.blake2b(digest_size=16)
+            _write_tree(fh, data, final, content=content)
+            for key, value in _lineage_attrs(stage, config_digest, content.hexdigest()).items():
+                fh.attrs[key] = value
     return final
 
 

@@ -144,8 +144,8 @@ def test_killed_writer_leaves_no_artefact(tmp_path):
         import os, signal, numpy as np
         import mogaf.artefact as A
         real = A._write_tree
-        def slow(group, data, path, prefix=""):
-            real(group, data, path, prefix)
+        def slow(group, data, path, prefix="", content=None):
+            real(group, data, path, prefix, content)
             os.kill(os.getpid(), signal.SIGKILL)
         A._write_tree = slow
         A.write_artefact({str(out)!r}, "demo", {{"a": np.zeros(10)}}, config_digest="d")
@@ -196,6 +196,17 @@ def test_lineage_is_recorded_and_mismatched_inputs_are_refused(tmp_path):
             pass
     with pytest.raises(MogafError, match=r"priors\.h5: was made from another 'split' artefact"):
         with stage_inputs(scene, tmp_path / "priors.h5", write_artefact(tmp_path / "split9.h5", "split", {}, config_digest="r0.9")):
+            pass
+    # the same settings with other contents (a rerun elsewhere, an edited file): another lineage
+    with stage_inputs(scene, split):
+        rerun = write_artefact(tmp_path / "priors3.h5", "priors", {"depth": np.ones(3)}, config_digest="p")
+        again_rerun = write_artefact(tmp_path / "priors4.h5", "priors", {"depth": np.ones(3)}, config_digest="p")
+        changed = write_artefact(tmp_path / "priors5.h5", "priors", {"depth": np.full(3, 2.0)}, config_digest="p")
+    assert read_lineage(rerun).digest == read_lineage(again_rerun).digest != read_lineage(changed).digest
+    with stage_inputs(scene, split, rerun):
+        recon = write_artefact(tmp_path / "recon.h5", "recon", {}, config_digest="r")
+    with pytest.raises(MogafError, match=r"recon\.h5: was made from another 'priors' artefact than .*priors5\.h5"):
+        with stage_inputs(changed, recon):
             pass
     # an artefact written outside any stage records no inputs and is never refused for it
     plain = write_artefact(tmp_path / "plain.h5", "priors", {}, config_digest="p")
