@@ -12,8 +12,9 @@ LPIPS_CACHE := .cache/mogaf/lpips/alexnet_lpips.npz
 demo: setup
 	$(BIN)/snakemake --cores $(CORES) demo --configfile config/config.yaml config/demo.yaml
 
+# One pytest worker per core; a test file stays on one worker (module fixtures run once).
 test: setup
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(CORES) --dist loadfile
 
 setup: $(STAMP) $(LPIPS_CACHE)
 
