@@ -197,7 +197,7 @@ def test_lineage_is_recorded_and_mismatched_inputs_are_refused(tmp_path):
     with pytest.raises(MogafError, match=r"priors\.h5: was made from another 'split' artefact"):
         with stage_inputs(scene, tmp_path / "priors.h5", write_artefact(tmp_path / "split9.h5", "split", {}, config_digest="r0.9")):
             pass
-    # the same settings with other contents (a rerun elsewhere, an edited file): another lineage
+    # the same settings with other contents (a stage rerun on another machine or GPU): another lineage
     with stage_inputs(scene, split):
         rerun = write_artefact(tmp_path / "priors3.h5", "priors", {"depth": np.ones(3)}, config_digest="p")
         again_rerun = write_artefact(tmp_path / "priors4.h5", "priors", {"depth": np.ones(3)}, config_digest="p")

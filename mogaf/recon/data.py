@@ -180,15 +180,17 @@ def load_train_data(scene_h5: str | os.PathLike, split: Split | str | os.PathLik
 
 
 def input_digests(paths: dict[str, Any]) -> dict[str, str]:
-    """Config digests of the input artefacts (for the checkpoint digest)."""
-    from ..artefact import read_attrs
+    """Lineage digests of the input artefacts (settings and contents), for the
+    checkpoint digest: a checkpoint made from inputs since rewritten with
+    other values is not resumed. Config digests for files without lineage."""
+    from ..artefact import ATTR_DIGEST, ATTR_LINEAGE, read_attrs
 
     out = {}
     for name, p in paths.items():
         if p is None:
             continue
         attrs = read_attrs(Path(p))
-        out[name] = str(attrs.get("mogaf_config_digest", ""))
+        out[name] = str(attrs.get(ATTR_LINEAGE) or attrs.get(ATTR_DIGEST, ""))
     return out
 
 
