@@ -16,3 +16,11 @@ class MogafError(Exception):
 def input_error(path: str | os.PathLike, problem: str) -> MogafError:
     """Build the canonical `<file>: <what is wrong>` error."""
     return MogafError(f"{os.fspath(path)}: {problem}")
+
+
+def refuse_unknown_params(section: str, params, known) -> None:
+    """A key of `params` not in `known` is most likely a typo: refuse it by name."""
+    unknown = sorted(set(params or ()) - set(known))
+    if unknown:
+        raise MogafError(f"{section}: unknown parameter(s) {', '.join(map(str, unknown))} "
+                         f"(known: {', '.join(sorted(map(str, known)))})")

@@ -33,7 +33,7 @@ import numpy as np
 
 from . import __version__
 from .artefact import read_artefact, write_json
-from .errors import MogafError, input_error
+from .errors import input_error, refuse_unknown_params
 from .grouping.quality import read_grouping_quality
 from .representation import Model4D, load_model
 from .rendering import render_model, render_poses
@@ -306,10 +306,8 @@ def run_evaluate_stage(*, scene: str, split: str, model: str, grouping_quality: 
     """metrics.json and renders of every forecast. `model`: the model the
     forecasts start from (refined.h5, or recon.h5 without refinement);
     `grouping_quality`: grouping_quality.h5 of the grouping the forecasts used."""
+    refuse_unknown_params("evaluate", params, DEFAULT_PARAMS)
     p = {**DEFAULT_PARAMS, **dict(params)}
-    unknown = set(params) - set(DEFAULT_PARAMS)
-    if unknown:
-        raise MogafError(f"evaluate: unknown parameter(s) {', '.join(sorted(unknown))}")
     start = time.perf_counter()
     if p["lpips"]:
         from .metrics.lpips import load_lpips_weights

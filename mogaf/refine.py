@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from .artefact import config_digest
-from .errors import MogafError, input_error
+from .errors import MogafError, input_error, refuse_unknown_params
 from .grouping.core import Groups
 from .grouping.stage import load_groups, read_rigid_init, rigid_init
 from .recon.data import TrainData, input_digests, load_train_data
@@ -83,9 +83,7 @@ def resolve_params(params: Mapping[str, Any] | None, recon_params: Mapping[str, 
     """REFINE_DEFAULTS <- params; 'recon' = recon.h5's parameters <- overrides <- FIXED_RECON."""
     params = dict(params or {})
     device = params.pop("device", None)
-    unknown = sorted(set(params) - set(REFINE_DEFAULTS))
-    if unknown:
-        raise MogafError(f"unknown refine param(s) {', '.join(unknown)} (known: {', '.join(sorted(REFINE_DEFAULTS))})")
+    refuse_unknown_params("refine", params, REFINE_DEFAULTS)
     p = {**REFINE_DEFAULTS, **params}
     for key in ("iterations", "rigid_times", "rigid_members", "nr_neighbors"):
         v = p[key]

@@ -77,3 +77,32 @@ def test_rigidity_table():
     assert mcfg.rigidity_of("sphere_1", table) == 1
     assert mcfg.rigidity_of("Cloth", table) == 0
     assert mcfg.rigidity_of("teddy", table) == -1
+
+
+def _stage_resolvers():
+    from mogaf.evaluate import run_evaluate_stage
+    from mogaf.forecast import make_forecaster
+    from mogaf.grouping.core import resolve_params as grouping
+    from mogaf.grouping.quality import run_grouping_quality_stage
+    from mogaf.grouping.stage import run_rigid_init_stage
+    from mogaf.priors import resolve_params as priors
+    from mogaf.recon.params import resolve_params as recon
+    from mogaf.refine import resolve_params as refine
+    from mogaf.synth.params import resolve_params as synthetic
+
+    missing = "no/such/file.h5"  # the typo must be refused before any input is opened
+    return {
+        "synthetic": synthetic, "priors": priors, "recon": recon, "grouping": grouping, "refine": refine,
+        "rigid_init": lambda p: run_rigid_init_stage(missing, missing, missing, p),
+        "grouping_quality": lambda p: run_grouping_quality_stage(missing, missing, missing, missing, missing, p),
+        "forecast.mogaf": lambda p: make_forecaster("mogaf", p),
+        "evaluate": lambda p: run_evaluate_stage(scene=missing, split=missing, model=missing, grouping_quality=missing,
+                                                 forecasts={}, benchmarks={}, out_metrics=missing, out_renders=missing,
+                                                 params=p, variant="", ids={}),
+    }
+
+
+@pytest.mark.parametrize("section", sorted(_stage_resolvers()))
+def test_every_stage_refuses_a_misspelt_parameter_by_name(section):
+    with pytest.raises(MogafError, match=rf"^{section}: unknown parameter\(s\) lamda_typo \(known: .*\)$"):
+        _stage_resolvers()[section]({"lamda_typo": 1})

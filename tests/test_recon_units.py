@@ -179,7 +179,7 @@ def test_params_are_checked():
 
     assert resolve_params({})["iterations"] == DEFAULT_PARAMS["iterations"]
     assert resolve_params({"iterations": 1000, "iterations_scale": 0.25})["iterations"] == 250
-    with pytest.raises(MogafError, match="unknown recon param"):
+    with pytest.raises(MogafError, match="recon: unknown parameter"):
         resolve_params({"iteration": 3})
     with pytest.raises(MogafError, match="integer"):
         resolve_params({"num_bases": 2.5})

@@ -94,7 +94,7 @@ def test_resume_and_determinism(tiny):
 
 
 def test_params_are_checked():
-    with pytest.raises(MogafError, match="unknown refine param"):
+    with pytest.raises(MogafError, match="refine: unknown parameter"):
         resolve_params({"lambda": 1})
     with pytest.raises(MogafError, match="lambda_rigid"):
         resolve_params({"lambda_rigid": -1})

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from mogaf.errors import MogafError
+from mogaf.errors import MogafError, refuse_unknown_params
 from mogaf.forecast import quat
 
 POSE_DIM = 7  # [mu (3), q (4, wxyz)]
@@ -38,11 +38,7 @@ def merge_params(method: str, defaults: Mapping[str, Any], params: Mapping[str, 
         return merged
     if not isinstance(params, Mapping):
         raise MogafError(f"forecast.{method}: params must be a mapping, got {type(params).__name__}")
-    unknown = sorted(set(params) - set(defaults))
-    if unknown:
-        raise MogafError(
-            f"forecast.{method}: unknown parameter(s) {', '.join(unknown)} (known: {', '.join(sorted(defaults))})"
-        )
+    refuse_unknown_params(f"forecast.{method}", params, defaults)
     for key, value in params.items():
         default = defaults[key]
         if isinstance(default, bool) and not isinstance(value, bool):

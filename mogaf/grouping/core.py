@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from ..camera import project
-from ..errors import MogafError
+from ..errors import MogafError, refuse_unknown_params
 
 METHODS = ("ours", "gaga4d")
 
@@ -59,9 +59,7 @@ DEFAULT_PARAMS: dict[str, Any] = {
 def resolve_params(params: dict[str, Any] | None) -> dict[str, Any]:
     p = dict(DEFAULT_PARAMS)
     if params:
-        unknown = sorted(set(params) - set(DEFAULT_PARAMS))
-        if unknown:
-            raise MogafError(f"grouping: unknown parameter(s) {', '.join(unknown)}")
+        refuse_unknown_params("grouping", params, DEFAULT_PARAMS)
         p.update(params)
     if p["method"] not in METHODS:
         raise MogafError(f"grouping: method must be one of {METHODS}, got {p['method']!r}")

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from ..artefact import config_digest, open_artefact, read_artefact, write_artefact
-from ..errors import MogafError, input_error
+from ..errors import input_error, refuse_unknown_params
 from ..representation import load_model
 from ..scene import SCENE_STAGE
 from ..split import Split, load_evenly_spaced_frames, read_split
@@ -41,9 +41,7 @@ DEFAULT_PARAMS: dict[str, Any] = {
 
 
 def _resolve(params: Mapping[str, Any] | None) -> dict[str, Any]:
-    unknown = set(params or {}) - set(DEFAULT_PARAMS)
-    if unknown:
-        raise MogafError(f"grouping_quality: unknown parameter(s) {', '.join(sorted(unknown))}")
+    refuse_unknown_params("grouping_quality", params, DEFAULT_PARAMS)
     return {**DEFAULT_PARAMS, **dict(params or {})}
 
 

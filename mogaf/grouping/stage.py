@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from ..artefact import config_digest, open_artefact, read_artefact, read_rows, write_artefact
-from ..errors import MogafError, input_error
+from ..errors import MogafError, input_error, refuse_unknown_params
 from ..representation import load_model
 from ..rigid import rigid_fit_residual, weighted_procrustes
 from ..scene import SCENE_STAGE, Instances
@@ -243,10 +243,8 @@ def rigid_init(model, groups: Groups, params: dict[str, Any] | None = None) -> d
 
 
 def run_rigid_init_stage(model_h5, groups_h5, out_h5, params: dict[str, Any] | None = None) -> Path:
+    refuse_unknown_params("rigid_init", params, RIGID_INIT_DEFAULTS)
     p = {**RIGID_INIT_DEFAULTS, **(params or {})}
-    unknown = sorted(set(p) - set(RIGID_INIT_DEFAULTS))
-    if unknown:
-        raise MogafError(f"rigid_init: unknown parameter(s) {', '.join(unknown)}")
     model = load_model(model_h5)
     groups = load_groups(groups_h5)
     data = rigid_init(model, groups, p)

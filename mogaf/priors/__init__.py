@@ -72,7 +72,7 @@ from scipy.special import expit
 
 from ..artefact import config_digest as _config_digest
 from ..artefact import write_artefact
-from ..errors import MogafError
+from ..errors import MogafError, refuse_unknown_params
 from ..split import Split, load_frames, read_split
 
 STAGE = "priors"
@@ -220,9 +220,7 @@ class PriorsResult:
 def resolve_params(params: Mapping[str, Any] | None) -> dict[str, Any]:
     """Defaults overridden by `params`; unknown keys are refused (typos)."""
     params = dict(params or {})
-    unknown = sorted(set(params) - set(DEFAULT_PARAMS))
-    if unknown:
-        raise MogafError(f"priors: unknown parameter(s) {', '.join(unknown)}; known: {', '.join(sorted(DEFAULT_PARAMS))}")
+    refuse_unknown_params("priors", params, DEFAULT_PARAMS)
     out = {**DEFAULT_PARAMS, **params}
     if out["tracks_source"] not in ("auto", "computed"):
         raise MogafError(f"priors: tracks_source must be 'auto' or 'computed', got {out['tracks_source']!r}")

@@ -17,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from ..errors import MogafError
+from ..errors import MogafError, refuse_unknown_params
 
 DEFAULT_PARAMS: dict[str, Any] = {
     # ---- budget (quality vs time)
@@ -130,9 +130,7 @@ INT_KEYS = {
 def resolve_params(params: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Defaults <- params, type-checked; unknown keys are refused."""
     params = dict(params or {})
-    unknown = sorted(set(params) - set(DEFAULT_PARAMS))
-    if unknown:
-        raise MogafError(f"unknown recon param(s) {', '.join(unknown)} (known: {', '.join(sorted(DEFAULT_PARAMS))})")
+    refuse_unknown_params("recon", params, DEFAULT_PARAMS)
     out = dict(DEFAULT_PARAMS)
     out.update(params)
     for key, default in DEFAULT_PARAMS.items():

@@ -18,7 +18,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from ..errors import MogafError
+from ..errors import MogafError, refuse_unknown_params
 
 DEFAULT_PARAMS: dict[str, Any] = {
     # image and sequence
@@ -88,9 +88,7 @@ def resolve_params(params: Mapping[str, Any] | None = None) -> dict[str, Any]:
     preset = params.pop("preset", "default") or "default"
     if preset not in PRESETS:
         raise MogafError(f"unknown synthetic preset '{preset}' (known: {', '.join(PRESETS)})")
-    unknown = sorted(set(params) - set(DEFAULT_PARAMS))
-    if unknown:
-        raise MogafError(f"unknown synthetic param(s) {', '.join(unknown)} (known: {', '.join(sorted(DEFAULT_PARAMS))})")
+    refuse_unknown_params("synthetic", params, DEFAULT_PARAMS)
     out = dict(DEFAULT_PARAMS)
     out.update(PRESETS[preset])
     out.update(params)
