@@ -97,10 +97,10 @@ def test_group_stage_writes_groups_h5(toy_files, method):
         assert q["method"] == "ours" and q["num_groups"] == K
         assert q["ari"] > 0.6 and min(q["per_object_iou"]) > 0.6 and q["num_frames"] == 4
         assert q["object_ids"] == [1, 2]
-        with h5py.File(quality_h5, "r+") as fh:  # an entry that disagrees with the section metrics.json copies
+        with h5py.File(quality_h5, "r+") as fh:  # an entry that disagrees with the objects the section names
             del fh["per_object_iou"]
             fh["per_object_iou"] = np.asarray(q["per_object_iou"][:1], np.float64)
-        with pytest.raises(MogafError, match=r"grouping_quality\.h5: attribute 'quality' disagrees with entry 'per_object_iou'"):
+        with pytest.raises(MogafError, match=r"grouping_quality\.h5: entry 'per_object_iou' has shape \(1,\), but 'quality' names 2 object"):
             read_grouping_quality(quality_h5)
     assert "quality" not in art and "ari" not in art.attrs  # the group stage opens no held-out view
     assert has_rigid_groups(out) == bool(np.any(g.rigid == 1))

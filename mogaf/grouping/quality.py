@@ -69,23 +69,27 @@ def run_grouping_quality_stage(grouped_model_h5: str | os.PathLike, groups_h5: s
                                params: Mapping[str, Any] | None = None) -> Path:
     p = _resolve(params)
     quality = measure_grouping_quality(grouped_model_h5, groups_h5, scene_h5, read_split(split_h5), p)
-    data = {
-        "per_object_iou": np.asarray(quality.get("per_object_iou", []), np.float64),
-        "object_ids": np.asarray(quality.get("object_ids", []), np.int64),
-    }
-    attrs = {"method": quality["method"], "num_groups": int(quality["num_groups"]), "params": p, "quality": quality}
+    # The per-object arrays are entries; the section's other keys an attribute.
+    arrays = {"per_object_iou": np.float64, "object_ids": np.int64}
+    data = {key: np.asarray(quality.get(key, []), dtype) for key, dtype in arrays.items()}
+    section = {k: v for k, v in quality.items() if k not in arrays}
+    attrs = {"method": quality["method"], "num_groups": int(quality["num_groups"]), "params": p, "quality": section}
     return write_artefact(out, GROUPING_QUALITY_STAGE, data, config_digest=config_digest(p), attrs=attrs)
 
 
 def read_grouping_quality(path: str | os.PathLike) -> dict[str, Any]:
     """The section metrics.json["grouping"] carries."""
     art = read_artefact(path, GROUPING_QUALITY_STAGE, required=("per_object_iou", "object_ids"))
-    quality = art.attrs["quality"]
-    if not isinstance(quality, dict) or "method" not in quality or "num_groups" not in quality:
+    section = art.attrs["quality"]
+    if not isinstance(section, dict) or "method" not in section or "num_groups" not in section:
         raise input_error(path, "attribute 'quality' is not a grouping-quality section (corrupted artefact)")
+    quality = dict(section)
+    names = quality.get("object_names", [])  # absent where nothing was measured
     for key, dtype in (("per_object_iou", np.float64), ("object_ids", np.int64)):
-        stored = np.asarray(art[key], dtype)
-        listed = np.asarray(quality.get(key, []), dtype)
-        if listed.shape != stored.shape or not np.array_equal(listed, stored):
-            raise input_error(path, f"attribute 'quality' disagrees with entry '{key}' (corrupted artefact)")
-    return dict(quality)
+        values = np.asarray(art[key], dtype)
+        if values.shape != (len(names),):
+            raise input_error(path, f"entry '{key}' has shape {values.shape}, but 'quality' names {len(names)} "
+                                    "object(s) (corrupted artefact)")
+        if "object_names" in quality:
+            quality[key] = values.tolist()
+    return quality
