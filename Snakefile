@@ -24,6 +24,7 @@ include: "workflow/rules/rigid_init.smk"
 include: "workflow/rules/refine.smk"
 include: "workflow/rules/forecast.smk"
 include: "workflow/rules/grouping_quality.smk"
+include: "workflow/rules/reconstruction_quality.smk"
 include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/report.smk"
 

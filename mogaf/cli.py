@@ -36,6 +36,7 @@ STAGES: dict[str, tuple[Callable[..., Any], dict[str, str], str | None]] = {
     "rigid-init": (stages.rigid_init, {"model-h5": "model", "groups-h5": "groups", "out": "out"}, "rigid_init"),
     "refine": (stages.refine, {"model-h5": "model", "groups-h5": "groups", "rigid-h5": "rigid", "priors-h5": "priors", "scene-h5": "scene", "split-h5": "split", "out": "out"}, "refine"),
     "grouping-quality": (stages.grouping_quality, {"grouped-model-h5": "grouped_model", "groups-h5": "groups", "scene-h5": "scene", "split-h5": "split", "out": "out"}, "grouping_quality"),
+    "reconstruction-quality": (stages.reconstruction_quality, {"model-h5": "model", "scene-h5": "scene", "split-h5": "split", "out": "out"}, "reconstruction_quality"),
     "forecast-group": (stages.forecast_group, {"model-h5": "model", "groups-h5": "groups", "split-h5": "split", "out": "out"}, "forecast"),
 }
 OPTIONAL_PATHS = {"rigid-h5"}
@@ -109,7 +110,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--parts", nargs="*", default=[], help="forecast/{method}/group{k}.h5 files")
     _add_common(p)
     p = sub.add_parser("evaluate", help="render forecasts at the evaluation views, write metrics.json")
-    for option in ("scene-h5", "split-h5", "model-h5", "groups-h5", "grouping-quality-h5", "out", "renders"):
+    for option in ("scene-h5", "split-h5", "model-h5", "groups-h5", "reconstruction-quality-h5", "grouping-quality-h5",
+                   "out", "renders"):
         p.add_argument(f"--{option}", required=True)
     p.add_argument("--forecast", action="append", default=[], metavar="METHOD=PATH", required=True)
     p.add_argument("--benchmark", action="append", default=[], metavar="STAGE=TSV", help="Snakemake benchmark files")
@@ -182,7 +184,8 @@ def _run_extra(args: argparse.Namespace) -> int:
     elif args.command == "evaluate":
         ids = {"dataset": args.dataset or "", "scene": args.scene or "", "ratio": args.ratio}
         stages.run_stage(stages.evaluate, None, threads=args.threads, scene=args.scene_h5, split=args.split_h5,
-                         model=args.model_h5, groups=args.groups_h5, grouping_quality=args.grouping_quality_h5,
+                         model=args.model_h5, groups=args.groups_h5,
+                         reconstruction_quality=args.reconstruction_quality_h5, grouping_quality=args.grouping_quality_h5,
                          forecasts=_pairs(args.forecast, "forecast"),
                          benchmarks=_pairs(args.benchmark, "benchmark"), out_metrics=args.out, out_renders=args.renders,
                          params=cfg["evaluate"], variant=args.variant or "default", ids=ids)

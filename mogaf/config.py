@@ -33,6 +33,9 @@ STAGE_SECTIONS: dict[str, tuple[str, ...]] = {
     "rigid_init": ("rigid_init",),
     "refine": ("seed", "device", "refine"),
     "grouping_quality": ("grouping_quality",),
+    # one per model, so the variants forecasting from one model share it
+    "reconstruction_quality:recon": ("reconstruction_quality",),
+    "reconstruction_quality:refine": ("reconstruction_quality",),
     "evaluate": ("evaluate", "forecast.methods"),
 }
 # Upstream stages of each stage (forecast depends on the method, see below).
@@ -43,6 +46,8 @@ STAGE_UPSTREAM: dict[str, tuple[str, ...]] = {
     "rigid_init": ("group",),
     "refine": ("recon", "group", "rigid_init"),
     "grouping_quality": ("group", "recon"),
+    "reconstruction_quality:recon": ("recon",),
+    "reconstruction_quality:refine": ("refine",),
 }
 ARTEFACT_FILES = {
     "priors": "priors.h5",
@@ -51,6 +56,8 @@ ARTEFACT_FILES = {
     "rigid_init": "rigid.h5",
     "refine": "refined.h5",
     "grouping_quality": "grouping_quality.h5",
+    "reconstruction_quality:recon": "reconstruction_quality/recon.h5",
+    "reconstruction_quality:refine": "reconstruction_quality/refined.h5",
     "evaluate": "metrics.json",
 }
 FORECAST_METHODS = ("mogaf", "gcn", "ode", "constant_velocity", "frozen")
@@ -144,6 +151,11 @@ def forecast_input_stage(config: Mapping[str, Any]) -> str:
     return "refine" if _get(config, "forecast.input") == "refined" else "recon"
 
 
+def reconstruction_quality_stage(config: Mapping[str, Any]) -> str:
+    """The reconstruction_quality artefact of the model the forecasts start from."""
+    return f"reconstruction_quality:{forecast_input_stage(config)}"
+
+
 def _sections(stage: str, config: Mapping[str, Any]) -> tuple[str, ...]:
     if stage.startswith("forecast:"):
         method = stage.split(":", 1)[1]
@@ -155,7 +167,8 @@ def _upstream(stage: str, config: Mapping[str, Any]) -> tuple[str, ...]:
     if stage.startswith("forecast:"):
         return (forecast_input_stage(config), "group")
     if stage == "evaluate":
-        return tuple(f"forecast:{m}" for m in config["forecast"]["methods"]) + (forecast_input_stage(config), "grouping_quality")
+        return tuple(f"forecast:{m}" for m in config["forecast"]["methods"]) + (
+            forecast_input_stage(config), "grouping_quality", reconstruction_quality_stage(config))
     return STAGE_UPSTREAM[stage]
 
 

@@ -12,8 +12,9 @@ and computes
   observed step (in each Gaussian's local frame) and carried by the
   forecast poses; 3D EPE, delta_3D, and on the train camera 2D AJ,
   delta_avg and occlusion accuracy (visibility from the rendered depth).
-metrics.json also carries reconstruction quality at held-out views at
-observed times, the grouping quality (copied from grouping_quality.h5,
+metrics.json also carries the model's quality at held-out views at observed
+times (copied from reconstruction_quality.h5, mogaf.reconstruction_quality),
+the grouping quality (copied from grouping_quality.h5,
 mogaf.grouping.quality), and the wall time and peak memory of
 every stage that produced each method's result (Snakemake benchmark files).
 """
@@ -35,9 +36,11 @@ from . import __version__
 from .artefact import read_artefact, write_json
 from .errors import input_error, refuse_unknown_params
 from .grouping.quality import read_grouping_quality
+from .metrics import image_metrics, mean_metrics
 from .representation import Model4D, load_model
-from .rendering import render_model, render_poses
-from .split import Split, load_evenly_spaced_frames, load_frames, load_ground_truth, read_split
+from .rendering import render_poses
+from .reconstruction_quality import read_reconstruction_quality
+from .split import Split, load_frames, load_ground_truth, read_split
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +50,6 @@ DEFAULT_PARAMS: dict[str, Any] = {
     "save_renders": True,                # PNG per evaluation view and method
     "video": True,                       # GT | forecast | error video per method
     "video_fps": 8,
-    "max_reconstruction_frames": 24,     # held-out views at observed times rendered for reconstruction PSNR; 0 = all
     "tracking_neighbors": 4,             # Gaussians a GT point is attached to
     "tracking_scale": 1.0,               # scene units -> metres for delta_3D (SoM evaluates in metres)
     "aj_thresholds": [4, 8, 16, 32, 64],     # px; SoM's evaluation (paper follows SoM's protocol)
@@ -93,32 +95,6 @@ def _frame_masks(frames) -> np.ndarray | None:
     if frames.covisible is None:
         return None
     return (np.asarray(frames.covisible) > 0).astype(np.float32)
-
-
-def image_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None, masked: bool, use_lpips: bool) -> dict[str, float]:
-    from . import metrics as M
-
-    out = {"psnr": M.psnr(pred, gt), "ssim": M.ssim(pred, gt)}
-    if use_lpips:
-        out["lpips"] = M.lpips(pred, gt)
-    if masked:
-        m = np.ones(gt.shape[:2], np.float32) if mask is None else mask
-        if m.sum() > 0:
-            out["mpsnr"] = M.mpsnr(pred, gt, m)
-            out["mssim"] = M.mssim(pred, gt, m)
-            if use_lpips:
-                out["mlpips"] = M.mlpips(pred, gt, m)
-    return {k: float(v) for k, v in out.items()}
-
-
-def _mean_metrics(per_frame: list[dict[str, float]]) -> dict[str, float]:
-    keys = sorted({k for d in per_frame for k in d})
-    out = {}
-    for k in keys:
-        vals = [d[k] for d in per_frame if k in d and math.isfinite(d[k])]
-        if vals:
-            out[k] = float(np.mean(vals))
-    return out
 
 
 def _round(obj: Any, digits: int = 6) -> Any:
@@ -275,21 +251,6 @@ def tracking_section(model: Model4D, fc: dict[str, Any], scene_h5: str, split: S
 
 
 # ------------------------------------------------------------------ stage
-def reconstruction_section(model: Model4D, scene_h5: str, split: Split, params: Mapping[str, Any], masked: bool) -> dict[str, Any]:
-    """Quality of the 4D model itself at held-out views at observed times."""
-    ids = split.frame_ids["evaluation_observed"]
-    if ids.size == 0:
-        return {}
-    frames = load_evenly_spaced_frames(scene_h5, split, "evaluation_observed", int(params["max_reconstruction_frames"]))
-    masks = _frame_masks(frames)
-    per = []
-    for f in range(frames.num_frames):
-        out = render_model(model, int(frames.time_index[f]), frames.K[f], frames.w2c[f], frames.width, frames.height)
-        pred = np.clip(out.features[..., :3].detach().cpu().numpy().astype(np.float64), 0, 1)
-        per.append(image_metrics(pred, frames.images[f] / 255.0, None if masks is None else masks[f], masked, use_lpips=False))
-    return {"heldout_observed": _mean_metrics(per), "num_frames": int(frames.num_frames)}
-
-
 def runtime_section(benchmarks: Mapping[str, str], methods: list[str]) -> dict[str, Any]:
     stages = {name: read_benchmark(path) for name, path in sorted(benchmarks.items())}
     shared = sum(v["wall_s"] for k, v in stages.items() if not k.startswith("forecast_"))
@@ -300,11 +261,12 @@ def runtime_section(benchmarks: Mapping[str, str], methods: list[str]) -> dict[s
     return {"stages": stages, "total_wall_s": per_method}
 
 
-def run_evaluate_stage(*, scene: str, split: str, model: str, grouping_quality: str, forecasts: Mapping[str, str],
+def run_evaluate_stage(*, scene: str, split: str, model: str, reconstruction_quality: str, grouping_quality: str, forecasts: Mapping[str, str],
                        benchmarks: Mapping[str, str], out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str,
                        ids: Mapping[str, str]) -> Path:
     """metrics.json and renders of every forecast. `model`: the model the
     forecasts start from (refined.h5, or recon.h5 without refinement);
+    `reconstruction_quality`: reconstruction_quality.h5 of that model;
     `grouping_quality`: grouping_quality.h5 of the grouping the forecasts used."""
     refuse_unknown_params("evaluate", params, DEFAULT_PARAMS)
     p = {**DEFAULT_PARAMS, **dict(params)}
@@ -313,7 +275,9 @@ def run_evaluate_stage(*, scene: str, split: str, model: str, grouping_quality: 
         from .metrics.lpips import load_lpips_weights
 
         load_lpips_weights()  # fail before rendering anything when the weights are missing
-    grouping = read_grouping_quality(grouping_quality)  # a bad file fails before any render
+    # the sections copied from their own stages: a bad file fails before any render
+    reconstruction = read_reconstruction_quality(reconstruction_quality)
+    grouping = read_grouping_quality(grouping_quality)
     sp = read_split(split)
     m4 = load_model(model)
     frames = load_frames(scene, sp, "evaluation")
@@ -337,7 +301,7 @@ def run_evaluate_stage(*, scene: str, split: str, model: str, grouping_quality: 
             _check_forecast(fc, m4, sp)
             renders = render_forecast_views(m4, fc, frames, p)
             per = [image_metrics(renders[f], gts[f], None if masks is None else masks[f], masked, bool(p["lpips"])) for f in range(frames.num_frames)]
-            section: dict[str, Any] = {"image": _mean_metrics(per),
+            section: dict[str, Any] = {"image": mean_metrics(per),
                                        "per_view": [{"frame": frames.frame_names[f], "timestep": int(frames.time_index[f]), **per[f]} for f in range(frames.num_frames)]}
             section["tracking"], epe_3d_quick = tracking_section(m4, fc, scene, sp, p)
             section["forecast"] = forecast_summary(fc["attrs"])
@@ -350,7 +314,7 @@ def run_evaluate_stage(*, scene: str, split: str, model: str, grouping_quality: 
             if p["video"]:
                 panels = [np.concatenate([gts[f], renders[f], np.abs(renders[f] - gts[f])], axis=1) for f in range(frames.num_frames)]
                 _write_video(renders_tmp / f"{method}.mp4", panels, int(p["video_fps"]))
-        result["reconstruction"] = reconstruction_section(m4, scene, sp, p, masked)
+        result["reconstruction"] = reconstruction
         result["grouping"] = grouping
         if p["runtime_in_metrics"]:
             rt = runtime_section(benchmarks, methods)

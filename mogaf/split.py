@@ -164,11 +164,17 @@ def load_frames(scene_h5: str | os.PathLike, split: Split | str | os.PathLike, r
     return frames
 
 
-def load_evenly_spaced_frames(scene_h5: str | os.PathLike, split: Split, role: str, limit: int) -> Scene:
-    """At most `limit` frames of `role`, evenly spaced over it (0: all of them)."""
-    ids = split.frame_ids[role]
+def evenly_spaced_frame_ids(split: Split, role: str, limit: int) -> np.ndarray:
+    """Scene frame ids of at most `limit` frames of `role`, evenly spaced over it (0: all of them)."""
+    ids = np.asarray(split.frame_ids[role], np.int64)
     if 0 < limit < ids.size:
         ids = ids[np.unique(np.round(np.linspace(0, ids.size - 1, limit)).astype(np.int64))]
+    return ids
+
+
+def load_evenly_spaced_frames(scene_h5: str | os.PathLike, split: Split, role: str, limit: int) -> Scene:
+    """The frames `evenly_spaced_frame_ids` picks."""
+    ids = evenly_spaced_frame_ids(split, role, limit)
     return load_frames(scene_h5, dataclasses.replace(split, frame_ids={**split.frame_ids, role: ids}), role)
 
 

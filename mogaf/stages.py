@@ -149,14 +149,22 @@ def grouping_quality(grouped_model: str, groups: str, scene: str, split: str, ou
         return run_grouping_quality_stage(grouped_model, groups, scene, split, out, dict(params))
 
 
-def evaluate(scene: str, split: str, model: str, groups: str, grouping_quality: str, forecasts: Mapping[str, str], benchmarks: Mapping[str, str], out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str, ids: Mapping[str, str]) -> Path:
+def reconstruction_quality(model: str, scene: str, split: str, out: str, params: Mapping[str, Any]) -> Path:
+    from .reconstruction_quality import run_reconstruction_quality_stage
+
+    with stage_inputs(model, scene, split):
+        return run_reconstruction_quality_stage(model, scene, split, out, dict(params))
+
+
+def evaluate(scene: str, split: str, model: str, groups: str, reconstruction_quality: str, grouping_quality: str, forecasts: Mapping[str, str], benchmarks: Mapping[str, str], out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str, ids: Mapping[str, str]) -> Path:
     from .evaluate import run_evaluate_stage
 
     # groups.h5 is read for its lineage only: the forecasts, the model and the
-    # grouping's quality must all come from this one grouping.
-    with stage_inputs(scene, split, model, groups, grouping_quality, *forecasts.values()):
+    # grouping's quality must all come from this one grouping, and the
+    # reconstruction quality from this model.
+    with stage_inputs(scene, split, model, groups, reconstruction_quality, grouping_quality, *forecasts.values()):
         return run_evaluate_stage(
-            scene=scene, split=split, model=model, grouping_quality=grouping_quality, forecasts=dict(forecasts), benchmarks=dict(benchmarks),
+            scene=scene, split=split, model=model, reconstruction_quality=reconstruction_quality, grouping_quality=grouping_quality, forecasts=dict(forecasts), benchmarks=dict(benchmarks),
             out_metrics=out_metrics, out_renders=out_renders, params=dict(params), variant=variant, ids=dict(ids),
         )
 

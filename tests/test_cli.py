@@ -91,12 +91,22 @@ def test_grouping_quality_gets_its_config_section(in_repo, tmp_path, monkeypatch
     assert seen["grouped_model"] == str(tmp_path / "grouped-model-h5.h5")
 
 
-def test_evaluate_reads_the_grouping_quality_file(in_repo, tmp_path, monkeypatch):
+def test_reconstruction_quality_gets_its_config_section(in_repo, tmp_path, monkeypatch):
+    seen = {}
+    monkeypatch.setattr(cli.stages, "run_stage", lambda fn, log, threads=None, **kw: seen.update(kw, fn=fn))
+    configfile = _config(tmp_path, lambda c: c["reconstruction_quality"].update(max_frames=3))
+    assert cli.main(_stage_args(tmp_path, "reconstruction-quality", configfile)) == 0
+    assert seen["fn"] is cli.stages.reconstruction_quality and seen["params"] == {"max_frames": 3}
+    assert seen["model"] == str(tmp_path / "model-h5.h5")
+
+
+def test_evaluate_reads_the_quality_files(in_repo, tmp_path, monkeypatch):
     seen = {}
     monkeypatch.setattr(cli.stages, "run_stage", lambda fn, log, threads=None, **kw: seen.update(kw, fn=fn))
     args = ["evaluate", "--scene-h5", "s.h5", "--split-h5", "p.h5", "--model-h5", "m.h5", "--groups-h5", "g.h5",
-            "--grouping-quality-h5", "q.h5", "--out", "metrics.json", "--renders", "r", "--forecast", "frozen=f.h5",
+            "--reconstruction-quality-h5", "rq.h5", "--grouping-quality-h5", "q.h5", "--out", "metrics.json", "--renders", "r", "--forecast", "frozen=f.h5",
             "--ratio", "0.6"]
     assert cli.main(args) == 0
     assert seen["fn"] is cli.stages.evaluate and seen["grouping_quality"] == "q.h5" and seen["groups"] == "g.h5"
+    assert seen["reconstruction_quality"] == "rq.h5"
     assert seen["forecasts"] == {"frozen": "f.h5"}

@@ -13,14 +13,15 @@ VARIANTS = mcfg.load_yaml("config/ablations.yaml")["variants"]
 
 def prefixes(variant):
     cfg = mcfg.variant_config(BASE, VARIANTS, variant)
-    stages = ["priors", "recon", "group", "rigid_init", "refine", "grouping_quality", "forecast:mogaf", "forecast:gcn",
-              "evaluate"]
+    stages = ["priors", "recon", "group", "rigid_init", "refine", "grouping_quality", "reconstruction_quality:recon",
+              "reconstruction_quality:refine", "forecast:mogaf", "forecast:gcn", "evaluate"]
     return {s: mcfg.artefact_prefix(s, BASE, cfg, variant) for s in stages}
 
 
 def test_forecaster_variant_shares_everything_upstream():
     p = prefixes("no_masking")
     assert p["priors"] == p["recon"] == p["group"] == p["refine"] == p["grouping_quality"] == ""
+    assert p["reconstruction_quality:refine"] == p["reconstruction_quality:recon"] == ""
     assert p["forecast:mogaf"] == "ablation/no_masking/"
     assert p["forecast:gcn"] == ""  # another method's forecast is unchanged
 
@@ -29,12 +30,27 @@ def test_grouping_variant_shares_reconstruction_only():
     p = prefixes("gaga4d")
     assert p["priors"] == p["recon"] == ""
     assert p["group"] == p["refine"] == p["grouping_quality"] == p["forecast:mogaf"] == "ablation/gaga4d/"
+    assert p["reconstruction_quality:refine"] == "ablation/gaga4d/"  # the model was refined with these groups
+    assert p["reconstruction_quality:recon"] == ""
 
 
 def test_reconstruction_knob_invalidates_downstream():
     p = prefixes("rt_fast")
     assert p["priors"] == ""
     assert all(p[s] == "ablation/rt_fast/" for s in ("recon", "group", "refine", "grouping_quality", "forecast:mogaf", "forecast:gcn"))
+
+
+def test_reconstruction_quality_is_of_the_model_the_forecasts_start_from():
+    # one file per model: every variant forecasting from the shared recon.h5 shares the one of recon.h5
+    for variant, model in (("lw_opt_fc", "refine"), ("lw_noopt_fc", "recon"), ("hc_noopt_nofc", "recon")):
+        cfg = mcfg.variant_config(BASE, VARIANTS, variant)
+        assert mcfg.reconstruction_quality_stage(cfg) == f"reconstruction_quality:{model}"
+        assert prefixes(variant)[f"reconstruction_quality:{model}"] == ""
+    cfg = mcfg.variant_config(BASE, {"n": {"overrides": {"reconstruction_quality": {"max_frames": 2}}}}, "n")
+    p = {s: mcfg.artefact_prefix(s, BASE, cfg, "n") for s in ("refine", "forecast:mogaf", "grouping_quality",
+                                                              "reconstruction_quality:refine", "evaluate")}
+    assert p == {"refine": "", "forecast:mogaf": "", "grouping_quality": "", "reconstruction_quality:refine": "ablation/n/",
+                 "evaluate": "ablation/n/"}
 
 
 def test_grouping_quality_settings_touch_only_the_measurement():
@@ -86,6 +102,7 @@ def _stage_resolvers():
     from mogaf.grouping.quality import run_grouping_quality_stage
     from mogaf.grouping.stage import run_rigid_init_stage
     from mogaf.priors import resolve_params as priors
+    from mogaf.reconstruction_quality import run_reconstruction_quality_stage
     from mogaf.recon.params import resolve_params as recon
     from mogaf.refine import resolve_params as refine
     from mogaf.synth.params import resolve_params as synthetic
@@ -95,8 +112,10 @@ def _stage_resolvers():
         "synthetic": synthetic, "priors": priors, "recon": recon, "grouping": grouping, "refine": refine,
         "rigid_init": lambda p: run_rigid_init_stage(missing, missing, missing, p),
         "grouping_quality": lambda p: run_grouping_quality_stage(missing, missing, missing, missing, missing, p),
+        "reconstruction_quality": lambda p: run_reconstruction_quality_stage(missing, missing, missing, missing, p),
         "forecast.mogaf": lambda p: make_forecaster("mogaf", p),
-        "evaluate": lambda p: run_evaluate_stage(scene=missing, split=missing, model=missing, grouping_quality=missing,
+        "evaluate": lambda p: run_evaluate_stage(scene=missing, split=missing, model=missing, reconstruction_quality=missing,
+                                                 grouping_quality=missing,
                                                  forecasts={}, benchmarks={}, out_metrics=missing, out_renders=missing,
                                                  params=p, variant="", ids={}),
     }

@@ -32,6 +32,7 @@ def library_defaults() -> dict[str, dict[str, Any]]:
     import mogaf.grouping.quality
     import mogaf.priors
     import mogaf.recon.params
+    import mogaf.reconstruction_quality
     import mogaf.refine
     from mogaf.forecast import METHODS, defaults
 
@@ -43,6 +44,7 @@ def library_defaults() -> dict[str, dict[str, Any]]:
         "refine": mogaf.refine.REFINE_DEFAULTS,
         "evaluate": mogaf.evaluate.DEFAULT_PARAMS,
         "grouping_quality": mogaf.grouping.quality.DEFAULT_PARAMS,
+        "reconstruction_quality": mogaf.reconstruction_quality.DEFAULT_PARAMS,
     }
     out.update({f"forecast.{m}": defaults(m) for m in METHODS})
     return {name: {k: v for k, v in d.items() if k not in INJECTED.get(name, set())} for name, d in out.items()}

@@ -1,4 +1,5 @@
-"""Stage entries: groups.h5, its quality at held-out views (grouping_quality.h5) and rigid.h5."""
+"""Stage entries: groups.h5, its quality at held-out views (grouping_quality.h5),
+the model's quality there (reconstruction_quality/*.h5) and rigid.h5."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from mogaf.grouping import (
 from mogaf.grouping.core import DEFAULT_PARAMS, Groups
 from mogaf.grouping.metrics import adjusted_rand_index, grouping_quality, per_object_iou
 from mogaf.grouping.quality import read_grouping_quality, run_grouping_quality_stage
+from mogaf.reconstruction_quality import read_reconstruction_quality, run_reconstruction_quality_stage
 from mogaf.grouping.toy import look_at, model_from_points, splat_instance_masks, two_object_scene
 from mogaf.representation import save_model
 from mogaf.scene import Instances, Scene, load_scene, save_scene
@@ -104,6 +106,35 @@ def test_group_stage_writes_groups_h5(toy_files, method):
             read_grouping_quality(quality_h5)
     assert "quality" not in art and "ari" not in art.attrs  # the group stage opens no held-out view
     assert has_rigid_groups(out) == bool(np.any(g.rigid == 1))
+
+
+def test_reconstruction_quality_stage(toy_files):
+    """PSNR of the model at evenly spaced held-out views at observed times,
+    against -10 log10(MSE) computed here; a corrupted file is refused."""
+    from mogaf.rendering import render_model
+
+    out = run_reconstruction_quality_stage(toy_files["recon"], toy_files["scene"], toy_files["split"],
+                                           toy_files["root"] / "reconstruction_quality" / "recon.h5", {"max_frames": 3})
+    q = read_reconstruction_quality(out)
+    split = read_split(toy_files["split"])
+    held_out = split.frame_ids["evaluation_observed"]
+    assert held_out.size == T_OBS and q["num_frames"] == 3
+    art = read_artefact(out, "reconstruction_quality")
+    assert list(art["frame_ids"]) == list(held_out[[0, 6, 11]])  # evenly spaced over the 12 (5.5 rounds to 6)
+    scene = load_scene(toy_files["scene"])
+    psnrs = []
+    for f in art["frame_ids"]:
+        rendered = render_model(toy_files["model"], int(scene.time_index[f]), scene.K[f], scene.w2c[f], W, H)
+        pred = np.clip(rendered.features[..., :3].detach().numpy().astype(np.float64), 0, 1)
+        psnrs.append(-10 * np.log10(np.mean((pred - scene.images[f] / 255.0) ** 2)))
+    assert list(art["timesteps"]) == [int(scene.time_index[f]) for f in art["frame_ids"]]
+    assert q["heldout_observed"]["psnr"] == pytest.approx(np.mean(psnrs), rel=1e-9)
+    assert set(q["heldout_observed"]) == {"psnr", "ssim", "mpsnr", "mssim"}  # iPhone layout: masked ones too
+    with h5py.File(out, "r+") as fh:
+        del fh["timesteps"]
+        fh["timesteps"] = np.zeros(2, np.int64)
+    with pytest.raises(MogafError, match=r"recon\.h5: entry 'timesteps' has shape \(2,\), but 3 frame\(s\) were rendered"):
+        read_reconstruction_quality(out)
 
 
 def test_rigid_init_stage(toy_files):

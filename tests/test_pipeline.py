@@ -106,6 +106,9 @@ def test_every_method_has_finite_metrics(runs):
     grouping = metrics["grouping"]
     assert 0.0 <= grouping["mean_iou"] <= 1.0 and math.isfinite(grouping["ari"])
     assert len(grouping["per_object_iou"]) == len(grouping["object_names"]) > 0
+    # the model's quality at held-out views (reconstruction_quality stage), copied too
+    reconstruction = metrics["reconstruction"]
+    assert reconstruction["num_frames"] > 0 and reconstruction["heldout_observed"]["psnr"] > 10
 
 
 def test_artefacts_record_their_lineage(runs):
@@ -119,6 +122,8 @@ def test_artefacts_record_their_lineage(runs):
     assert refined["recon"] == (lineage["recon.h5"].digest,) and refined["group"] == (lineage["groups.h5"].digest,)
     quality = read_lineage(ratio / "grouping_quality.h5").inputs
     assert quality["recon"] == (lineage["recon.h5"].digest,) and quality["group"] == (lineage["groups.h5"].digest,)
+    # the reconstruction quality is of the model the forecasts start from
+    assert read_lineage(ratio / "reconstruction_quality" / "refined.h5").inputs["refine"] == (lineage["refined.h5"].digest,)
     forecast = read_lineage(ratio / "forecast" / "mogaf.h5")
     assert forecast.inputs["refine"] == (lineage["refined.h5"].digest,)
 

@@ -153,7 +153,7 @@ def test_sweep_measures_its_shared_grouping_once(tmp_path):
     res = snakemake(["-n", "sweep_groupwise"], tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     counts = job_counts(res.stdout)
-    assert counts["evaluate"] == 9 and counts["grouping_quality"] == 1
+    assert counts["evaluate"] == 9 and counts["grouping_quality"] == 1 and counts["reconstruction_quality"] == 2
 
 
 @pytest.mark.parametrize("rigid, expect", [([0, 0], False), ([1, 0], True)])

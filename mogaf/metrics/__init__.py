@@ -17,6 +17,7 @@ from mogaf.metrics.lpips import (
     lpips_map,
     mlpips,
 )
+from mogaf.metrics.views import image_metrics, mean_metrics
 from mogaf.metrics.tracking import (
     average_jaccard,
     delta_3d,
@@ -47,4 +48,6 @@ __all__ = [
     "delta_avg",
     "occlusion_accuracy",
     "tracking_metrics",
+    "image_metrics",
+    "mean_metrics",
 ]

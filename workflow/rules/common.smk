@@ -55,6 +55,7 @@ wildcard_constraints:
     prefix=r"(ablation/[A-Za-z0-9_.-]+/)?",
     method="|".join(mcfg.FORECAST_METHODS),
     group=r"all|[0-9]+",
+    model=r"recon|refined",
 
 
 def _workflow_error(fn):
@@ -230,6 +231,11 @@ def forecast_model(wildcards):
     return stage_path(mcfg.forecast_input_stage(scene_cfg(wildcards)), wildcards)
 
 
+def quality_model(wildcards):
+    """recon.h5 or refined.h5, by the {model} wildcard of reconstruction_quality."""
+    return stage_path({"recon": "recon", "refined": "refine"}[wildcards.model], wildcards)
+
+
 def forecast_params(wildcards):
     """Only what one method's forecast depends on (other methods' settings
     must not trigger a rerun)."""
@@ -285,6 +291,7 @@ def evaluate_inputs(wildcards):
         "split": split_h5(wildcards),
         "model": forecast_model(wildcards),
         "groups": groups_h5(wildcards),  # its lineage only (mogaf.stages.evaluate)
+        "reconstruction_quality": stage_path(mcfg.reconstruction_quality_stage(cfg), wildcards),
         "grouping_quality": stage_path("grouping_quality", wildcards),
     }
     for method in cfg["forecast"]["methods"]:

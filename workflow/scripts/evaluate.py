@@ -11,6 +11,7 @@ run_stage(
     split=inputs["split"],
     model=inputs["model"],
     groups=inputs["groups"],
+    reconstruction_quality=inputs["reconstruction_quality"],
     grouping_quality=inputs["grouping_quality"],
     forecasts={m: inputs[f"forecast_{m}"] for m in snakemake.params.methods},
     benchmarks={k[len("bench_"):]: v for k, v in inputs.items() if k.startswith("bench_")},
