@@ -222,6 +222,19 @@ def check_lineage(artefacts: Iterable[Lineage]) -> None:
                                           "(other settings or inputs); rerun the stages after it")
 
 
+def check_made_from(derived: str | os.PathLike, source: str | os.PathLike) -> None:
+    """`derived` must have been made from `source` itself, not merely from
+    something of one lineage with it (e.g. a measurement of recon.h5 where
+    refined.h5 is meant). Files that record no lineage are not checked."""
+    made, src = read_lineage(derived), read_lineage(source)
+    if not made.digest or not src.digest:
+        return
+    if src.digest not in made.inputs.get(src.stage, ()):
+        made_of = ", ".join(f"'{stage}'" for stage in sorted(made.inputs)) or "nothing recorded"
+        raise input_error(made.path, f"was not made from {src.path} (a '{src.stage}' artefact; it was made from "
+                                     f"{made_of}); rerun the stage that writes it")
+
+
 @contextlib.contextmanager
 def stage_inputs(*paths: str | os.PathLike | None) -> Iterator[tuple[Lineage, ...]]:
     """Declare the artefacts a stage reads. They are checked to share one

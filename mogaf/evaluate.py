@@ -13,7 +13,8 @@ and computes
   forecast poses; 3D EPE, delta_3D, and on the train camera 2D AJ,
   delta_avg and occlusion accuracy (visibility from the rendered depth).
 metrics.json also carries the model's quality at held-out views at observed
-times (copied from reconstruction_quality.h5, mogaf.reconstruction_quality),
+times (copied from reconstruction_quality/{refined,recon}.h5,
+mogaf.reconstruction_quality),
 the grouping quality (copied from grouping_quality.h5,
 mogaf.grouping.quality), and the wall time and peak memory of
 every stage that produced each method's result (Snakemake benchmark files).
@@ -266,7 +267,7 @@ def run_evaluate_stage(*, scene: str, split: str, model: str, reconstruction_qua
                        ids: Mapping[str, str]) -> Path:
     """metrics.json and renders of every forecast. `model`: the model the
     forecasts start from (refined.h5, or recon.h5 without refinement);
-    `reconstruction_quality`: reconstruction_quality.h5 of that model;
+    `reconstruction_quality`: reconstruction_quality/{refined,recon}.h5 of that model;
     `grouping_quality`: grouping_quality.h5 of the grouping the forecasts used."""
     refuse_unknown_params("evaluate", params, DEFAULT_PARAMS)
     p = {**DEFAULT_PARAMS, **dict(params)}

@@ -17,7 +17,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from .artefact import config_digest, stage_inputs
+from .artefact import check_made_from, config_digest, stage_inputs
 from .errors import MogafError
 
 log = logging.getLogger("mogaf")
@@ -163,6 +163,7 @@ def evaluate(scene: str, split: str, model: str, groups: str, reconstruction_qua
     # grouping's quality must all come from this one grouping, and the
     # reconstruction quality from this model.
     with stage_inputs(scene, split, model, groups, reconstruction_quality, grouping_quality, *forecasts.values()):
+        check_made_from(reconstruction_quality, model)  # of this very model (refined.h5 vs recon.h5)
         return run_evaluate_stage(
             scene=scene, split=split, model=model, reconstruction_quality=reconstruction_quality, grouping_quality=grouping_quality, forecasts=dict(forecasts), benchmarks=dict(benchmarks),
             out_metrics=out_metrics, out_renders=out_renders, params=dict(params), variant=variant, ids=dict(ids),

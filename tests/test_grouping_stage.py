@@ -3,6 +3,9 @@ the model's quality there (reconstruction_quality/*.h5) and rigid.h5."""
 
 from __future__ import annotations
 
+import dataclasses
+import shutil
+
 import h5py
 import numpy as np
 import pytest
@@ -20,8 +23,8 @@ from mogaf.grouping import (
 from mogaf.grouping.core import DEFAULT_PARAMS, Groups
 from mogaf.grouping.metrics import adjusted_rand_index, grouping_quality, per_object_iou
 from mogaf.grouping.quality import read_grouping_quality, run_grouping_quality_stage
-from mogaf.reconstruction_quality import read_reconstruction_quality, run_reconstruction_quality_stage
 from mogaf.grouping.toy import look_at, model_from_points, splat_instance_masks, two_object_scene
+from mogaf.reconstruction_quality import read_reconstruction_quality, run_reconstruction_quality_stage
 from mogaf.representation import save_model
 from mogaf.scene import Instances, Scene, load_scene, save_scene
 from mogaf.split import read_split, split_scene, write_split
@@ -130,6 +133,25 @@ def test_reconstruction_quality_stage(toy_files):
     assert list(art["timesteps"]) == [int(scene.time_index[f]) for f in art["frame_ids"]]
     assert q["heldout_observed"]["psnr"] == pytest.approx(np.mean(psnrs), rel=1e-9)
     assert set(q["heldout_observed"]) == {"psnr", "ssim", "mpsnr", "mssim"}  # iPhone layout: masked ones too
+    # it reads only the held-out views at observed times: noise in every other frame changes nothing
+    poisoned = toy_files["root"] / "poisoned_scene.h5"
+    shutil.copyfile(toy_files["scene"], poisoned)
+    with h5py.File(poisoned, "r+") as fh:
+        rng = np.random.default_rng(0)
+        for f in np.setdiff1d(np.arange(len(scene.frame_names)), held_out):
+            fh["frames/images"][f] = rng.integers(0, 256, fh["frames/images"].shape[1:], dtype=np.uint8)
+    again = run_reconstruction_quality_stage(toy_files["recon"], poisoned, toy_files["split"],
+                                             toy_files["root"] / "poisoned_quality.h5", {"max_frames": 0})
+    all_held_out = run_reconstruction_quality_stage(toy_files["recon"], toy_files["scene"], toy_files["split"],
+                                                    toy_files["root"] / "all_quality.h5", {"max_frames": 0})
+    assert read_reconstruction_quality(again) == read_reconstruction_quality(all_held_out)
+    assert read_reconstruction_quality(again)["num_frames"] == T_OBS
+    # a split without held-out views at observed times: nothing to measure
+    none_h5 = write_split(toy_files["root"] / "no_heldout_split.h5", dataclasses.replace(
+        split, frame_ids={**split.frame_ids, "evaluation_observed": np.zeros(0, np.int64)}))
+    empty = run_reconstruction_quality_stage(toy_files["recon"], toy_files["scene"], none_h5,
+                                             toy_files["root"] / "empty_quality.h5")
+    assert read_reconstruction_quality(empty) == {} and read_artefact(empty)["frame_ids"].shape == (0,)
     with h5py.File(out, "r+") as fh:
         del fh["timesteps"]
         fh["timesteps"] = np.zeros(2, np.int64)

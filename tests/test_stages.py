@@ -87,4 +87,15 @@ def test_stages_refuse_inputs_of_another_lineage(tmp_path, never_run):
                         reconstruction_quality=str(model_quality), grouping_quality=str(a_grouping_quality),
                         forecasts={"frozen": str(forecast)}, benchmarks={}, out_metrics=str(tmp_path / "m.json"),
                         out_renders=str(tmp_path / "renders"), params={}, variant="default", ids={})
+    # one lineage, yet a measurement of recon.h5 where the forecasts start from refined.h5
+    with stage_inputs(a["recon"], a["groups"], a["scene"], a["split"]):
+        refined = write_artefact(tmp_path / "refined.h5", "refine", {}, config_digest="refine")
+    with stage_inputs(refined, a["groups"], a["split"]):
+        forecast_of_refined = write_artefact(tmp_path / "frozen_refined.h5", "forecast", {}, config_digest="frozen")
+    with pytest.raises(MogafError, match=r"a_quality\.h5: was not made from .*refined\.h5 \(a 'refine' artefact; it was "
+                                         r"made from 'ingest', 'recon', 'split'\)"):
+        stages.evaluate(scene=str(a["scene"]), split=str(a["split"]), model=str(refined), groups=str(a["groups"]),
+                        reconstruction_quality=str(a_model_quality), grouping_quality=str(a_grouping_quality),
+                        forecasts={"frozen": str(forecast_of_refined)}, benchmarks={}, out_metrics=str(tmp_path / "m.json"),
+                        out_renders=str(tmp_path / "renders"), params={}, variant="default", ids={})
     assert not any((tmp_path / name).exists() for name in ("r.h5", "q.h5", "m.json"))

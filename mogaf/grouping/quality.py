@@ -9,10 +9,11 @@ the model that was grouped (recon.h5), groups.h5, the split and scene.h5's
 grouping_quality.h5 (stage "grouping_quality"):
   per_object_iou (M,) float64       IoU of each GT object present (mogaf.grouping.metrics)
   object_ids (M,) int64
-  attrs: method, num_groups, params (JSON), quality (JSON: the whole
-    section evaluation copies into metrics.json["grouping"]; only method and
-    num_groups where there is nothing to compare: no GT instance masks, no
-    held-out view at an observed step, or no group)
+  attrs: method, num_groups, params (JSON), quality (JSON: the section
+    evaluation copies into metrics.json["grouping"] but for the two arrays
+    above, which the reader puts back; only method and num_groups where there
+    is nothing to compare: no GT instance masks, no held-out view at an
+    observed step, or no group)
 """
 
 from __future__ import annotations
