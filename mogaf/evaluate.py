@@ -92,12 +92,6 @@ def read_benchmark(path: str | os.PathLike) -> dict[str, float]:
 
 
 # ------------------------------------------------------------------ images
-def _frame_masks(frames) -> np.ndarray | None:
-    if frames.covisible is None:
-        return None
-    return (np.asarray(frames.covisible) > 0).astype(np.float32)
-
-
 def _round(obj: Any, digits: int = 6) -> Any:
     if isinstance(obj, float):
         return round(obj, digits) if math.isfinite(obj) else None
@@ -283,7 +277,7 @@ def run_evaluate_stage(*, scene: str, split: str, model: str, reconstruction_qua
     m4 = load_model(model)
     frames = load_frames(scene, sp, "evaluation")
     masked = sp.protocol == "iphone"
-    masks = _frame_masks(frames)
+    masks = frames.covisibility_masks()
     methods = sorted(forecasts)
     renders_tmp = Path(out_renders).with_name(f".{Path(out_renders).name}.tmp-{os.getpid()}")
     shutil.rmtree(renders_tmp, ignore_errors=True)

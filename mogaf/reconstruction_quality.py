@@ -56,13 +56,13 @@ def measure_reconstruction_quality(model_h5: str | os.PathLike, scene_h5: str | 
     frames = load_evenly_spaced_frames(scene_h5, split, "evaluation_observed", int(p["max_frames"]))
     model = load_model(model_h5)
     masked = split.protocol == "iphone"
-    covisible = None if frames.covisible is None else np.asarray(frames.covisible) > 0
+    masks = frames.covisibility_masks()
     per_frame = []
     for f in range(frames.num_frames):
         out = render_model(model, int(frames.time_index[f]), frames.K[f], frames.w2c[f], frames.width, frames.height)
         pred = np.clip(out.features[..., :3].detach().cpu().numpy().astype(np.float64), 0, 1)
-        mask = None if covisible is None else covisible[f].astype(np.float32)
-        per_frame.append(image_metrics(pred, frames.images[f] / 255.0, mask, masked, use_lpips=False))
+        per_frame.append(image_metrics(pred, frames.images[f] / 255.0, None if masks is None else masks[f], masked,
+                                       use_lpips=False))
     return {"frame_ids": frame_ids, "timesteps": np.asarray(frames.time_index, np.int64), "per_frame": per_frame}
 
 

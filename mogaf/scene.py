@@ -89,6 +89,13 @@ class Scene:
     def width(self) -> int:
         return int(self.images.shape[2])
 
+    def covisibility_masks(self) -> np.ndarray | None:
+        """(F, H, W) float32, 1 where the pixel is co-visible (the masked
+        metrics' masks), or None where the scene has none."""
+        if self.covisible is None:
+            return None
+        return (np.asarray(self.covisible) > 0).astype(np.float32)
+
     def validate(self, source: str | os.PathLike) -> None:
         """Raise a one-line MogafError naming `source` if the scene is inconsistent."""
         F = self.num_frames
