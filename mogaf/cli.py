@@ -66,16 +66,15 @@ def _validate(cfg: dict[str, Any], configfile: str) -> None:
     if schema is None:
         return
     try:
-        import jsonschema
+        import jsonschema  # noqa: F401
     except ImportError:  # the `workflow` extra is not installed; the stages check their own parameters
         return
     from . import config as mcfg
+    from .schema import config_error
 
-    try:
-        jsonschema.validate(cfg, mcfg.load_yaml(schema))
-    except jsonschema.ValidationError as exc:
-        where = ".".join(str(k) for k in exc.absolute_path) or "top level"
-        raise MogafError(f"{configfile}: {where}: {exc.message}") from None
+    error = config_error(cfg, mcfg.load_yaml(schema), [(configfile, cfg)])
+    if error is not None:
+        raise error
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:

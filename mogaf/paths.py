@@ -1,4 +1,5 @@
-"""Where mogaf keeps its cache (compiled kernels, converted LPIPS weights).
+"""Where mogaf keeps its cache (compiled kernels, converted LPIPS weights),
+and where a stage may write (`check_outputs`).
 
 The workflow sets MOGAF_CACHE_DIR to `<workdir>/.cache/mogaf` (config key
 `cache_dir`), so a pipeline run writes only under results/ and that folder.
@@ -8,7 +9,10 @@ Library users without the variable get ~/.cache/mogaf.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable, Mapping
 from pathlib import Path
+
+from .errors import input_error
 
 ENV_CACHE = "MOGAF_CACHE_DIR"
 
@@ -31,3 +35,86 @@ def use_cache_dir(default: str | os.PathLike) -> Path:
     if not os.environ.get("MPLCONFIGDIR"):
         os.environ["MPLCONFIGDIR"] = str(base / "matplotlib")
     return base
+
+
+# ------------------------------------------------------------------ outputs
+# Files whose presence marks a dataset folder (D-NeRF; DyCheck iPhone and the
+# synthetic scenes): no stage writes inside one.
+DATASET_MARKERS = ("transforms_train.json", os.path.join("splits", "train.json"))
+
+
+def _resolved(path: str | os.PathLike) -> Path:
+    return Path(path).expanduser().resolve()
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether `a` and `b` name one file (also through links)."""
+    if a == b:
+        return True
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def holding_dataset_folder(path: str | os.PathLike) -> Path | None:
+    """The nearest folder above `path` that holds a dataset, if any."""
+    for parent in _resolved(path).parents:
+        if any((parent / marker).is_file() for marker in DATASET_MARKERS):
+            return parent
+    return None
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    return path != folder and path.is_relative_to(folder)
+
+
+def check_outputs(outputs: Mapping[str, str | os.PathLike | None], inputs: Iterable[str | os.PathLike | None] = (),
+                  *, folders: Iterable[str | os.PathLike] = (), directories: Iterable[str] = ()) -> None:
+    """Refuse, before anything is opened for writing, outputs that would
+    overwrite or delete what a stage reads, with one line naming the output.
+
+    `outputs` maps a role (out, checkpoint, ...) to its path; the roles in
+    `directories` are folders the stage replaces whole. An output may not be
+    an input, another output, an existing directory where a file goes, or
+    lie inside a dataset folder (one of `folders`, or any folder holding a
+    dataset marker); a replaced folder may hold no input.
+    """
+    given = {role: _resolved(p) for role, p in outputs.items() if p is not None}
+    sources = [(p, _resolved(p)) for p in inputs if p is not None]
+    dataset_folders = [_resolved(f) for f in folders]
+    seen: dict[Path, str] = {}
+    for role, out in given.items():
+        name = outputs[role]
+        for raw, src in sources:
+            if _same_file(out, src):
+                which = "" if str(raw) == str(name) else f" ({raw})"
+                raise input_error(name, f"is also an input of this stage{which}; refusing to overwrite an input, "
+                                        "write the output elsewhere")
+            if role in directories and _inside(src, out):
+                raise input_error(name, f"holds the input {raw}; this stage replaces the whole folder, "
+                                        "write the output elsewhere")
+        if out in seen:
+            raise input_error(name, f"is given as both the {seen[out]} and the {role} output; give each its own path")
+        seen[out] = role
+        if role not in directories and out.is_dir():
+            raise input_error(name, "is an existing directory; the output must be a file path")
+        folder = next((f for f in dataset_folders if out == f or _inside(out, f)), None) or holding_dataset_folder(out)
+        if folder is not None:
+            raise input_error(name, f"lies inside the dataset folder {folder}; no stage writes into a dataset, "
+                                    "write the output elsewhere (e.g. under results/)")
+
+
+def unwritable_folder(path: str | os.PathLike) -> tuple[Path, str] | None:
+    """(folder, reason) where `path` cannot be created or replaced: the
+    nearest existing folder above it is read-only or not ours to write."""
+    folder = Path(path).absolute().parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if os.access(folder, os.W_OK | os.X_OK):
+        return None
+    try:
+        read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except OSError:
+        read_only = False
+    return folder, "a read-only file system" if read_only else "no write permission"

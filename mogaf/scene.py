@@ -181,6 +181,37 @@ def save_scene(path: str | os.PathLike, scene: Scene, *, config_digest: str) -> 
     return write_artefact(path, SCENE_STAGE, data, config_digest=config_digest, attrs=attrs)
 
 
+def check_scene_file(fh, path: str | os.PathLike) -> tuple[int, int]:
+    """scene.h5's attributes and per-frame entry shapes, from its metadata
+    alone (nothing read): one line naming the file where a reader would
+    otherwise fail later, far from it. Returns (frames, time steps)."""
+    from .artefact import _decode_attr
+
+    T = _decode_attr(fh.attrs.get("num_timesteps"))
+    if isinstance(T, bool) or not isinstance(T, int) or T < 1:
+        raise input_error(path, f"attribute num_timesteps is {T!r}; it must be a positive integer (rerun ingest)")
+    layout = _decode_attr(fh.attrs.get("layout"))
+    if layout not in LAYOUTS:
+        raise input_error(path, f"attribute layout is {layout!r}; expected one of {', '.join(LAYOUTS)} (rerun ingest)")
+    for key in (*FRAME_ARRAYS, "names"):
+        if f"frames/{key}" not in fh:
+            raise input_error(path, f"has no entry 'frames/{key}' (rerun ingest)")
+    images = fh["frames/images"].shape
+    if len(images) != 4 or images[-1] != 3:
+        raise input_error(path, f"entry 'frames/images' has shape {images}, expected (frames, height, width, 3)")
+    F, H, W = images[:3]
+    expect = {"K": (F, 3, 3), "w2c": (F, 4, 4), "time": (F,), "time_index": (F,), "camera_id": (F,),
+              "source_split": (F,), "names": (F,)}
+    for key, shape in expect.items():
+        if fh[f"frames/{key}"].shape != shape:
+            raise input_error(path, f"entry 'frames/{key}' has shape {fh[f'frames/{key}'].shape}, expected {shape} "
+                                    f"(one per frame; {F} frames)")
+    for key in OPTIONAL_FRAME_ARRAYS:
+        if f"frames/{key}" in fh and fh[f"frames/{key}"].shape[:3] != (F, H, W):
+            raise input_error(path, f"entry 'frames/{key}' has shape {fh[f'frames/{key}'].shape}, expected ({F}, {H}, {W}, ...)")
+    return int(F), int(T)
+
+
 def _read_group(fh, key: str) -> dict[str, Any]:
     from .artefact import read_tree  # shared tree reader with finiteness checks
 
@@ -211,8 +242,8 @@ def load_scene(
 
     p = Path(path)
     with open_artefact(p, SCENE_STAGE) as fh:
+        total, _ = check_scene_file(fh, p)
         attrs = {k: _decode_attr(v) for k, v in fh.attrs.items()}
-        total = fh["frames/time"].shape[0]
         rows = np.arange(total) if frames is None else np.asarray(frames, dtype=np.int64)
         arrays = {key: read_rows(fh, f"frames/{key}", rows) for key in FRAME_ARRAYS}
         optional = {key: (read_rows(fh, f"frames/{key}", rows) if f"frames/{key}" in fh else None) for key in OPTIONAL_FRAME_ARRAYS}

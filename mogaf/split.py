@@ -29,7 +29,7 @@ import numpy as np
 from .artefact import (config_digest, open_artefact, read_artefact, read_dataset, read_rows, read_tree,
                        time_steps_index, write_artefact)
 from .errors import MogafError, input_error
-from .scene import SCENE_STAGE, SPLIT_CODES, Scene, load_scene
+from .scene import SCENE_STAGE, SPLIT_CODES, Scene, check_scene_file, load_scene
 
 SPLIT_STAGE = "split"
 ROLES = ("observed", "evaluation", "evaluation_observed", "train_future")
@@ -69,6 +69,10 @@ def make_split(scene_time: np.ndarray, time_index: np.ndarray, num_timesteps: in
     """Build the split from per-frame metadata only (no pixels are read)."""
     r = check_ratio(ratio)
     T = int(num_timesteps)
+    steps = np.asarray(time_index)
+    if steps.size and (steps.min() < 0 or steps.max() >= T):
+        raise input_error(source, f"frame time steps {int(steps.min())}..{int(steps.max())} lie outside the scene's "
+                                  f"{T} time steps (rerun ingest)")
     grid = np.arange(T) / max(T - 1, 1)
     protocol = "iphone" if layout == "iphone" else "dnerf"
     T_obs = _observed_step_count(grid, r, protocol, T)
@@ -94,6 +98,12 @@ def make_split(scene_time: np.ndarray, time_index: np.ndarray, num_timesteps: in
     }
     if frame_ids["observed"].size == 0:
         raise input_error(source, f"no training frame before the cut at ratio {r}")
+    seen = np.unique(np.asarray(time_index)[frame_ids["observed"]])
+    if seen.size < 2:
+        # the observed steps would all be filled in from one instant: motion invented, not learnt
+        raise input_error(source, f"the {frame_ids['observed'].size} training frame(s) before the cut at ratio {r} are "
+                                  f"all at time step {int(seen[0])} of the {T_obs} observed steps; at least two "
+                                  "observed time steps need a training frame (a larger ratio may give them)")
     if frame_ids["evaluation"].size == 0:
         raise input_error(source, f"no evaluation frame after the cut at ratio {r}")
     return Split(
@@ -109,10 +119,9 @@ def make_split(scene_time: np.ndarray, time_index: np.ndarray, num_timesteps: in
 def split_scene(scene_h5: str | os.PathLike, ratio: float) -> Split:
     """Read per-frame metadata of scene.h5 (no images) and build the split."""
     with open_artefact(scene_h5, SCENE_STAGE) as fh:
-        n = fh["frames/time"].shape[0]
+        n, T = check_scene_file(fh, scene_h5)
         rows = np.arange(n)
         meta = {k: read_rows(fh, f"frames/{k}", rows) for k in ("time", "time_index", "source_split", "camera_id")}
-        T = int(fh.attrs["num_timesteps"])
         layout = fh.attrs["layout"]
         layout = layout.decode() if isinstance(layout, bytes) else str(layout)
     return make_split(meta["time"], meta["time_index"], T, meta["source_split"], meta["camera_id"], layout, ratio, scene_h5)

@@ -18,14 +18,18 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import MogafError, input_error
-from ..scene import Scene
+from ..scene import SPLIT_CODES, Scene
 
 LAYOUTS = ("dnerf", "iphone", "synthetic")
 
 # The file whose presence means "the scene is there" (the reader then
 # reports anything else that is missing, file by file).
 _MARKERS = {"dnerf": "transforms_train.json", "iphone": "splits/train.json"}
+# The file that lists each layout's training frames and their times.
+_TRAIN_LISTS = {"dnerf": "transforms_train.json", "iphone": "splits/train.json", "synthetic": "splits/train.json"}
 
 
 def _check_layout(layout: str) -> None:
@@ -86,7 +90,18 @@ def read_scene(layout: str, scene_dir: str | os.PathLike, *, dataset: str, scene
     if not isinstance(out, Scene):
         raise MogafError(f"{d}: the '{layout}' reader returned {type(out).__name__}, not a Scene")
     out.validate(d)
+    check_training_times(out, d / _TRAIN_LISTS[layout])
     return out
+
+
+def check_training_times(scene: Scene, train_list: Path) -> None:
+    """The training frames must show more than one instant: from one, every
+    later stage would invent the motion it is meant to learn."""
+    train = scene.source_split == SPLIT_CODES["train"]
+    if train.any() and np.unique(scene.time_index[train]).size < 2:
+        raise input_error(train_list, f"its {int(train.sum())} training frame(s) are all at one time "
+                                      f"({float(scene.time[train][0]):g}); a dynamic scene needs training frames "
+                                      "at two times at least")
 
 
 def _read(layout: str, d: Path, dataset: str, scene: str, options: dict) -> Scene:

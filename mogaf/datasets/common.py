@@ -31,8 +31,22 @@ def _reject_constant(name: str) -> Any:
     raise ValueError(f"non-finite number {name} is not valid JSON")
 
 
+class _DuplicateKey(ValueError):
+    """A JSON object names one key twice (json keeps the last silently)."""
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    obj: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in obj:
+            raise _DuplicateKey(key)
+        obj[key] = value
+    return obj
+
+
 def load_json(path: str | os.PathLike, *, what: str = "file", expect: type = dict) -> Any:
-    """Read a JSON file strictly: missing, unreadable, malformed -> one line."""
+    """Read a JSON file strictly: missing, unreadable, malformed, or an object
+    that names a key twice -> one line."""
     p = Path(path)
     if not p.is_file():
         raise input_error(p, f"missing ({what})" if not p.exists() else f"is not a file ({what})")
@@ -41,7 +55,10 @@ def load_json(path: str | os.PathLike, *, what: str = "file", expect: type = dic
     except OSError as exc:
         raise input_error(p, f"cannot be read ({exc.strerror or exc.__class__.__name__})") from None
     try:
-        obj = json.loads(raw, parse_constant=_reject_constant)
+        obj = json.loads(raw, parse_constant=_reject_constant, object_pairs_hook=_unique_keys)
+    except _DuplicateKey as exc:
+        raise input_error(p, f"key {exc.args[0]!r} appears twice in one JSON object; "
+                             "which value is meant is ambiguous, keep one") from None
     except json.JSONDecodeError as exc:
         raise input_error(p, f"malformed JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
     except (ValueError, UnicodeDecodeError) as exc:
@@ -229,6 +246,18 @@ def rigidity_of(name: str, rules: list[tuple[str, int]]) -> int:
         if fnmatch.fnmatchcase(name, pattern):
             return flag
     return -1
+
+
+# ---------------------------------------------------------------- warnings
+class DatasetWarning(UserWarning):
+    """The dataset is usable but probably not what its author meant (named file)."""
+
+
+def warn_dataset(path: str | os.PathLike, problem: str) -> None:
+    """The warning counterpart of `input_error`: `<file>: <what is odd>`."""
+    import warnings
+
+    warnings.warn(f"{os.fspath(path)}: {problem}", DatasetWarning, stacklevel=3)
 
 
 # ---------------------------------------------------------------- time grid

@@ -62,6 +62,7 @@ from .common import (
     rigidity_of,
     rigidity_rules,
     time_grid,
+    warn_dataset,
 )
 from .images import composite_downscale, downscale_area, downscale_labels, png_size, read_image, read_label_image
 
@@ -100,6 +101,41 @@ def _image_path(scene_dir: Path, file_path: str) -> Path:
     return p
 
 
+def _leaves_folder(file_path: str) -> bool:
+    """An absolute path, or one whose '..' climbs out of the scene folder
+    (read lexically: links inside the folder may point anywhere)."""
+    normal = os.path.normpath(file_path)
+    return os.path.isabs(file_path) or normal == ".." or normal.startswith(".." + os.sep)
+
+
+def _warn_shared_times(frames: list[_Frame], time_index: dict[str, int]) -> None:
+    """Two frames of one split at one time, while a time step of the split's
+    span has no frame of it: a time was most likely copied wrong (the step
+    it belongs to is then empty). Synchronised multi-view captures share
+    times too, but leave no step empty, and are not warned about."""
+    by_split: dict[str, list[_Frame]] = {}
+    for fr in frames:
+        by_split.setdefault(fr.split, []).append(fr)
+    for split_frames in by_split.values():
+        first: dict[float, _Frame] = {}
+        pair = None
+        for fr in split_frames:
+            if fr.time in first and pair is None:
+                pair = (first[fr.time], fr)
+            first.setdefault(fr.time, fr)
+        if pair is None:
+            continue
+        steps = np.array(sorted({time_index[fr.name] for fr in split_frames}))
+        empty = np.setdiff1d(np.arange(steps[0], steps[-1] + 1), steps)
+        if not empty.size:
+            continue
+        a, b = pair
+        listed = ", ".join(str(int(t)) for t in empty[:5]) + (", ..." if empty.size > 5 else "")
+        warn_dataset(a.json_path, f"frames {a.index} ({a.file_path}) and {b.index} ({b.file_path}) share time "
+                                  f"{a.time:g}, and time step(s) {listed} of its frames' span have no frame: "
+                                  "a frame time is probably wrong")
+
+
 def _parse_split(scene_dir: Path, split: str) -> list[_Frame]:
     path = scene_dir / f"transforms_{split}.json"
     data = load_json(path, what=f"D-NeRF {split} cameras")
@@ -107,6 +143,8 @@ def _parse_split(scene_dir: Path, split: str) -> list[_Frame]:
     frames = as_list(data.get("frames"), path, "'frames'") if "frames" in data else None
     if frames is None:
         raise input_error(path, "missing key 'frames'")
+    if not frames:
+        raise input_error(path, "lists no frames ('frames' is empty); add its frames or remove the file")
     out: list[_Frame] = []
     for i, fr in enumerate(frames):
         where = f"frame {i}"
@@ -117,6 +155,9 @@ def _parse_split(scene_dir: Path, split: str) -> list[_Frame]:
         file_path = as_str(fr["file_path"], path, f"{where} file_path")
         if len(file_path) > 1024 or any(len(part) > 200 for part in file_path.split("/")):
             raise input_error(path, f"{where}: file_path is too long")
+        if _leaves_folder(file_path):
+            raise input_error(path, f"{where}: file_path {file_path!r} leaves the scene folder; "
+                                    "image paths must be relative to it and stay inside it")
         where = f"frame {i} ({file_path})"
         if "time" not in fr:
             raise input_error(path, f"{where}: missing key 'time'")
@@ -181,6 +222,7 @@ def _class_mapping(scene_dir: Path, frames: list[_Frame]) -> tuple[dict[int, str
         if path.exists():
             raw = load_json(path, what="class mapping")
             mapping: dict[int, str] = {}
+            spelled: dict[int, str] = {}
             for key, value in raw.items():
                 try:
                     k = int(key)
@@ -188,7 +230,10 @@ def _class_mapping(scene_dir: Path, frames: list[_Frame]) -> tuple[dict[int, str
                     raise input_error(path, f"class id {key!r} is not an integer") from None
                 if not (0 <= k < MAX_MASK_ID):
                     raise input_error(path, f"class id {k} is outside [0, {MAX_MASK_ID})")
+                if k in mapping:  # e.g. "1" and "01": the last would win silently
+                    raise input_error(path, f"class id {k} is listed twice ({spelled[k]!r} and {key!r}); keep one")
                 mapping[k] = as_str(value, path, f"name of class {k}")
+                spelled[k] = key
             return mapping, path
     return None, None
 
@@ -215,8 +260,6 @@ def read_dnerf_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: str, 
     for split in SPLITS:
         if split == "train" or (scene_dir / f"transforms_{split}.json").exists():
             all_frames.extend(_parse_split(scene_dir, split))
-    if not all_frames:
-        raise input_error(scene_dir / "transforms_train.json", "lists no frames")
     seen: dict[str, _Frame] = {}
     for fr in all_frames:
         if fr.name in seen:
@@ -226,6 +269,7 @@ def read_dnerf_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: str, 
     # Time grid over every frame of every split (before any stride).
     idx_all, T, snap_err = time_grid(np.array([fr.time for fr in all_frames]), scene_dir / "transforms_train.json", T_opt)
     time_index_of = {fr.name: int(i) for fr, i in zip(all_frames, idx_all)}
+    _warn_shared_times(all_frames, time_index_of)
 
     frames: list[_Frame] = []
     for split in SPLITS:
@@ -246,7 +290,8 @@ def read_dnerf_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: str, 
 
     has_masks = use_masks and any(fr.mask.parent.is_dir() for fr in frames)
     mapping, mapping_path = _class_mapping(scene_dir, frames) if has_masks else (None, None)
-    known_ids = np.array(sorted(mapping), dtype=np.int64) if mapping else None
+    # An empty mapping lists no id: every non-zero mask id is then unknown (not "anything goes").
+    known_ids = np.array(sorted(mapping), dtype=np.int64) if mapping is not None else None
 
     F = len(frames)
     images = np.empty((F, h, w, 3), np.uint8)
@@ -273,7 +318,11 @@ def read_dnerf_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: str, 
                 present = np.flatnonzero(np.bincount(m.ravel()))
                 if known_ids is not None:
                     unknown = np.setdiff1d(present, known_ids)
-                    if unknown.size:
+                    objects = unknown[unknown != 0]
+                    if not mapping and objects.size:
+                        raise input_error(mapping_path, f"lists no class, but the mask {fr.mask} has object id "
+                                                        f"{int(objects[0])}; list every id of the masks (0 = background)")
+                    if mapping and unknown.size:
                         raise input_error(fr.mask, f"mask has id {int(unknown[0])} that {mapping_path.name} does not list")
                 ids_seen[present] = True
                 masks[f] = downscale_labels(m, s, present)

@@ -4,16 +4,39 @@ import functools
 from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
-from snakemake.utils import validate
 
 import mogaf.config as mcfg
 import mogaf.paths as mpaths
 from mogaf.errors import MogafError
+from mogaf.schema import config_error, file_layers
 
-SCHEMA = "../../config/schema.yaml"
-ABLATION_SCHEMA = "../../config/ablations.schema.yaml"
+SCHEMA = Path(workflow.basedir) / "config" / "schema.yaml"
+ABLATION_SCHEMA = Path(workflow.basedir) / "config" / "ablations.schema.yaml"
 
-validate(config, schema=SCHEMA)
+
+def _config_layers():
+    """The config as Snakemake merged it, lowest precedence first: the
+    Snakefile's configfile, the --configfile files in order, --config."""
+    given = [str(f) for f in (workflow.config_settings.configfiles or [])]
+    files = [str(f) for f in workflow.configfiles if str(f) not in given] + given
+    layers = file_layers(files)
+    if workflow.config_settings.config:
+        layers.append(("--config", workflow.config_settings.config))
+    return layers
+
+
+def _validate(cfg, schema, layers):
+    """The schema check as one line naming the config file and the key
+    (Snakemake's own `validate` prints the schema it failed, a page of it)."""
+    try:
+        error = config_error(cfg, mcfg.load_yaml(schema), layers)
+    except MogafError as exc:
+        raise WorkflowError(str(exc))
+    if error is not None:
+        raise WorkflowError(str(error))
+
+
+_validate(config, SCHEMA, _config_layers())
 
 # Every pipeline write goes to results/ or the cache folder (kernels, LPIPS).
 mpaths.use_cache_dir(config["cache_dir"])
@@ -28,23 +51,36 @@ def _ablations_path():
 
 
 def _load_ablations():
+    path = _ablations_path()
     try:
-        data = mcfg.load_yaml(_ablations_path())
+        data = mcfg.load_yaml(path)
     except MogafError as exc:
         raise WorkflowError(str(exc))
-    validate(data, schema=ABLATION_SCHEMA)
+    _validate(data, ABLATION_SCHEMA, [(str(path), data)])
     for name in data.get("variants", {}):
         try:
             mcfg.check_variant_name(name)
         except MogafError as exc:
             raise WorkflowError(str(exc))
         # A variant's merged config must satisfy the same schema.
-        validate(mcfg.variant_config(config, data["variants"], name), schema=SCHEMA)
+        overrides = data["variants"][name].get("overrides") or {}
+        _validate(mcfg.variant_config(config, data["variants"], name), SCHEMA,
+                  _config_layers() + [(f"{path}: variant '{name}'", overrides)])
     return data
 
 
 ABLATIONS = _load_ablations()
 VARIANTS = ABLATIONS.get("variants", {})
+
+
+onstart:
+    # A job writing into a read-only folder fails inside Snakemake (removing
+    # old outputs, creating the log) with its traceback: say it once, first.
+    for job in workflow.dag.needrun_jobs():
+        for path in [*job.output, *job.log]:
+            found = mpaths.unwritable_folder(path)
+            if found is not None:
+                raise WorkflowError(f"{found[0]}: not writable ({found[1]}); rule {job.rule.name} writes {path} there")
 
 
 wildcard_constraints:
@@ -239,8 +275,10 @@ def quality_model(wildcards):
 def forecast_params(wildcards):
     """Only what one method's forecast depends on (other methods' settings
     must not trigger a rerun)."""
+    from mogaf.forecast import param_section
+
     fc = scene_cfg(wildcards)["forecast"]
-    keys = ("input", "groupwise", "common", wildcards.method)
+    keys = ("input", "groupwise", "common", param_section(wildcards.method))
     return {key: fc[key] for key in keys}
 
 
