@@ -60,7 +60,7 @@ ARTEFACT_FILES = {
     "reconstruction_quality:refine": "reconstruction_quality/refined.h5",
     "evaluate": "metrics.json",
 }
-FORECAST_METHODS = ("mogaf", "gcn", "ode", "constant_velocity", "frozen")
+FORECAST_METHODS = ("mogaf", "mogaf_paper", "gcn", "ode", "constant_velocity", "frozen")
 VARIANT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 
@@ -158,8 +158,10 @@ def reconstruction_quality_stage(config: Mapping[str, Any]) -> str:
 
 def _sections(stage: str, config: Mapping[str, Any]) -> tuple[str, ...]:
     if stage.startswith("forecast:"):
+        from .forecast import param_section
+
         method = stage.split(":", 1)[1]
-        return ("seed", "forecast.input", "forecast.groupwise", "forecast.common", f"forecast.{method}")
+        return ("seed", "forecast.input", "forecast.groupwise", "forecast.common", f"forecast.{param_section(method)}")
     return STAGE_SECTIONS[stage]
 
 

@@ -150,7 +150,7 @@ def render_forecast_views(model: Model4D, fc: dict[str, Any], frames, params: Ma
 def forecast_summary(attrs: Mapping[str, Any]) -> dict[str, Any]:
     """What metrics.json keeps of a forecast artefact: no wall-clock values
     (they live in the runtime section), so reruns give identical files."""
-    out = {k: attrs[k] for k in ("method", "groupwise", "num_groups_trained", "params") if k in attrs}
+    out = {k: attrs[k] for k in ("method", "groupwise", "num_groups_trained", "params", "coherence") if k in attrs}
     jobs = attrs.get("flags") or {}
     out["jobs"] = {job: {k: v for k, v in (info or {}).items() if not k.endswith("_time_s")} for job, info in sorted(jobs.items())}
     return out

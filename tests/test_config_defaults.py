@@ -46,7 +46,10 @@ def library_defaults() -> dict[str, dict[str, Any]]:
         "grouping_quality": mogaf.grouping.quality.DEFAULT_PARAMS,
         "reconstruction_quality": mogaf.reconstruction_quality.DEFAULT_PARAMS,
     }
-    out.update({f"forecast.{m}": defaults(m) for m in METHODS})
+    from mogaf.forecast import param_section
+
+    # a method reading another's section (mogaf_paper: forecast.mogaf) has no section of its own
+    out.update({f"forecast.{m}": defaults(m) for m in METHODS if param_section(m) == m})
     return {name: {k: v for k, v in d.items() if k not in INJECTED.get(name, set())} for name, d in out.items()}
 
 

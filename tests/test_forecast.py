@@ -13,6 +13,7 @@ from mogaf.forecast.synthetic import rigid_box, rigid_motion
 # Small budgets: these tests check behaviour, not converged accuracy.
 FAST = {
     "mogaf": {"iterations": 40, "batch_size": 32},
+    "mogaf_paper": {"iterations": 40, "batch_size": 32},
     "gcn": {"n_nodes": 12, "num_stage": 1, "linear_size": 16, "epochs": 10, "num_threads": 1},
     "ode": {
         "latent_dim": 8, "d_model": 16, "nhead": 2, "num_encoder_layers": 1, "num_decoder_layers": 2,
@@ -171,10 +172,10 @@ def test_mask_schedule_anneals_from_40_to_0_percent():
 
 def test_hc_variant_and_no_masking_run():
     obs = rigid_box(30, 14)
-    hc = make_forecaster("mogaf", {"iterations": 5, "batch_size": 16, "num_layers": 5}).fit(obs)
-    lw = make_forecaster("mogaf", {"iterations": 5, "batch_size": 16}).fit(obs)
+    hc = make_forecaster("mogaf_paper", {"iterations": 5, "batch_size": 16, "num_layers": 5}).fit(obs)
+    lw = make_forecaster("mogaf_paper", {"iterations": 5, "batch_size": 16}).fit(obs)
     assert hc.info["n_params"] > lw.info["n_params"] and hc.info["num_layers"] == 5
-    nm = make_forecaster("mogaf", {"iterations": 5, "batch_size": 16, "masking": False}).fit(obs)
+    nm = make_forecaster("mogaf_paper", {"iterations": 5, "batch_size": 16, "masking": False}).fit(obs)
     assert nm.info["masking"] is False and np.isfinite(nm.rollout(3)).all()
 
 
@@ -186,7 +187,7 @@ def test_batch_shrinks_with_window_to_a_token_budget():
     assert batch_for_window(128, 4480, 10_000) == 16  # floor
     assert batch_for_window(8, 4480, 10_000) == 8  # never above batch_size
     assert batch_for_window(128, 0, 99) == 128  # budget off
-    fc = make_forecaster("mogaf", {"iterations": 2, "batch_tokens": 320}).fit(rigid_box(200, 21))
+    fc = make_forecaster("mogaf_paper", {"iterations": 2, "batch_tokens": 320}).fit(rigid_box(200, 21))
     assert fc.info["batch_size"] == 16 and fc.info["window"] == 20
     with pytest.raises(MogafError, match="batch_tokens"):
         make_forecaster("mogaf", {"iterations": 2, "batch_tokens": -1}).fit(rigid_box(20, 8))
@@ -212,8 +213,9 @@ def _circular_motion(g=200, t=40, seed=0):
     return rigid_motion(pts, quat.normalize(rng.normal(size=(g, 4))), np.zeros(3), rot, np.zeros((t, 3)))
 
 
+@pytest.mark.parametrize("method", ["mogaf", "mogaf_paper"])
 @pytest.mark.parametrize("motion, fraction", [(_linear_motion, 0.02), (_circular_motion, 0.10)])
-def test_mogaf_fits_simple_motion(motion, fraction):
+def test_mogaf_fits_simple_motion(motion, fraction, method):
     """30 observed frames, 10 forecast. The frozen pose's EPE is the mean
     distance travelled over the horizon; the forecaster must recover at least
     98% (linear: after instance normalisation every sequence is the same ramp)
@@ -222,7 +224,7 @@ def test_mogaf_fits_simple_motion(motion, fraction):
     and 5.6% (without weight decay 0.1% and 3.2%)."""
     traj = motion()
     obs, fut = traj[:, :30], traj[:, 30:]
-    res = fit_and_rollout("mogaf", obs, 10, {"batch_size": 64}, seed=0)
+    res = fit_and_rollout(method, obs, 10, {"batch_size": 64}, seed=0)
     epe = np.linalg.norm(res.poses[..., :3] - fut[..., :3], axis=-1).mean()
     frozen = np.linalg.norm(obs[:, -1:, :3] - fut[..., :3], axis=-1).mean()
     assert epe < fraction * frozen, (epe, frozen)

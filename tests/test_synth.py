@@ -298,3 +298,38 @@ def test_reader_reports_missing_scene(tmp_path):
 
     with pytest.raises(MogafError, match="synthesize"):
         read_scene("synthetic", tmp_path / "absent", dataset="synthetic", scene="default", options={"scale": 1})
+
+
+# ---------------------------------------------------------------- the forecasting presets
+def test_articulated_preset_is_a_still_body_with_one_moving_part():
+    world = build_world(resolve_params({"preset": "articulated"}))
+    assert check_world(world) is None
+    (chest,) = world.objects
+    assert chest.kind == "articulated" and not chest.rigid
+    material = chest.sample_material(np.random.default_rng(0), 400)
+    track = np.stack([chest.points(material, float(tau)) for tau in world.taus], axis=1)  # (P, T, 3)
+    reach = np.linalg.norm(track - track[:, :1], axis=-1).max(axis=1)
+    body, lid = material[:, 0] == 0, material[:, 0] == 1
+    assert body.sum() > lid.sum() > 0, "most of the surface is the still body"
+    assert reach[body].max() == 0.0
+    assert reach[lid].max() > 0.2, "the lid swings (metres)"
+    # the lid itself moves as one rigid body
+    assert _kabsch_residual(track[lid, 0], track[lid, -1]) < 1e-9
+
+
+def test_articulated_scene_ships_no_instance_masks(tmp_path):
+    from mogaf.datasets import read_scene
+
+    root = generate_scene(tmp_path / "art", {**SMALL, "preset": "articulated", "num_frames": 8})
+    scene = read_scene("synthetic", root, dataset="synthetic", scene="articulated", options={"scale": 1})
+    assert list(scene.instances.names) == ["foreground"], "the reader keeps the foreground mask alone"
+    assert set(np.unique(scene.instance_mask).tolist()) <= {0, 1}
+    assert scene.ground_truth["points3d"].shape[1] == 8, "ground truth stays for scoring"
+
+
+def test_bounce_preset_bounces_after_either_split():
+    world = build_world(resolve_params({"preset": "bounce"}))
+    assert check_world(world) is None
+    frames = [b * world.params["fps"] for b in world.info["sphere_bounce_times"]]
+    last = world.params["num_frames"] - 1
+    assert len(frames) >= 1 and 0.8 * last < frames[0] < last, frames

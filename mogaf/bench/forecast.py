@@ -55,7 +55,7 @@ REDUCED: dict[str, dict[str, Any]] = {
     "gcn": {"epochs": 60},  # of 2001
     "ode": {"epochs": 2, "max_gaussians_per_epoch": 1024},  # of 40 epochs over all Gaussians
 }
-TORCH_METHODS = ("mogaf", "gcn", "ode")
+TORCH_METHODS = ("mogaf", "mogaf_paper", "gcn", "ode")
 
 
 def split(traj: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
@@ -253,6 +253,63 @@ def comparison_table(paths: Sequence[str | Path]) -> str:
     return "\n".join(lines)
 
 
+def _cells(paths: Sequence[str | Path]) -> dict[tuple[str, float], dict[str, dict[str, Any]]]:
+    """(set, ratio) -> column -> row, columns named as in comparison_table
+    (a --budget cpu baseline is 'method*'); the files are checked there."""
+    cells: dict[tuple[str, float], dict[str, dict[str, Any]]] = {}
+    for path in paths:
+        header, rows = read_rows(Path(path))
+        for r in rows:
+            col = str(r["method"]) + ("*" if header.get("budget") == "cpu" and r["method"] in REDUCED else "")
+            cells.setdefault((str(r["set"]), float(r["ratio"])), {})[col] = r
+    return cells
+
+
+def summary_table(paths: Sequence[str | Path], against: Sequence[str] = ("constant_velocity", "frozen")) -> str:
+    """Per method: the mean future EPE over the rows every method in the table
+    has, and on how many of its rows it beats each reference in `against`."""
+    comparison_table(paths)  # the same checks (agreeing files)
+    cells = _cells(paths)
+    columns = sorted({c for row in cells.values() for c in row}, key=lambda c: (METHODS.index(c.rstrip("*")) if c.rstrip("*") in METHODS else 99, c))
+    shared = [k for k, row in cells.items() if all(c in row for c in columns)]
+    head = ["method", f"mean EPE ({len(shared)} rows with every method)"] + [f"beats {a}" for a in against]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    means = {c: float(np.mean([cells[k][c]["epe"] for k in shared])) if shared else math.nan for c in columns}
+    best = min((v for v in means.values() if math.isfinite(v)), default=None)
+    for c in columns:
+        out = [c, (f"**{means[c]:.4f}**" if means[c] == best else f"{means[c]:.4f}") if math.isfinite(means[c]) else "–"]
+        for a in against:
+            both = [k for k, row in cells.items() if c in row and a in row]
+            if c == a or not both:
+                out.append("–")
+                continue
+            wins = sum(cells[k][c]["epe"] < cells[k][a]["epe"] for k in both)
+            out.append(f"{wins} of {len(both)} ({100.0 * wins / len(both):.0f} %)")
+        lines.append("| " + " | ".join(out) + " |")
+    return "\n".join(lines)
+
+
+def per_step_table(paths: Sequence[str | Path], fractions: Sequence[float] = (0.0, 0.5, 1.0)) -> str:
+    """Future EPE at the first, middle and last forecast step of every row and
+    method that kept its per-step EPE: where a rollout goes wrong."""
+    cells = _cells(paths)
+    columns = sorted({c for row in cells.values() for c, r in row.items() if r.get("epe_per_step")},
+                     key=lambda c: (METHODS.index(c.rstrip("*")) if c.rstrip("*") in METHODS else 99, c))
+    head = ["set", "ratio", "steps"] + [f"{c} EPE at steps" for c in columns]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for (name, ratio), row in cells.items():
+        n = max((len(r.get("epe_per_step") or []) for r in row.values()), default=0)
+        if not n:
+            continue
+        picks = sorted({min(n - 1, int(round(f * (n - 1)))) for f in fractions})
+        out = [name, f"{ratio:.2f}", " / ".join(str(i + 1) for i in picks)]
+        for c in columns:
+            steps = (row.get(c) or {}).get("epe_per_step") or []
+            out.append(" / ".join(f"{steps[i]:.4f}" for i in picks) if len(steps) == n else "–")
+        lines.append("| " + " | ".join(out) + " |")
+    return "\n".join(lines)
+
+
 def _local_rotations(points: np.ndarray, k: int = 8) -> np.ndarray:
     """(P, T, 4) wxyz rotation of each point's k-neighbourhood (nearest at
     frame 0) from frame 0 to every frame: the best rigid fit, det = +1."""
@@ -320,6 +377,14 @@ def synthetic_hard() -> dict[str, np.ndarray]:
     return synthetic_scene_sets("hard")
 
 
+def synthetic_articulated() -> dict[str, np.ndarray]:
+    return synthetic_scene_sets("articulated")
+
+
+def synthetic_bounce() -> dict[str, np.ndarray]:
+    return synthetic_scene_sets("bounce")
+
+
 def _load_source(spec: str) -> dict[str, Any]:
     mod_name, _, func_name = spec.partition(":")
     if not func_name:
@@ -352,11 +417,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="keep the rows already in --json (same budget, parameters and seed) and compute only the missing ones")
     ap.add_argument("--from-json", action="append", default=[], metavar="FILE",
                     help="run nothing: print one Markdown table (set x ratio, a column per method) from these --json files")
+    ap.add_argument("--summary", action="store_true",
+                    help="with --from-json: also the mean EPE and win counts per method, and the EPE at the first, middle and last step")
     args = ap.parse_args(list(argv) if argv is not None else None)
 
     try:
         if args.from_json:
             print(comparison_table(args.from_json))
+            if args.summary:
+                print()
+                print(summary_table(args.from_json))
+                print()
+                print(per_step_table(args.from_json))
             return 0
         methods = [m.strip() for m in args.methods.split(",") if m.strip()]
         bad = [m for m in methods if m not in METHODS]

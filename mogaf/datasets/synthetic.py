@@ -6,9 +6,12 @@ by default: the generator writes rgb/1x only) plus ground truth in
 iPhone reader's Scene this reader sets:
 
   instance_mask  per-pixel instance ids of every frame (mogaf_gt/instance/1x),
-                 replacing the reader's Shape-of-Motion foreground mask
+                 replacing the reader's Shape-of-Motion foreground mask;
+                 unless the generator was told not to ship them
+                 (`ship_instance_masks: false`, preset "articulated"): then
+                 the scene keeps the foreground mask alone, as a real capture
   instances      ids, names and rigid flags from mogaf_gt/instances.json
-                 (ground truth: rigid box/sphere/extras, non-rigid cloth/arm)
+                 (ground truth: rigid box/sphere/extras, non-rigid cloth/arm/chest)
   ground_truth   points3d (P, T, 3), points_instance (P,), tracks2d (P, T, 2)
                  and visible (P, T) in the train camera, object_poses
                  (K, T, 4, 4) with object_pose_ids (K,), and per held-out
@@ -91,10 +94,15 @@ def read_synthetic_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: s
     out = read_iphone_layout(d, dataset=dataset, scene=scene, options=options)
     gt = d / GT
 
+    params = load_json(gt / "params.json", what="synthetic generator parameters")
+    generator = params.get("params", {})
+    ship_masks = generator.get("ship_instance_masks", True) if isinstance(generator, dict) else True
+    if not isinstance(ship_masks, bool):
+        raise input_error(gt / "params.json", f"params.ship_instance_masks must be true or false, got {ship_masks!r}")
     instances, pose_index = _read_instances(gt / "instances.json")
     known = set(int(i) for i in instances.ids) | {0}
-    masks = np.zeros((out.num_frames, out.height, out.width), np.int32)
-    for f, name in enumerate(out.frame_names):
+    masks = np.zeros((out.num_frames if ship_masks else 0, out.height, out.width), np.int32)
+    for f, name in enumerate(out.frame_names if ship_masks else []):
         path = gt / "instance" / "1x" / f"{name}.png"
         if not path.is_file():
             raise input_error(path, f"missing instance mask of frame {name}")
@@ -103,8 +111,9 @@ def read_synthetic_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: s
         if bad:
             raise input_error(path, f"instance ids {sorted(bad)} are not listed in {GT}/instances.json")
         masks[f] = m
-    out.instance_mask = masks
-    out.instances = instances
+    if ship_masks:
+        out.instance_mask = masks
+        out.instances = instances
 
     T = out.num_timesteps
     points3d = _load_array(gt / "points3d.npy", dtype_kind="f", ndim=3, what="GT 3D trajectories")
@@ -144,11 +153,11 @@ def read_synthetic_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: s
         ground_truth[f"camera{c}"] = {"tracks2d": tracks_all[c].astype(np.float32), "visible": visible_all[c].astype(bool)}
     out.ground_truth = ground_truth
 
-    params = load_json(gt / "params.json", what="synthetic generator parameters")
     out.meta["synthetic"] = True
     out.meta["synthetic_params"] = params.get("params", {})
     out.meta["sphere_bounce_times_s"] = params.get("sphere_bounce_times_s", [])
-    out.meta["instance_mask"] = f"ground-truth instance ids ({GT}/instance/1x, pixel centres)"
+    if ship_masks:
+        out.meta["instance_mask"] = f"ground-truth instance ids ({GT}/instance/1x, pixel centres)"
     out.meta["ground_truth"] = f"{GT}/: surface point trajectories, 2D tracks + visibility per camera, rigid object poses"
     out.validate(d)
     return out

@@ -132,9 +132,12 @@ class Forecaster:
         self.info: dict[str, Any] = {"method": self.NAME}
         self._obs: np.ndarray | None = None
 
-    def fit(self, observed: np.ndarray) -> "Forecaster":
+    def fit(self, observed: np.ndarray, rigid: bool | None = None) -> "Forecaster":
+        """`rigid`: whether the group moves rigidly (the grouping's flag), None
+        when unknown; methods without a notion of groups ignore it."""
         obs = check_observed(observed, self.NAME, self.MIN_FRAMES)
         self._obs = obs
+        self.rigid_hint = rigid
         t0 = time.perf_counter()
         self._fit(obs)
         self.info["train_time_s"] = time.perf_counter() - t0
@@ -147,9 +150,11 @@ class Forecaster:
             raise MogafError(f"forecast.{self.NAME}: rollout called before fit")
         n = check_steps(n_steps, self.NAME)
         t0 = time.perf_counter()
+        trained = self.info.get("train_time_s", 0.0)
         poses = self._rollout(n)
         poses = finish_poses(poses, self._obs[:, -1, 3:])
-        self.info["rollout_time_s"] = time.perf_counter() - t0
+        # a method that fits once the horizon is known (MoGaF's structured mode) adds to train_time_s
+        self.info["rollout_time_s"] = time.perf_counter() - t0 - (self.info.get("train_time_s", 0.0) - trained)
         if not np.isfinite(poses).all():
             # Never hand out NaNs: this is a bug or an unrecoverable blow-up.
             raise MogafError(f"forecast.{self.NAME}: rollout produced non-finite poses")

@@ -114,3 +114,28 @@ def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     rel = mul(conj(normalize(a)), normalize(b))
     # atan2 form: accurate near 0 (arccos of the dot product is not).
     return 2.0 * np.arctan2(np.linalg.norm(rel[..., 1:], axis=-1), np.abs(rel[..., 0]))
+
+
+def to_rotvec(q: np.ndarray) -> np.ndarray:
+    """Rotation vectors (..., 3) of unit quaternions: axis * angle, angle in
+    [0, pi] (the w >= 0 representative). atan2 keeps it accurate near 0 and pi."""
+    q = normalize(q)
+    q = np.where(q[..., :1] < 0, -q, q)
+    v = q[..., 1:]
+    s = np.linalg.norm(v, axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(s, q[..., :1])
+    # angle / s -> 2 / w as s -> 0 (w -> 1): no 0/0 for the identity.
+    factor = np.where(s > 1e-12, angle / np.where(s > 1e-12, s, 1.0), 2.0 / np.maximum(q[..., :1], 1e-12))
+    return v * factor
+
+
+def from_rotvec(r: np.ndarray) -> np.ndarray:
+    """Unit quaternions (wxyz) of rotation vectors (..., 3); exact inverse of
+    to_rotvec for angles below pi."""
+    r = np.asarray(r, dtype=np.float64)
+    angle = np.linalg.norm(r, axis=-1, keepdims=True)
+    half = 0.5 * angle
+    # sin(a/2)/a -> 1/2 - a^2/48 near 0 (series avoids 0/0).
+    small = angle < 1e-6
+    sinc = np.where(small, 0.5 - angle * angle / 48.0, np.sin(half) / np.where(small, 1.0, angle))
+    return normalize(np.concatenate([np.cos(half), r * sinc], axis=-1))

@@ -46,6 +46,21 @@ def _groups(groups_h5: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(art["group_id"], np.int64), np.asarray(art["group_static"], bool)
 
 
+def group_rigid_flags(groups_h5: str | os.PathLike) -> np.ndarray:
+    """(K,) the grouping's rigid flag of every group."""
+    art = read_artefact(groups_h5, "group", required=["group_rigid", "group_static"])
+    flags = np.asarray(art["group_rigid"], bool)
+    if flags.shape != np.asarray(art["group_static"]).shape:
+        raise input_error(groups_h5, f"group_rigid has {flags.size} groups, group_static {np.asarray(art['group_static']).size}")
+    return flags
+
+
+def job_rigid_hint(job: str, groups_h5: str | os.PathLike) -> bool | None:
+    """The grouping's rigid flag for a group job; None for the job of every
+    dynamic Gaussian (its members are no one rigid body)."""
+    return None if job == ALL else bool(group_rigid_flags(groups_h5)[int(job)])
+
+
 def dynamic_members(group_id: np.ndarray, group_static: np.ndarray) -> np.ndarray:
     """Indices of Gaussians in non-static groups."""
     dynamic = np.flatnonzero(~group_static)
@@ -102,7 +117,9 @@ def observed_states(model: Model4D, members: np.ndarray) -> np.ndarray:
 
 
 def method_params(params: Mapping[str, Any], method: str) -> dict[str, Any]:
-    return {**dict(params.get("common") or {}), **dict(params.get(method) or {})}
+    from . import param_section, section_params
+
+    return {**dict(params.get("common") or {}), **section_params(method, params.get(param_section(method)))}
 
 
 def _job_seed(seed: int, job: str) -> int:
@@ -123,13 +140,14 @@ def _load_inputs(model_h5, groups_h5, split_h5):
 
 
 def forecast_job(model: Model4D, members: np.ndarray, horizon: int, params: Mapping[str, Any], method: str, job: str,
-                 seed: int) -> tuple[np.ndarray, dict[str, Any], float]:
-    """Fit `method` on the members' observed trajectories; (poses (G, horizon, 7), info, wall seconds)."""
+                 seed: int, rigid: bool | None = None) -> tuple[np.ndarray, dict[str, Any], float]:
+    """Fit `method` on the members' observed trajectories; (poses (G, horizon, 7), info, wall seconds).
+    `rigid`: the grouping's rigid flag of the job's group (None for the job of every dynamic Gaussian)."""
     from . import fit_and_rollout
 
     observed = observed_states(model, members)
     start = time.perf_counter()
-    result = fit_and_rollout(method, observed, horizon, method_params(params, method), _job_seed(seed, job))
+    result = fit_and_rollout(method, observed, horizon, method_params(params, method), _job_seed(seed, job), rigid=rigid)
     wall = time.perf_counter() - start
     poses = np.asarray(result.poses, np.float64)
     if not np.all(np.isfinite(poses)):
@@ -142,7 +160,8 @@ def forecast_job(model: Model4D, members: np.ndarray, horizon: int, params: Mapp
 def run_forecast_group(model_h5: str, groups_h5: str, split_h5: str, out: str, params: Mapping[str, Any], *, method: str, job: str, seed: int) -> Path:
     model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
     members = job_members(job, group_id, group_static, groups_h5)
-    poses, info, wall = forecast_job(model, members, int(split.forecast_timesteps.size), params, method, job, seed)
+    poses, info, wall = forecast_job(model, members, int(split.forecast_timesteps.size), params, method, job, seed,
+                                     job_rigid_hint(job, groups_h5))
     return write_artefact(
         out, GROUP_STAGE,
         {"members": members, "means": poses[..., :3].astype(np.float32), "quats": poses[..., 3:].astype(np.float32)},
@@ -180,7 +199,7 @@ def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, parts: list
             raise MogafError(f"forecast {method}: computed in the merge job, it takes no group files")
         for job in _job_names(group_id, group_static, bool(params.get("groupwise", True))):
             members = job_members(job, group_id, group_static, groups_h5)
-            poses, info, _ = forecast_job(model, members, T, params, method, job, seed)
+            poses, info, _ = forecast_job(model, members, T, params, method, job, seed, job_rigid_hint(job, groups_h5))
             means[members] = poses[..., :3]
             quats[members] = poses[..., 3:]
             covered[members] = True
@@ -190,8 +209,12 @@ def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, parts: list
     if missing.size:
         raise MogafError(f"forecast {method}: {missing.size} dynamic Gaussians are covered by no forecast job")
     mparams = method_params(params, method)
+    from .coherence import coherence
+
+    structure = coherence(model.trajectory_means, means, group_id, group_static, group_rigid_flags(groups_h5))
     attrs: dict[str, Any] = {"method": method, "groupwise": bool(params.get("groupwise", True)),
-                             "num_groups_trained": len(parts), "flags": flags, "params": mparams}
+                             "num_groups_trained": len(parts), "flags": flags, "params": mparams,
+                             "coherence": structure}
     return write_artefact(
         out, MERGE_STAGE,
         {"timesteps": split.forecast_timesteps, "means": means, "quats": quats, "group_id": group_id},

@@ -34,6 +34,7 @@ Choices where the paper is silent (each a parameter, see DEFAULTS):
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
 
 import numpy as np
@@ -41,8 +42,13 @@ import numpy as np
 from mogaf.errors import MogafError
 from mogaf.forecast import quat
 from mogaf.forecast.base import Forecaster, torch_determinism
+from mogaf.forecast.structured import MODES, STRUCTURED_DEFAULTS, fit_structured, structured_params
 
 DEFAULTS: dict[str, Any] = {
+    # --- mode: "structured" (the default, mogaf.forecast.structured) or "paper" (this module's
+    # forecaster exactly as the paper describes it; config/paper.yaml, "MoGaF (paper)" in tables) ---
+    "mode": "structured",
+    "structured": dict(STRUCTURED_DEFAULTS),  # the structured mode's own settings (the paper mode ignores them)
     # --- architecture: supp. "Architecture Details" / main Sec. 4.1 "Implementation Details" ---
     "d_model": 32,  # "32-dimensional hidden state"
     "nhead": 8,  # "eight attention heads"
@@ -95,7 +101,7 @@ def _sinusoid(length: int, dim: int):
     return pe
 
 
-def _build_model(window: int, p: dict[str, Any]):
+def _build_model(window: int, p: dict[str, Any], in_dim: int = 7, out_dim: int = 7, zero_head: bool = False):
     import torch
     import torch.nn.functional as F
     from torch import nn
@@ -142,12 +148,13 @@ def _build_model(window: int, p: dict[str, Any]):
             return self.norm2(x + self.drop(self.ff2(self.drop(F.relu(self.ff1(x))))))
 
     class MotionTransformer(nn.Module):
-        """Linear embedding 7 -> d (+ sinusoidal positions), encoder, flatten head -> 7."""
+        """Linear embedding in_dim -> d (+ sinusoidal positions), encoder, flatten head -> out_dim
+        (7 -> 7 in the paper's mode; 1 -> horizon in the structured mode)."""
 
         def __init__(self) -> None:
             super().__init__()
             d = p["d_model"]
-            self.embed = nn.Linear(7, d)
+            self.embed = nn.Linear(in_dim, d)
             # Learned [MASK] embedding replacing masked frames (BERT-style, the
             # paper's cited inspiration for masked motion modelling).
             self.mask_token = nn.Parameter(torch.randn(d) * 0.02)
@@ -156,7 +163,12 @@ def _build_model(window: int, p: dict[str, Any]):
                 EncoderLayer(d, p["nhead"], p["dim_feedforward"], p["dropout"], p["attn_dropout"], p["norm_first"])
                 for _ in range(p["num_layers"])
             )
-            self.head = nn.Linear(window * d, 7)  # flatten head
+            self.head = nn.Linear(window * d, out_dim)  # flatten head
+            if zero_head:
+                # The structured mode predicts a residual over a prior: starting
+                # at zero, the untrained model is that prior exactly.
+                nn.init.zeros_(self.head.weight)
+                nn.init.zeros_(self.head.bias)
             if p["zero_init_residual"]:
                 # Residual branches start as the identity, so the untrained model
                 # is a linear autoregressor on the normalised window (embedding ->
@@ -216,6 +228,9 @@ class MoGaFForecaster(Forecaster):
             raise MogafError("forecast.mogaf: mask_anneal_frac must be in (0, 1]")
         if p["norm_eps"] <= 0:
             raise MogafError("forecast.mogaf: norm_eps must be > 0")
+        if p["mode"] not in MODES:
+            raise MogafError(f"forecast.mogaf: mode must be one of {', '.join(MODES)}, got {p['mode']!r}")
+        structured_params(p)  # refuses bad structured settings in either mode
         if p["loss_space"] not in ("normalized", "pose"):
             raise MogafError(f"forecast.mogaf: loss_space must be 'normalized' or 'pose', got {p['loss_space']!r}")
 
@@ -229,9 +244,25 @@ class MoGaFForecaster(Forecaster):
         return (1.0 - a) * p["mask_ratio_start"] + a * p["mask_ratio_end"]
 
     def _fit(self, obs: np.ndarray) -> None:
+        self._check()
+        if self.params["mode"] == "structured":
+            # The backtest's length depends on the forecast horizon: fitted in _rollout.
+            structured_params(self.params)
+            return
+        self._fit_paper(obs)
+
+    def _rollout(self, n_steps: int) -> np.ndarray:
+        if self.params["mode"] == "structured":
+            start = time.perf_counter()
+            fitted, info = fit_structured(self._obs, self.params, self.seed, self.rigid_hint, n_steps)
+            self.info.update(info)
+            self.info["train_time_s"] = self.info.get("train_time_s", 0.0) + time.perf_counter() - start
+            return fitted.rollout(n_steps)
+        return self._rollout_paper(n_steps)
+
+    def _fit_paper(self, obs: np.ndarray) -> None:
         import torch
 
-        self._check()
         p = self.params
         g, t, _ = obs.shape
         window = t - 1
@@ -326,7 +357,7 @@ class MoGaFForecaster(Forecaster):
         out[:, 3:] = quat.align_to(q, window[:, -1, 3:])
         return out
 
-    def _rollout(self, n_steps: int) -> np.ndarray:
+    def _rollout_paper(self, n_steps: int) -> np.ndarray:
         p = self.params
         win = self._obs[:, -self.window :].copy()
         out = np.empty((win.shape[0], n_steps, 7))
@@ -336,3 +367,15 @@ class MoGaFForecaster(Forecaster):
                 out[:, k] = nxt
                 win = np.concatenate([win[:, 1:], nxt[:, None]], axis=1)
         return out
+
+
+class MoGaFPaperForecaster(MoGaFForecaster):
+    """The paper's forecaster beside the default one: MoGaF's settings with
+    `mode: paper` ("MoGaF (paper)" in tables)."""
+
+    NAME = "mogaf_paper"
+    DEFAULTS = {**DEFAULTS, "mode": "paper"}
+
+    def __init__(self, params=None, seed: int = 0):
+        super().__init__(params, seed)
+        self.params["mode"] = "paper"  # whatever forecast.mogaf.mode says

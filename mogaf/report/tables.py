@@ -28,10 +28,19 @@ METHOD_LABELS = {
     "gcn": "GSPred-SoM (GCN)",
     "ode": "ODE-GS-SoM (latent ODE)",
     "mogaf": "MoGaF (Ours)",
+    "mogaf_paper": "MoGaF (paper)",
     "constant_velocity": "Const. velocity",
     "frozen": "Frozen",
 }
-METHOD_ORDER = ["gcn", "ode", "mogaf", "constant_velocity", "frozen"]
+METHOD_ORDER = ["gcn", "ode", "mogaf", "mogaf_paper", "constant_velocity", "frozen"]
+
+
+def method_label(result: dict[str, Any], method: str) -> str:
+    """The method's label; MoGaF run in its paper mode (config/paper.yaml) is "MoGaF (paper)"."""
+    params = (result.get("methods", {}).get(method, {}).get("forecast") or {}).get("params") or {}
+    if method == "mogaf" and params.get("mode") == "paper":
+        return METHOD_LABELS["mogaf_paper"]
+    return METHOD_LABELS.get(method, method)
 # name -> (label, digits, scale); tracking fractions are shown in percent like the paper.
 METRICS = {
     "psnr": ("PSNR↑", 2, 1.0),
@@ -151,7 +160,9 @@ def budget_differences(result: dict[str, Any], method: str) -> dict[str, tuple[A
     if method not in METHODS:
         return {}
     ref = defaults(method)
-    return {k: (v, ref[k]) for k, v in sorted(params.items()) if k in ref and ref[k] != v and k != "num_threads"}
+    # the mode is in the label (method_label); the paper mode ignores the structured settings
+    skip = {"num_threads", "mode"} | ({"structured"} if params.get("mode") == "paper" else set())
+    return {k: (v, ref[k]) for k, v in sorted(params.items()) if k in ref and ref[k] != v and k not in skip}
 
 
 def _mark_budgets(t: Table, results: list[dict[str, Any]], methods: list[str]) -> dict[str, str]:
@@ -162,9 +173,10 @@ def _mark_budgets(t: Table, results: list[dict[str, Any]], methods: list[str]) -
         for r in results:
             for k, (used, ref) in budget_differences(r, m).items():
                 diffs[f"{k} (default {ref})"].add(str(used))
-        labels[m] = METHOD_LABELS[m] + ("*" if diffs else "")
+        name = next((method_label(r, m) for r in results if m in r.get("methods", {})), METHOD_LABELS.get(m, m))
+        labels[m] = name + ("*" if diffs else "")
         if diffs:
-            t.notes.append(f"* {METHOD_LABELS[m]}: run off its defaults: "
+            t.notes.append(f"* {name}: run off its defaults: "
                            + "; ".join(f"{k} = {', '.join(sorted(v))}" for k, v in sorted(diffs.items())))
     return labels
 
@@ -176,7 +188,7 @@ def forecast_table(results: list[dict[str, Any]]) -> Table:
     _mark_budgets(t, results, [m for m in METHOD_ORDER if any(m in r.get("methods", {}) for r in results)])
     for r in sorted(results, key=lambda r: (_key(r), _variant(r))):
         for method in [m for m in METHOD_ORDER if m in r.get("methods", {})]:
-            label = METHOD_LABELS[method] + ("*" if budget_differences(r, method) else "")
+            label = method_label(r, method) + ("*" if budget_differences(r, method) else "")
             t.rows.append([r["dataset"], r["scene"], f"{float(r['ratio']):g}", _variant(r), label]
                           + [fmt(_metric(r, method, m), m) for m in ("psnr", "ssim", "lpips", "mpsnr", "epe_3d", "total_wall_s")])
     return t

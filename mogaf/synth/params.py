@@ -40,7 +40,10 @@ DEFAULT_PARAMS: dict[str, Any] = {
     "gravity": 1.6,  # m/s^2 (slow-motion gravity keeps one arc in view)
     "restitution": 0.8,  # vertical speed kept at a bounce on the ground
     "sphere_spin": 3.0,  # rad/s of motion time
-    "nonrigid": "cloth",  # "cloth" (waving flag) or "arm" (bending 2-link arm)
+    "rigid_objects": True,  # the textured box and the thrown sphere (false: the non-rigid object alone)
+    "nonrigid": "cloth",  # "cloth" (waving flag), "arm" (bending 2-link arm) or "articulated" (still chest, swinging lid)
+    "lid_swing": 0.45,  # articulated: half the lid's swing (radians)
+    "lid_rate": 1.6,  # articulated: rad/s of motion time of the swing's phase
     "cloth_amplitude": 0.09,  # metres at the free edge
     "cloth_wavelength": 0.6,  # metres
     "cloth_frequency": 0.8,  # Hz of motion time
@@ -48,6 +51,7 @@ DEFAULT_PARAMS: dict[str, Any] = {
     "extra_speed": 0.25,  # m/s of motion time for extra objects
     # ground truth
     "num_track_points": 256,  # GT surface points per dynamic object
+    "ship_instance_masks": True,  # false: the pipeline reads the foreground mask alone (mogaf_gt keeps the ids for scoring)
     # cameras
     "camera_sweep": 0.7,  # metres the handheld train camera walks sideways
     "camera_jitter": 0.012,  # metres of handheld shake
@@ -66,10 +70,23 @@ PRESETS: dict[str, dict[str, Any]] = {
         "num_extra_objects": 3,
         "cloth_amplitude": 0.11,
     },
+    # A still body with one moving part and nothing else (the D-NeRF-style case
+    # where most of an object stays put); it ships no instance masks, so the
+    # pipeline sees the foreground mask alone, like a real capture.
+    "articulated": {
+        "rigid_objects": False,
+        "nonrigid": "articulated",
+        "ship_instance_masks": False,
+    },
+    # The sphere is thrown lower, so it lands after the split (frame 52 of 60;
+    # ratios 0.6 and 0.8 observe 36 and 48): the bounce is in the future.
+    "bounce": {
+        "sphere_launch_vz": 1.25,
+    },
 }
 
 MAX_EXTRA_OBJECTS = 6
-NONRIGID_KINDS = ("cloth", "arm")
+NONRIGID_KINDS = ("cloth", "arm", "articulated")
 
 
 def _as_float_list(key: str, value: Any, n: int) -> list[float]:
@@ -103,6 +120,9 @@ def resolve_params(params: Mapping[str, Any] | None = None) -> dict[str, Any]:
                 out[key] = float(out[key])
             except (TypeError, ValueError):
                 raise MogafError(f"synthetic param '{key}' must be a number, got {out[key]!r}") from None
+        elif isinstance(value, bool):
+            if not isinstance(out[key], bool):
+                raise MogafError(f"synthetic param '{key}' must be true or false, got {out[key]!r}")
         elif isinstance(value, list):
             out[key] = _as_float_list(key, out[key], len(value))
     if out["width"] < 16 or out["height"] < 16:

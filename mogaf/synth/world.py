@@ -263,6 +263,67 @@ class Arm(Object):
         return np.concatenate([_box_corners(h) @ R.T + c for (R, c), h in zip(self.segment_frames(tau), self.halves())])
 
 
+class Articulated(Object):
+    """A still body with one moving part: a box standing on the ground and a lid
+    hinged along the top of its back edge, swinging open and shut. As one
+    instance it is non-rigid; most of its surface (the body) never moves."""
+
+    rigid = False
+    kind = "articulated"
+
+    def __init__(self, inst, name, centre, body_half, lid_thickness, yaw, swing, rate, texture, phase):
+        self.inst, self.name = inst, name
+        self.centre = np.asarray(centre, dtype=np.float64)
+        self.body_half = np.asarray(body_half, dtype=np.float64)
+        self.lid_half = np.array([self.body_half[0], self.body_half[1], 0.5 * float(lid_thickness)])
+        self.R = rotation([0, 0, 1], yaw)
+        self.swing, self.rate, self.phase = float(swing), float(rate), float(phase)
+        self.texture = texture
+
+    def opening(self, tau: float) -> float:
+        """Lid angle (radians) above closed: a swing between 0.15 and 0.15 + 2 swing."""
+        return 0.15 + self.swing * (1.0 - np.cos(self.rate * tau + self.phase))
+
+    def segment_frames(self, tau: float) -> list[tuple[np.ndarray, np.ndarray]]:
+        bh, lh = self.body_half, self.lid_half
+        hinge = self.centre + self.R @ np.array([0.0, bh[1], bh[2]])  # top of the back face
+        Rl = self.R @ rotation([1, 0, 0], -self.opening(tau))  # negative about x: the front edge rises
+        lid_centre = hinge + Rl @ np.array([0.0, -lh[1], lh[2]])
+        return [(self.R, self.centre), (Rl, lid_centre)]
+
+    def halves(self) -> list[np.ndarray]:
+        return [self.body_half, self.lid_half]
+
+    def shape(self):
+        return {"centre": self.centre.tolist(), "body_half_extents": self.body_half.tolist(),
+                "lid_half_extents": self.lid_half.tolist()}
+
+    def primitives(self, tau):
+        return [Box(R, c, half, self.texture, self.inst, face_offset=3 * i)
+                for i, ((R, c), half) in enumerate(zip(self.segment_frames(tau), self.halves()))]
+
+    def sample_material(self, rng, n):
+        halves = self.halves()
+        area = np.array([2 * (h[0] * h[1] + h[1] * h[2] + h[0] * h[2]) for h in halves])
+        seg = rng.choice(2, size=n, p=area / area.sum())
+        out = np.zeros((n, 4))
+        out[:, 0] = seg
+        for i, half in enumerate(halves):
+            m = seg == i
+            out[m, 1:] = _sample_box_surface(rng, half, int(m.sum()))
+        return out
+
+    def points(self, material, tau):
+        out = np.zeros((len(material), 3))
+        for i, (R, c) in enumerate(self.segment_frames(tau)):
+            m = material[:, 0] == i
+            out[m] = material[m, 1:] @ R.T + c
+        return out
+
+    def extent_points(self, tau):
+        return np.concatenate([_box_corners(h) @ R.T + c for (R, c), h in zip(self.segment_frames(tau), self.halves())])
+
+
 class Ballistic:
     """Centre of a sphere thrown at tau = 0: parabola under gravity, bouncing on the ground.
 
@@ -379,7 +440,8 @@ def build_world(params: dict[str, Any]) -> World:
     objects: list[Object] = []
     # ---- textured box: uniform translation + constant spin (screw motion)
     v_box = _clamped_velocity(np.array(p["box_velocity"]), tau_max, p["max_travel"])
-    objects.append(
+    rigid_objects: list[Object] = []
+    rigid_objects.append(
         RigidBox(
             1,
             "box",
@@ -397,7 +459,7 @@ def build_world(params: dict[str, Any]) -> World:
     ballistic = Ballistic([0.42, 0.75], v_xy, tau_mid, 0.42, p["sphere_launch_vz"], p["gravity"], p["restitution"], r_s, tau_max)
     vh = np.array([v_xy[0], v_xy[1], 0.0])
     roll_axis = np.cross(UP, vh) if np.linalg.norm(vh) > 1e-9 else np.array([1.0, 0.0, 0.0])
-    objects.append(
+    rigid_objects.append(
         RigidSphere(
             2,
             "sphere",
@@ -409,8 +471,16 @@ def build_world(params: dict[str, Any]) -> World:
             spin_rate=p["sphere_spin"] * spin,
         )
     )
+    if p["rigid_objects"]:
+        objects.extend(rigid_objects)
     # ---- non-rigid object
-    if p["nonrigid"] == "cloth":
+    if p["nonrigid"] == "articulated":
+        objects.append(
+            Articulated(3, "chest", centre=[0.0, 1.25, 0.3], body_half=[0.42, 0.28, 0.3], lid_thickness=0.06,
+                        yaw=np.deg2rad(-15.0), swing=p["lid_swing"], rate=p["lid_rate"],
+                        texture=BoxTexture(rng, rng.uniform()), phase=0.0)
+        )
+    elif p["nonrigid"] == "cloth":
         pole_x, pole_y = 0.3, 1.85
         static.append(Box(np.eye(3), [pole_x, pole_y, 0.68], [0.025, 0.025, 0.68], pole_tex, 0))
         objects.append(

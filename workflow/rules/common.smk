@@ -275,11 +275,13 @@ def quality_model(wildcards):
 def forecast_params(wildcards):
     """Only what one method's forecast depends on (other methods' settings
     must not trigger a rerun)."""
-    from mogaf.forecast import param_section
+    from mogaf.forecast import param_section, section_params
 
     fc = scene_cfg(wildcards)["forecast"]
-    keys = ("input", "groupwise", "common", param_section(wildcards.method))
-    return {key: fc[key] for key in keys}
+    section = param_section(wildcards.method)
+    out = {key: fc[key] for key in ("input", "groupwise", "common")}
+    out[section] = section_params(wildcards.method, fc[section])
+    return out
 
 
 def forecast_part_files(wildcards):
