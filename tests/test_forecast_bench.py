@@ -135,12 +135,26 @@ def test_comparison_table_merges_files_and_refuses_disagreement(tmp_path, capsys
     assert "broken.json: row 0 has no epe, train_s" in capsys.readouterr().err
 
 
-def test_readme_forecast_table_is_made_from_the_committed_rows():
+def test_docs_forecast_tables_are_made_from_the_committed_rows():
     from conftest import REPO
 
     bench_dir = REPO / "results" / "bench"
-    readme = (REPO / "README.md").read_text()
+    page = (REPO / "docs" / "forecasting.md").read_text()
     start, end = "<!-- forecast-gt-table -->\n", "\n<!-- /forecast-gt-table -->"
-    shown = readme[readme.index(start) + len(start): readme.index(end)]
+    shown = page[page.index(start) + len(start): page.index(end)]
     files = [bench_dir / f"forecast_gt_{name}.json" for name in ("defaults", "paper_gcn", "paper_ode")]
-    assert shown == bench.comparison_table(files)
+    assert shown == bench.markdown_report(files)
+
+
+def test_summary_counts_wins_over_the_references(tmp_path):
+    rows = []
+    for i, (a, cv, fr) in enumerate([(0.1, 0.2, 0.3), (0.3, 0.2, 0.4), (0.1, 0.5, 0.05)]):
+        key = {"set": f"s{i}", "ratio": 0.6, "epe_per_step": [0.0, 0.1]}
+        rows += [{**key, "method": "mogaf", "epe": a, "train_s": 1.0}, {**key, "method": "constant_velocity", "epe": cv, "train_s": 0.0},
+                 {**key, "method": "frozen", "epe": fr, "train_s": 0.0}]
+    path = _bench_file(tmp_path / "d.json", "cpu", rows)
+    summary = bench.summary_table([path]).splitlines()
+    assert summary[2] == "| mogaf | **0.1667** | 2 of 3 (67 %) | 2 of 3 (67 %) |"
+    assert summary[3] == "| constant_velocity | 0.3000 | – | 2 of 3 (67 %) |"
+    steps = bench.per_step_table([path]).splitlines()
+    assert steps[2] == "| s0 | 0.60 | 1 / 2 | 0.0000 / 0.1000 | 0.0000 / 0.1000 | 0.0000 / 0.1000 |"

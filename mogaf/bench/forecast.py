@@ -310,6 +310,12 @@ def per_step_table(paths: Sequence[str | Path], fractions: Sequence[float] = (0.
     return "\n".join(lines)
 
 
+def markdown_report(paths: Sequence[str | Path]) -> str:
+    """What --from-json --summary prints: the comparison table, the summary
+    (mean EPE, win counts) and the per-step EPE (docs/forecasting.md keeps it)."""
+    return "\n\n".join([comparison_table(paths), summary_table(paths), per_step_table(paths)])
+
+
 def _local_rotations(points: np.ndarray, k: int = 8) -> np.ndarray:
     """(P, T, 4) wxyz rotation of each point's k-neighbourhood (nearest at
     frame 0) from frame 0 to every frame: the best rigid fit, det = +1."""
@@ -423,12 +429,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         if args.from_json:
-            print(comparison_table(args.from_json))
-            if args.summary:
-                print()
-                print(summary_table(args.from_json))
-                print()
-                print(per_step_table(args.from_json))
+            print(markdown_report(args.from_json) if args.summary else comparison_table(args.from_json))
             return 0
         methods = [m.strip() for m in args.methods.split(",") if m.strip()]
         bad = [m for m in methods if m not in METHODS]
