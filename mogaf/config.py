@@ -156,6 +156,20 @@ def reconstruction_quality_stage(config: Mapping[str, Any]) -> str:
     return f"reconstruction_quality:{forecast_input_stage(config)}"
 
 
+def _stage_value(stage: str, config: Mapping[str, Any], key: str) -> Any:
+    """What `stage` reads of config section `key`: a forecast method reads only
+    its part of a shared section (mogaf_paper: forecast.mogaf less `structured`,
+    mode fixed), so a change it does not read shares its artefacts."""
+    value = _get(config, key)
+    if stage.startswith("forecast:") and key.startswith("forecast.") and key.count(".") == 1 and isinstance(value, Mapping):
+        from .forecast import param_section, section_params
+
+        method = stage.split(":", 1)[1]
+        if key == f"forecast.{param_section(method)}":
+            return section_params(method, value)
+    return value
+
+
 def _sections(stage: str, config: Mapping[str, Any]) -> tuple[str, ...]:
     if stage.startswith("forecast:"):
         from .forecast import param_section
@@ -183,7 +197,7 @@ def stage_differs(stage: str, base: Mapping[str, Any], other: Mapping[str, Any])
         if s in seen:
             continue
         seen.add(s)
-        if any(_get(base, key) != _get(other, key) for key in _sections(s, other)):
+        if any(_stage_value(s, base, key) != _stage_value(s, other, key) for key in _sections(s, other)):
             return True
         # Upstream stages follow the variant's own wiring (e.g. forecast.input).
         todo.extend(_upstream(s, other))

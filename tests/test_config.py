@@ -125,3 +125,20 @@ def _stage_resolvers():
 def test_every_stage_refuses_a_misspelt_parameter_by_name(section):
     with pytest.raises(MogafError, match=rf"^{section}: unknown parameter\(s\) lamda_typo \(known: .*\)$"):
         _stage_resolvers()[section]({"lamda_typo": 1})
+
+
+def test_mogaf_paper_shares_its_forecast_when_only_the_structured_mode_changes():
+    """mogaf_paper reads forecast.mogaf less `structured`, with its mode fixed:
+    a variant changing only those keeps its forecast; one changing a shared
+    setting (iterations) does not."""
+    import copy
+
+    def prefix(method, change):
+        cfg = copy.deepcopy(BASE)
+        change(cfg["forecast"]["mogaf"])
+        return mcfg.artefact_prefix(f"forecast:{method}", BASE, cfg, "v")
+
+    for change in (lambda s: s["structured"].update(context=8), lambda s: s.update(mode="paper")):
+        assert prefix("mogaf_paper", change) == ""
+        assert prefix("mogaf", change) == "ablation/v/"
+    assert prefix("mogaf_paper", lambda s: s.update(iterations=5)) == "ablation/v/"

@@ -92,6 +92,52 @@ def test_rigid_group_forecast_stays_rigid(rigid_hint):
     assert _pairwise_change(paper.poses, obs[:, -1]) > 100 * max(change, 1e-9)
 
 
+def _screw(g: int, t: int, omega: float) -> np.ndarray:
+    """A rigid body turning by omega per frame about a tilted axis far from its
+    centroid while sliding along it: a constant twist, so its future is known."""
+    from mogaf.forecast.synthetic import rigid_motion
+
+    rng = np.random.default_rng(9)
+    pts = rng.uniform(-0.3, 0.3, (g, 3)) + np.array([1.5, 0.0, 0.0])
+    q0 = quat.canonical_sign(quat.normalize(rng.normal(size=(g, 4))))
+    k = np.arange(t, dtype=np.float64)
+    axis = np.array([0.2, -0.3, 1.0])
+    rot = quat.from_axis_angle(np.broadcast_to(axis, (t, 3)), omega * k)
+    trans = k[:, None] * 0.02 * axis / np.linalg.norm(axis)
+    return rigid_motion(pts, q0, np.zeros(3), rot, trans)
+
+
+@pytest.mark.parametrize("omega", [0.05, 1.2])
+def test_rigid_constant_twist_candidate_is_exact_on_a_screw_motion(omega):
+    """The rigid path's constant velocity carries the group's twist: a screw
+    about an axis off the centroid, fast or slow, is continued exactly, and
+    every member's orientation turns with the body."""
+    from mogaf.forecast.structured import GroupMotion
+
+    traj = _screw(24, 30, omega)
+    obs, fut = traj[:, :20], traj[:, 20:]
+    pred = GroupMotion(obs, True, 3.0).constant_velocity(10)
+    np.testing.assert_allclose(pred[..., :3], fut[..., :3], atol=1e-9)
+    assert np.all(quat.angle_between(pred[..., 3:], fut[..., 3:]) < 1e-9)
+
+
+def test_rigid_poses_from_the_true_future_series_are_the_truth():
+    """GroupMotion.poses is the inverse of the decomposition: fed the true
+    future centroids and accumulated rotation vectors, it gives the true poses."""
+    from mogaf.forecast.structured import GroupMotion
+
+    traj = _screw(24, 30, 0.3)
+    whole = GroupMotion(traj, True, 3.0)
+    past = GroupMotion(traj[:, :20], True, 3.0)
+    # the whole decomposition is relative to frame 29; re-anchor its series to frame 19
+    c = whole.centroids[20:]
+    rel = quat.mul(quat.conj(whole.rotations[19]), whole.rotations[20:])
+    r = accumulated_rotvec(np.concatenate([np.array([[1.0, 0, 0, 0]]), rel]))[1:] + past.series[3:, -1]
+    pred = past.poses(np.concatenate([c.T, r.T]))
+    np.testing.assert_allclose(pred[..., :3], traj[:, 20:, :3], atol=1e-9)
+    assert np.all(quat.angle_between(pred[..., 3:], traj[:, 20:, 3:]) < 1e-9)
+
+
 def test_still_part_stays_still_beside_a_moving_part():
     rng = np.random.default_rng(2)
     moving = rigid_box(64, 30)
@@ -140,6 +186,7 @@ def test_short_observations_fall_back_without_failing():
     obs = rigid_box(16, 3)
     res = fit_and_rollout("mogaf", obs, 5, QUICK, seed=0)
     assert np.isfinite(res.poses).all() and "backtest_frames" not in res.info
+    assert res.info["choice"] == "constant_velocity"  # nothing shows the learned one is better
 
 
 def test_paper_mode_is_selectable_and_equals_mogaf_paper():
@@ -170,14 +217,19 @@ def test_coherence_is_zero_for_rigid_and_still_and_not_for_drift():
     box = rigid_box(40, 30)
     obs, fut = box[:, :20, :3], box[:, 20:, :3]
     rng = np.random.default_rng(4)
-    still_obs = np.repeat(rng.uniform(-1, 1, (10, 1, 3)), 20, axis=1)
+    # group 1: a non-rigid group whose first 10 members never move, the rest do
+    still_obs = np.repeat(rng.uniform(-1, 1, (10, 1, 3)), 20, axis=1) + rng.normal(0, 1e-4, (10, 20, 3))
+    moving_obs = rigid_box(10, 20, seed=5)[..., :3] + 3.0
     still_fut = np.repeat(still_obs[:, -1:], 10, axis=1)
-    observed = np.concatenate([obs, still_obs])
-    group_id = np.array([0] * 40 + [1] * 10)
-    static, rigid = np.array([False, True]), np.array([True, False])
-    good = coherence(observed, np.concatenate([fut, still_fut]), group_id, static, rigid)
+    moving_fut = np.repeat(moving_obs[:, -1:], 10, axis=1) + 0.1
+    observed = np.concatenate([obs, still_obs, moving_obs])
+    group_id = np.array([0] * 40 + [1] * 20)
+    static, rigid = np.array([False, False]), np.array([True, False])
+    good = coherence(observed, np.concatenate([fut, still_fut, moving_fut]), group_id, static, rigid)
     assert good["rigid_groups"] == 1 and good["rigid_distance_change"] < 1e-12
     assert good["still_gaussians"] == 10 and good["still_displacement"] == 0.0
     drift = fut + rng.normal(0, 0.01, fut.shape).cumsum(axis=1)
-    bad = coherence(observed, np.concatenate([drift, still_fut + 0.02]), group_id, static, rigid)
+    bad = coherence(observed, np.concatenate([drift, still_fut + 0.02, moving_fut]), group_id, static, rigid)
     assert bad["rigid_distance_change"] > 1e-3 and bad["still_displacement"] == pytest.approx(np.sqrt(3) * 0.02)
+    # members of static groups are not counted (no forecaster moves them)
+    assert coherence(observed, np.concatenate([fut, still_fut, moving_fut]), group_id, np.array([False, True]), rigid)["still_gaussians"] == 0

@@ -7,10 +7,11 @@ the forecast poses and the observed trajectories only (no ground truth):
       (0 for a forecast that moves the group as one body); the mean over
       groups, also divided by each group's RMS radius (`_rel`).
   still_displacement: the mean distance of still Gaussians from their last
-      observed position over the forecast. Still: members of static groups,
-      and members of dynamic groups that never moved more than
-      STILL_FACTOR x their group's noise level (mogaf.forecast.structured.
-      still_gaussians) while observed.
+      observed position over the forecast. Still: members of dynamic groups
+      that never moved more than STILL_FACTOR x their group's noise level
+      (mogaf.forecast.structured.still_gaussians) while observed. Members of
+      static groups are left out: no forecaster moves them (the merge keeps
+      their last pose), so they would only dilute the figure.
 """
 
 from __future__ import annotations
@@ -56,7 +57,6 @@ def coherence(observed_means: np.ndarray, forecast_means: np.ndarray, group_id: 
         if members.size == 0:
             continue
         if group_static[k]:
-            still[members] = True
             continue
         still[members] = still_gaussians(obs[members], STILL_FACTOR)
         if group_rigid[k]:

@@ -190,6 +190,46 @@ def _build_model(window: int, p: dict[str, Any], in_dim: int = 7, out_dim: int =
     return MotionTransformer()
 
 
+def mask_ratio(p: dict[str, Any], it: int) -> float:
+    """Masked fraction of the input window at iteration `it`: a linear anneal
+    from mask_ratio_start to mask_ratio_end over the first mask_anneal_frac of
+    training (0 without masking)."""
+    if not p["masking"]:
+        return 0.0
+    span = max(1.0, p["mask_anneal_frac"] * p["iterations"])
+    a = min(1.0, it / span)
+    return (1.0 - a) * p["mask_ratio_start"] + a * p["mask_ratio_end"]
+
+
+def minibatches(n: int, batch: int, iterations: int, gen):
+    """(iteration, indices) of every optimiser step: batches drawn without
+    replacement from a permutation of range(n), a fresh one when it runs out."""
+    import torch
+
+    perm = torch.randperm(n, generator=gen)
+    cursor = 0
+    for it in range(iterations):
+        if cursor + batch > n:
+            perm = torch.randperm(n, generator=gen)
+            cursor = 0
+        yield it, perm[cursor : cursor + batch]
+        cursor += batch
+
+
+def optimiser_step(loss, model, opt, sched, grad_clip: float, it: int) -> None:
+    """One Adam step with global grad-norm clipping; a non-finite loss stops training."""
+    import torch
+
+    if not torch.isfinite(loss):
+        raise MogafError(f"forecast.mogaf: training diverged (non-finite loss at iteration {it})")
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    if grad_clip > 0:
+        torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip)
+    opt.step()
+    sched.step()
+
+
 def batch_for_window(batch_size: int, batch_tokens: int, window: int) -> int:
     """Sequences per step: a fixed token budget, capped at batch_size, at least 16 (or batch_size if smaller)."""
     if batch_tokens <= 0:
@@ -236,12 +276,7 @@ class MoGaFForecaster(Forecaster):
 
     def mask_ratio(self, it: int) -> float:
         """Masked fraction of the input window at iteration `it` (linear anneal)."""
-        p = self.params
-        if not p["masking"]:
-            return 0.0
-        span = max(1.0, p["mask_anneal_frac"] * p["iterations"])
-        a = min(1.0, it / span)
-        return (1.0 - a) * p["mask_ratio_start"] + a * p["mask_ratio_end"]
+        return mask_ratio(self.params, it)
 
     def _fit(self, obs: np.ndarray) -> None:
         self._check()
@@ -285,17 +320,10 @@ class MoGaFForecaster(Forecaster):
             opt = torch.optim.Adam(model.parameters(), lr=p["lr"], weight_decay=p["weight_decay"])
             sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=p["iterations"], eta_min=p["lr_min"])
             bs = min(batch_for_window(p["batch_size"], p["batch_tokens"], window), g)
-            perm = torch.randperm(g, generator=gen)
-            cursor = 0
             model.train()
             loss_val = float("nan")
             pred_val = acc_val = float("nan")
-            for it in range(p["iterations"]):
-                if cursor + bs > g:
-                    perm = torch.randperm(g, generator=gen)
-                    cursor = 0
-                idx = perm[cursor : cursor + bs]
-                cursor += bs
+            for it, idx in minibatches(g, bs, p["iterations"], gen):
                 x = X[idx]
                 mask = None
                 span = int(round(self.mask_ratio(it) * window))
@@ -316,14 +344,7 @@ class MoGaFForecaster(Forecaster):
                     acc = out[:, :3] - 2.0 * mu1[idx] + mu2[idx]
                 l_acc = (acc**2).sum(-1).mean()
                 loss = l_pred + p["lambda_acc"] * l_acc
-                if not torch.isfinite(loss):
-                    raise MogafError(f"forecast.mogaf: training diverged (non-finite loss at iteration {it})")
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                if p["grad_clip"] > 0:
-                    torch.nn.utils.clip_grad_norm_(model.parameters(), p["grad_clip"])
-                opt.step()
-                sched.step()
+                optimiser_step(loss, model, opt, sched, p["grad_clip"], it)
                 loss_val, pred_val, acc_val = loss.item(), l_pred.item(), l_acc.item()
             model.eval()
         self.model = model

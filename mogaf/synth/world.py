@@ -205,10 +205,47 @@ class Cloth(Object):
         return np.concatenate([pts + self.A * n, pts - self.A * n])
 
 
-class Arm(Object):
-    """Two-link arm standing on the ground, bending at shoulder and elbow, swaying about z."""
+class BoxChain(Object):
+    """A non-rigid object made of two boxes, each moving rigidly:
+    subclasses give segment_frames(tau) (rotation, centre per box) and halves()."""
 
     rigid = False
+
+    def segment_frames(self, tau: float) -> list[tuple[np.ndarray, np.ndarray]]:
+        raise NotImplementedError
+
+    def halves(self) -> list[np.ndarray]:
+        raise NotImplementedError
+
+    def primitives(self, tau):
+        return [Box(R, c, half, self.texture, self.inst, face_offset=3 * i) for i, ((R, c), half) in enumerate(zip(self.segment_frames(tau), self.halves()))]
+
+    def sample_material(self, rng, n):
+        halves = self.halves()
+        area = np.array([2 * (h[0] * h[1] + h[1] * h[2] + h[0] * h[2]) for h in halves])
+        seg = rng.choice(2, size=n, p=area / area.sum())
+        out = np.zeros((n, 4))
+        out[:, 0] = seg
+        for i, half in enumerate(halves):
+            m = seg == i
+            out[m, 1:] = _sample_box_surface(rng, half, int(m.sum()))
+        return out
+
+    def points(self, material, tau):
+        frames = self.segment_frames(tau)
+        out = np.zeros((len(material), 3))
+        for i, (R, c) in enumerate(frames):
+            m = material[:, 0] == i
+            out[m] = material[m, 1:] @ R.T + c
+        return out
+
+    def extent_points(self, tau):
+        return np.concatenate([_box_corners(h) @ R.T + c for (R, c), h in zip(self.segment_frames(tau), self.halves())])
+
+
+class Arm(BoxChain):
+    """Two-link arm standing on the ground, bending at shoulder and elbow, swaying about z."""
+
     kind = "arm"
 
     def __init__(self, inst, name, base, lengths, thickness, texture, phase):
@@ -237,38 +274,12 @@ class Arm(Object):
         h = self.thickness / 2
         return [np.array([h, h, L / 2]) for L in self.lengths]
 
-    def primitives(self, tau):
-        return [Box(R, c, half, self.texture, self.inst, face_offset=3 * i) for i, ((R, c), half) in enumerate(zip(self.segment_frames(tau), self.halves()))]
 
-    def sample_material(self, rng, n):
-        halves = self.halves()
-        area = np.array([2 * (h[0] * h[1] + h[1] * h[2] + h[0] * h[2]) for h in halves])
-        seg = rng.choice(2, size=n, p=area / area.sum())
-        out = np.zeros((n, 4))
-        out[:, 0] = seg
-        for i, half in enumerate(halves):
-            m = seg == i
-            out[m, 1:] = _sample_box_surface(rng, half, int(m.sum()))
-        return out
-
-    def points(self, material, tau):
-        frames = self.segment_frames(tau)
-        out = np.zeros((len(material), 3))
-        for i, (R, c) in enumerate(frames):
-            m = material[:, 0] == i
-            out[m] = material[m, 1:] @ R.T + c
-        return out
-
-    def extent_points(self, tau):
-        return np.concatenate([_box_corners(h) @ R.T + c for (R, c), h in zip(self.segment_frames(tau), self.halves())])
-
-
-class Articulated(Object):
+class Articulated(BoxChain):
     """A still body with one moving part: a box standing on the ground and a lid
     hinged along the top of its back edge, swinging open and shut. As one
     instance it is non-rigid; most of its surface (the body) never moves."""
 
-    rigid = False
     kind = "articulated"
 
     def __init__(self, inst, name, centre, body_half, lid_thickness, yaw, swing, rate, texture, phase):
@@ -297,31 +308,6 @@ class Articulated(Object):
     def shape(self):
         return {"centre": self.centre.tolist(), "body_half_extents": self.body_half.tolist(),
                 "lid_half_extents": self.lid_half.tolist()}
-
-    def primitives(self, tau):
-        return [Box(R, c, half, self.texture, self.inst, face_offset=3 * i)
-                for i, ((R, c), half) in enumerate(zip(self.segment_frames(tau), self.halves()))]
-
-    def sample_material(self, rng, n):
-        halves = self.halves()
-        area = np.array([2 * (h[0] * h[1] + h[1] * h[2] + h[0] * h[2]) for h in halves])
-        seg = rng.choice(2, size=n, p=area / area.sum())
-        out = np.zeros((n, 4))
-        out[:, 0] = seg
-        for i, half in enumerate(halves):
-            m = seg == i
-            out[m, 1:] = _sample_box_surface(rng, half, int(m.sum()))
-        return out
-
-    def points(self, material, tau):
-        out = np.zeros((len(material), 3))
-        for i, (R, c) in enumerate(self.segment_frames(tau)):
-            m = material[:, 0] == i
-            out[m] = material[m, 1:] @ R.T + c
-        return out
-
-    def extent_points(self, tau):
-        return np.concatenate([_box_corners(h) @ R.T + c for (R, c), h in zip(self.segment_frames(tau), self.halves())])
 
 
 class Ballistic:
