@@ -29,7 +29,7 @@ from conftest import REPO
 SNAKEFILE = str(REPO / "Snakefile")
 CONFIGS = [str(REPO / "config" / "config.yaml"), str(REPO / ".test" / "config.yaml")]
 RATIO = Path("results/synthetic/tiny/ratio0.6")
-METHODS = ["mogaf", "gcn", "ode", "constant_velocity", "frozen"]
+METHODS = ["mogaf", "mogaf_paper", "gcn", "ode", "constant_velocity", "frozen"]
 
 
 def _env(work: Path) -> dict[str, str]:
@@ -100,6 +100,12 @@ def test_every_method_has_finite_metrics(runs):
             assert isinstance(value, float) and math.isfinite(value), (method, key, value)
         # the quick 3D check against GT trajectories, computed by evaluation (never by a forecast job)
         assert math.isfinite(section["forecast"]["epe_3d_quick"]), method
+        # the structure figures of the forecast (mogaf.forecast.coherence), from the forecast artefact
+        assert {"rigid_groups", "rigid_distance_change", "still_displacement"} <= set(section["forecast"]["coherence"]), method
+    # the default MoGaF records its per-group decision; the paper's mode runs beside it
+    (job,) = metrics["methods"]["mogaf"]["forecast"]["jobs"].values()
+    assert job["mode"] == "structured" and job["choice"] in ("learned", "constant_velocity", "frozen")
+    assert metrics["methods"]["mogaf_paper"]["forecast"]["params"]["mode"] == "paper"
     # the better forecasts beat showing the last observed frame
     assert metrics["methods"]["mogaf"]["image"]["psnr"] > 10
     # grouping quality at held-out views (grouping_quality stage), copied into metrics.json
