@@ -41,6 +41,8 @@ from .metrics import image_metrics, mean_metrics
 from .representation import Model4D, load_model
 from .rendering import render_poses
 from .reconstruction_quality import read_reconstruction_quality
+from .report.tables import METHOD_ORDER, method_label
+from .video import labelled_row, to_uint8
 from .split import Split, load_frames, load_ground_truth, read_split
 
 log = logging.getLogger(__name__)
@@ -117,14 +119,11 @@ def _save_png(path: Path, img: np.ndarray) -> None:
 
 
 def _write_video(path: Path, panels: list[np.ndarray], fps: int) -> None:
-    """GT | forecast | error panels as mp4 (gif when ffmpeg is unavailable)."""
+    """uint8 frames (mogaf.video.labelled_row) as mp4 (gif when ffmpeg is unavailable)."""
     import imageio.v2 as iio2
 
-    from .datasets.images import to_uint8
-
     frames = []
-    for p in panels:
-        img = to_uint8(np.asarray(p) * 255.0)
+    for img in panels:
         h, w = img.shape[:2]
         img = np.pad(img, ((0, h % 2), (0, w % 2), (0, 0)))  # even sizes for yuv420p
         frames.append(img)
@@ -290,6 +289,8 @@ def run_evaluate_stage(*, scene: str, split: str, model: str, reconstruction_qua
         "forecast_timesteps": [int(t) for t in sp.forecast_timesteps],
         "methods": {},
     }
+    labels: dict[str, str] = {}
+    side_by_side: dict[str, list[np.ndarray]] = {}  # uint8 renders for all_methods.mp4
     try:
         for method in methods:
             fc = read_forecast(forecasts[method])
@@ -307,8 +308,20 @@ def run_evaluate_stage(*, scene: str, split: str, model: str, reconstruction_qua
                 for f in range(frames.num_frames):
                     _save_png(renders_tmp / method / f"{frames.frame_names[f]}.png", renders[f])
             if p["video"]:
-                panels = [np.concatenate([gts[f], renders[f], np.abs(renders[f] - gts[f])], axis=1) for f in range(frames.num_frames)]
+                label = method_label({"methods": {method: section}}, method)
+                labels[method] = label
+                panels = [labelled_row([gts[f], renders[f], np.abs(renders[f] - gts[f])], ["GT", label, "|error|"],
+                                       f"{label}, time step {int(frames.time_index[f])}, view {frames.frame_names[f]}")
+                          for f in range(frames.num_frames)]
                 _write_video(renders_tmp / f"{method}.mp4", panels, int(p["video_fps"]))
+                side_by_side[method] = [to_uint8(r) for r in renders]
+        if p["video"] and len(methods) > 1:
+            # one video of every method beside the GT, in the tables' order
+            order = sorted(methods, key=lambda m: METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER))
+            panels = [labelled_row([gts[f]] + [side_by_side[m][f] for m in order], ["GT"] + [labels[m] for m in order],
+                                   f"time step {int(frames.time_index[f])}, view {frames.frame_names[f]}")
+                      for f in range(frames.num_frames)]
+            _write_video(renders_tmp / "all_methods.mp4", panels, int(p["video_fps"]))
         result["reconstruction"] = reconstruction
         result["grouping"] = grouping
         if p["runtime_in_metrics"]:

@@ -22,6 +22,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import REPO
@@ -115,6 +116,20 @@ def test_every_method_has_finite_metrics(runs):
     # the model's quality at held-out views (reconstruction_quality stage), copied too
     reconstruction = metrics["reconstruction"]
     assert reconstruction["num_frames"] > 0 and reconstruction["heldout_observed"]["psnr"] > 10
+
+
+def test_videos_show_every_method_beside_the_ground_truth(runs):
+    import imageio.v2 as iio2
+
+    renders = runs["first"] / RATIO / "renders"
+    for name in METHODS + ["all_methods"]:
+        videos = [p for p in (renders / f"{name}.mp4", renders / f"{name}.gif") if p.exists()]
+        assert videos, name
+    video = next(p for p in (renders / "all_methods.mp4", renders / "all_methods.gif") if p.exists())
+    frame = np.asarray(iio2.mimread(video, memtest=False)[0])[..., :3]
+    one = np.asarray(iio2.mimread(next(p for p in (renders / "frozen.mp4", renders / "frozen.gif") if p.exists()), memtest=False)[0])
+    # GT plus one panel per method, side by side: (1 + len(METHODS)) / 3 as wide as a GT | method | error video
+    assert abs(frame.shape[1] / one.shape[1] - (1 + len(METHODS)) / 3) < 0.05
 
 
 def test_artefacts_record_their_lineage(runs):
