@@ -55,10 +55,10 @@ def group_rigid_flags(groups_h5: str | os.PathLike) -> np.ndarray:
     return flags
 
 
-def job_rigid_hint(job: str, groups_h5: str | os.PathLike) -> bool | None:
+def job_rigid_hint(job: str, group_rigid: np.ndarray) -> bool | None:
     """The grouping's rigid flag for a group job; None for the job of every
     dynamic Gaussian (its members are no one rigid body)."""
-    return None if job == ALL else bool(group_rigid_flags(groups_h5)[int(job)])
+    return None if job == ALL else bool(group_rigid[int(job)])
 
 
 def dynamic_members(group_id: np.ndarray, group_static: np.ndarray) -> np.ndarray:
@@ -161,7 +161,7 @@ def run_forecast_group(model_h5: str, groups_h5: str, split_h5: str, out: str, p
     model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
     members = job_members(job, group_id, group_static, groups_h5)
     poses, info, wall = forecast_job(model, members, int(split.forecast_timesteps.size), params, method, job, seed,
-                                     job_rigid_hint(job, groups_h5))
+                                     job_rigid_hint(job, group_rigid_flags(groups_h5)))
     return write_artefact(
         out, GROUP_STAGE,
         {"members": members, "means": poses[..., :3].astype(np.float32), "quats": poses[..., 3:].astype(np.float32)},
@@ -174,6 +174,7 @@ def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, parts: list
                        params: Mapping[str, Any], *, method: str, seed: int = 0) -> Path:
     """Merge the group jobs' poses into forecast/{method}.h5 (INLINE_METHODS: computed here, group by group)."""
     model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
+    group_rigid = group_rigid_flags(groups_h5)
     n, T = len(model.fg), int(split.forecast_timesteps.size)
     # Static groups (and anything no job covers) keep the last observed pose.
     means = np.repeat(np.asarray(model.trajectory_means[:, -1:], np.float32), T, axis=1)
@@ -199,7 +200,7 @@ def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, parts: list
             raise MogafError(f"forecast {method}: computed in the merge job, it takes no group files")
         for job in _job_names(group_id, group_static, bool(params.get("groupwise", True))):
             members = job_members(job, group_id, group_static, groups_h5)
-            poses, info, _ = forecast_job(model, members, T, params, method, job, seed, job_rigid_hint(job, groups_h5))
+            poses, info, _ = forecast_job(model, members, T, params, method, job, seed, job_rigid_hint(job, group_rigid))
             means[members] = poses[..., :3]
             quats[members] = poses[..., 3:]
             covered[members] = True
@@ -211,7 +212,7 @@ def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, parts: list
     mparams = method_params(params, method)
     from .coherence import coherence
 
-    structure = coherence(model.trajectory_means, means, group_id, group_static, group_rigid_flags(groups_h5))
+    structure = coherence(model.trajectory_means, means, group_id, group_static, group_rigid)
     attrs: dict[str, Any] = {"method": method, "groupwise": bool(params.get("groupwise", True)),
                              "num_groups_trained": len(parts), "flags": flags, "params": mparams,
                              "coherence": structure}

@@ -307,13 +307,15 @@ class GroupMotion:
     Gaussian's position (3) and accumulated rotation vector (3); still
     Gaussians keep their last pose in every candidate."""
 
-    def __init__(self, obs: np.ndarray, rigid: bool, still_factor: float) -> None:
+    def __init__(self, obs: np.ndarray, rigid: bool, still_factor: float,
+                 decomposition: tuple[np.ndarray, np.ndarray, float] | None = None) -> None:
+        """`decomposition`: rigid_decomposition(obs[..., :3]) when already computed."""
         self.obs = obs
         self.rigid = rigid
         self.last = obs[:, -1]
         pos = obs[..., :3]
         if rigid:
-            self.centroids, self.rotations, _ = rigid_decomposition(pos)
+            self.centroids, self.rotations, _ = decomposition or rigid_decomposition(pos)
             self.still = np.zeros(obs.shape[0], bool)
             radius = float(np.sqrt(np.mean(np.sum((pos[:, -1] - self.centroids[-1]) ** 2, axis=-1))))
             # (6, T): centroid xyz, accumulated body rotation vector xyz
@@ -401,7 +403,8 @@ def fit_structured(obs: np.ndarray, p: Mapping[str, Any], seed: int, rigid_hint:
     p = structured_params(p)
     G, T, _ = obs.shape
     # Fewer than 3 members fix no rotation: such a group is forecast per Gaussian.
-    rel = rigid_decomposition(obs[..., :3])[2] if G >= 3 else None
+    decomposition = rigid_decomposition(obs[..., :3]) if G >= 3 else None
+    rel = decomposition[2] if decomposition is not None else None
     rigid = rel is not None and (bool(rigid_hint) if rigid_hint is not None else rel <= p["rigid_residual"])
     info: dict[str, Any] = {"mode": "structured", "rigid": rigid, "rigid_residual_rel": rel,
                             "rigid_source": "groups" if rigid_hint is not None and rel is not None else "residual"}
@@ -426,7 +429,7 @@ def fit_structured(obs: np.ndarray, p: Mapping[str, Any], seed: int, rigid_hint:
             info[f"backtest_epe_{name}"] = scores[name]
         choice = min(CANDIDATES, key=lambda c: (scores[c], CANDIDATES.index(c)))
         info["backtest_frames"] = h
-    motion = GroupMotion(obs, rigid, p["still_factor"])
+    motion = GroupMotion(obs, rigid, p["still_factor"], decomposition)
     info["still_fraction"] = float(motion.still.mean())
     fitted = FittedCandidate(choice, motion, p, seed)
     info.update(fitted.info)
