@@ -8,13 +8,25 @@ CORES ?= 2
 STAMP := $(VENV)/.installed-$(shell sha1sum pyproject.toml | cut -c1-12)
 LPIPS_CACHE := .cache/mogaf/lpips/alexnet_lpips.npz
 
-.PHONY: demo test setup lint clean-results
+.PHONY: demo test setup lint lint-check format clean-results
 demo: setup
 	$(BIN)/snakemake --cores $(CORES) demo --configfile config/config.yaml config/demo.yaml
 
-# One pytest worker per core; a test file stays on one worker (module fixtures run once).
-test: setup
+# Lint and format checks first (seconds), then one pytest worker per core; a
+# test file stays on one worker (module fixtures run once).
+test: setup lint-check
 	$(BIN)/python -m pytest -q -n $(CORES) --dist loadfile
+
+# ruff (lint + format) and snakefmt, as `make test` runs them; `make format` applies them.
+lint-check: setup
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/snakefmt --check Snakefile workflow/rules
+
+format: setup
+	$(BIN)/ruff check --fix .
+	$(BIN)/ruff format .
+	$(BIN)/snakefmt Snakefile workflow/rules
 
 setup: $(STAMP) $(LPIPS_CACHE)
 

@@ -1,7 +1,7 @@
 # MoGaF: motion group-aware Gaussian forecasting as a cached pipeline.
 # Target grammar: results/{dataset}/{scene}/ratio{r}/<artefact>
 #   e.g. snakemake -c2 results/synthetic/default/ratio0.6/metrics.json
-# See README.md for the stages and config/config.yaml for every knob.
+# See docs/pipeline.md for the stages and config/README.md for every setting.
 from snakemake.utils import min_version
 
 min_version("9.0")
@@ -37,11 +37,11 @@ localrules:
 
 
 rule all:
+    default_target: True
     input:
         grid_targets(),
         "results/tables/table_dnerf.md",
         "results/tables/error_vs_runtime.png",
-    default_target: True
 
 
 # README command 1 (`make demo`): the embedded synthetic scene end to end,

@@ -111,7 +111,7 @@ def _size_text(nbytes: int) -> str:
     if nbytes < 1024:
         return f"{nbytes} bytes"
     size = float(nbytes)
-    for unit in ("KiB", "MiB", "GiB"):
+    for unit in ("KiB", "MiB", "GiB"):  # noqa: B007 (the last unit is the one printed)
         size /= 1024
         if size < 1024:
             break
@@ -190,7 +190,7 @@ class _GuardedSink:
     """
 
     def __init__(self, path: Path) -> None:
-        self._fh = open(path, "r+b", buffering=0)  # unbuffered: a failure surfaces at its write
+        self._fh = open(path, "r+b", buffering=0)  # noqa: SIM115 (closed by close()); unbuffered: a failure surfaces at its write
         self.error: OSError | None = None
         self._pos = 0
         self._end = 0
@@ -273,8 +273,7 @@ def _check_finite(name: str, arr: np.ndarray, path: Path) -> None:
         raise input_error(path, f"refusing to write non-finite values in '{name}' ({bad} of {arr.size})")
 
 
-def _write_tree(group: h5py.Group, data: Mapping[str, Any], path: Path, prefix: str = "",
-                content: Any = None) -> None:
+def _write_tree(group: h5py.Group, data: Mapping[str, Any], path: Path, prefix: str = "", content: Any = None) -> None:
     """Write `data` under `group`; `content` (a hashlib object), if given,
     takes in every entry's name, type, shape and values in key order."""
     for key, value in sorted(data.items()):
@@ -350,8 +349,12 @@ def read_lineage(path: str | os.PathLike) -> Lineage:
     with _open(p) as fh:
         _check_header(fh, p, None, None)
         inputs = _decode_attr(fh.attrs.get(ATTR_INPUTS, "json:{}"))
-        return Lineage(p, _decode_attr(fh.attrs[ATTR_STAGE]), _decode_attr(fh.attrs.get(ATTR_LINEAGE, "")),
-                       {str(k): tuple(v) for k, v in dict(inputs).items()})
+        return Lineage(
+            p,
+            _decode_attr(fh.attrs[ATTR_STAGE]),
+            _decode_attr(fh.attrs.get(ATTR_LINEAGE, "")),
+            {str(k): tuple(v) for k, v in dict(inputs).items()},
+        )
 
 
 def check_lineage(artefacts: Iterable[Lineage]) -> None:
@@ -367,8 +370,11 @@ def check_lineage(artefacts: Iterable[Lineage]) -> None:
             if b is a or made_from is None or not b.digest:
                 continue
             if b.digest not in made_from:
-                raise input_error(a.path, f"was made from another '{b.stage}' artefact than {b.path} "
-                                          "(other settings or inputs); rerun the stages after it")
+                raise input_error(
+                    a.path,
+                    f"was made from another '{b.stage}' artefact than {b.path} "
+                    "(other settings or inputs); rerun the stages after it",
+                )
 
 
 def check_made_from(derived: str | os.PathLike, source: str | os.PathLike) -> None:
@@ -380,8 +386,11 @@ def check_made_from(derived: str | os.PathLike, source: str | os.PathLike) -> No
         return
     if src.digest not in made.inputs.get(src.stage, ()):
         made_of = ", ".join(f"'{stage}'" for stage in sorted(made.inputs)) or "nothing recorded"
-        raise input_error(made.path, f"was not made from {src.path} (a '{src.stage}' artefact; it was made from "
-                                     f"{made_of}); rerun the stage that writes it")
+        raise input_error(
+            made.path,
+            f"was not made from {src.path} (a '{src.stage}' artefact; it was made from "
+            f"{made_of}); rerun the stage that writes it",
+        )
 
 
 @contextlib.contextmanager
@@ -432,7 +441,7 @@ def write_artefact(
                 fh.attrs[ATTR_STAGE] = stage
                 fh.attrs[ATTR_DIGEST] = config_digest
                 fh.attrs[ATTR_PACKAGE] = __version__
-                fh.attrs[ATTR_CREATED] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+                fh.attrs[ATTR_CREATED] = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
                 for key, value in attrs.items():
                     if value is not None:
                         fh.attrs[key] = _attr_value(value)
@@ -474,10 +483,15 @@ def _check_header(fh: h5py.File, path: Path, stages: tuple[str, ...] | None, exp
     version = _decode_attr(fh.attrs[ATTR_FORMAT])
     if isinstance(version, bool) or not isinstance(version, int):
         # e.g. "1" written by another tool: not this format, however it prints
-        raise input_error(path, f"format version {version!r} is a {type(version).__name__}, not an integer; "
-                                "not an artefact this mogaf wrote, rerun the stage that writes it")
+        raise input_error(
+            path,
+            f"format version {version!r} is a {type(version).__name__}, not an integer; "
+            "not an artefact this mogaf wrote, rerun the stage that writes it",
+        )
     if version != FORMAT_VERSION:
-        raise input_error(path, f"format version {version}, this mogaf reads version {FORMAT_VERSION}; rerun the stage that wrote it")
+        raise input_error(
+            path, f"format version {version}, this mogaf reads version {FORMAT_VERSION}; rerun the stage that wrote it"
+        )
     stage = _decode_attr(fh.attrs.get(ATTR_STAGE, ""))
     if stages is not None and stage not in stages:
         raise input_error(path, f"written by stage '{stage}', expected {' or '.join(repr(s) for s in stages)}")
@@ -486,7 +500,10 @@ def _check_header(fh: h5py.File, path: Path, stages: tuple[str, ...] | None, exp
         raise input_error(path, f"written by mogaf {package}, incompatible with mogaf {__version__}; rerun the stage")
     digest = _decode_attr(fh.attrs.get(ATTR_DIGEST, ""))
     if expected_digest is not None and digest != expected_digest:
-        raise input_error(path, f"config digest {digest} does not match the current configuration ({expected_digest}); rerun the stage")
+        raise input_error(
+            path,
+            f"config digest {digest} does not match the current configuration ({expected_digest}); rerun the stage",
+        )
 
 
 def _open(path: Path) -> h5py.File:
@@ -495,7 +512,9 @@ def _open(path: Path) -> h5py.File:
     try:
         return h5py.File(path, "r", locking=False)
     except OSError as exc:
-        raise input_error(path, f"not a readable HDF5 file, truncated or corrupted ({exc.__class__.__name__})") from None
+        raise input_error(
+            path, f"not a readable HDF5 file, truncated or corrupted ({exc.__class__.__name__})"
+        ) from None
 
 
 def _normalise_stages(stage: str | Iterable[str] | None) -> tuple[str, ...] | None:
@@ -565,14 +584,17 @@ def read_dataset(ds: h5py.Dataset, path: Path, name: str | None = None, sel: Any
             return arr.tolist() if isinstance(arr, np.ndarray) else arr
         arr = ds[()] if sel is None else ds[sel]
     except (OSError, RuntimeError) as exc:
-        raise input_error(path, f"entry '{name}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})") from None
+        raise input_error(
+            path, f"entry '{name}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})"
+        ) from None
     if isinstance(arr, np.ndarray) and arr.dtype.kind in "fc" and not np.all(np.isfinite(arr)):
         raise input_error(path, f"entry '{name}' contains non-finite values (corrupted artefact); rerun the stage")
     return arr
 
 
-def read_tree(group: h5py.Group, path: Path, prefix: str = "",
-              selection: Callable[[str, h5py.Dataset], Any] | None = None) -> dict[str, Any]:
+def read_tree(
+    group: h5py.Group, path: Path, prefix: str = "", selection: Callable[[str, h5py.Dataset], Any] | None = None
+) -> dict[str, Any]:
     """Every dataset under `group`, finite-checked. `selection(key, dataset)`
     may return an index to read only part of a dataset (None: all of it)."""
     out: dict[str, Any] = {}
@@ -614,7 +636,9 @@ def read_artefact(
     with _open(p) as fh:
         _check_header(fh, p, _normalise_stages(stage), expected_config_digest)
         stage_name = _decode_attr(fh.attrs[ATTR_STAGE])
-        attrs = ArtefactAttrs(p, stage_name, {k: _decode_attr(v) for k, v in fh.attrs.items() if k not in RESERVED_ATTRS})
+        attrs = ArtefactAttrs(
+            p, stage_name, {k: _decode_attr(v) for k, v in fh.attrs.items() if k not in RESERVED_ATTRS}
+        )
         data = read_tree(fh, p)
         art = Artefact(
             path=p,
@@ -676,7 +700,9 @@ def read_rows(fh: h5py.File, key: str, rows: np.ndarray) -> np.ndarray:
         unique_rows, inverse = np.unique(sorted_rows, return_inverse=True)
         block = ds[unique_rows] if unique_rows.size else np.empty((0,) + ds.shape[1:], ds.dtype)
     except (OSError, RuntimeError) as exc:
-        raise input_error(path, f"entry '{key}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})") from None
+        raise input_error(
+            path, f"entry '{key}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})"
+        ) from None
     out = np.empty((rows.size,) + ds.shape[1:], dtype=ds.dtype)
     out[order] = block[inverse]
     if out.dtype.kind in "fc" and not np.all(np.isfinite(out)):

@@ -41,12 +41,6 @@ def rigid_inverse(T: np.ndarray) -> np.ndarray:
     return out
 
 
-def opengl_c2w_to_opencv_w2c(c2w_gl: np.ndarray) -> np.ndarray:
-    """Convert OpenGL camera-to-world (NeRF/Blender) to OpenCV world-to-camera."""
-    c2w_cv = np.asarray(c2w_gl, dtype=np.float64) @ GL_TO_CV
-    return rigid_inverse(c2w_cv)
-
-
 def w2c_from_orientation_position(orientation: np.ndarray, position: np.ndarray) -> np.ndarray:
     """DyCheck/Nerfies cameras: orientation is the w2c rotation, position the centre."""
     R = np.asarray(orientation, dtype=np.float64)
@@ -95,8 +89,3 @@ def project(points: np.ndarray, K: np.ndarray, w2c: np.ndarray) -> tuple[np.ndar
     uvw = cam @ np.asarray(K, dtype=np.float64).T
     uv = uvw[:, :2] / zsafe[:, None]
     return uv, z
-
-
-def pixel_of(uv: np.ndarray) -> np.ndarray:
-    """Integer (col, row) of the pixel containing continuous coordinates uv."""
-    return np.floor(uv).astype(np.int64)

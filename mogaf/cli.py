@@ -20,27 +20,24 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from . import stages
+from . import registry, stages
 from .errors import MogafError
 from .paths import use_cache_dir
 
-# stage -> (function, {cli option: function argument}, config section or None)
-_PATH = "path"
+# subcommand -> (function, {cli option: function argument}, config section or
+# None), for the stages whose subcommand takes path options only; from the registry.
 STAGES: dict[str, tuple[Callable[..., Any], dict[str, str], str | None]] = {
-    "synthesize": (stages.synthesize, {"out": "out_dir"}, None),
-    "ingest": (stages.ingest, {"folder": "folder", "out": "out"}, None),
-    "split": (stages.split, {"scene-h5": "scene", "out": "out"}, None),
-    "priors": (stages.priors, {"scene-h5": "scene", "split-h5": "split", "out": "out"}, "priors"),
-    "recon": (stages.recon, {"scene-h5": "scene", "split-h5": "split", "priors-h5": "priors", "out": "out"}, "recon"),
-    "group": (stages.group, {"model-h5": "model", "priors-h5": "priors", "scene-h5": "scene", "out": "out"}, "grouping"),
-    "rigid-init": (stages.rigid_init, {"model-h5": "model", "groups-h5": "groups", "out": "out"}, "rigid_init"),
-    "refine": (stages.refine, {"model-h5": "model", "groups-h5": "groups", "rigid-h5": "rigid", "priors-h5": "priors", "scene-h5": "scene", "split-h5": "split", "out": "out"}, "refine"),
-    "grouping-quality": (stages.grouping_quality, {"grouped-model-h5": "grouped_model", "groups-h5": "groups", "scene-h5": "scene", "split-h5": "split", "out": "out"}, "grouping_quality"),
-    "reconstruction-quality": (stages.reconstruction_quality, {"model-h5": "model", "scene-h5": "scene", "split-h5": "split", "out": "out"}, "reconstruction_quality"),
-    "forecast-group": (stages.forecast_group, {"model-h5": "model", "groups-h5": "groups", "split-h5": "split", "out": "out"}, "forecast"),
+    spec.cli: (
+        getattr(stages, spec.function),
+        {**{i.option: i.argument for i in spec.inputs}, "out": spec.output_argument},
+        spec.settings,
+    )
+    for spec in registry.STAGES
+    if spec.cli
 }
-OPTIONAL_PATHS = {"rigid-h5"}
-SEEDED = {"priors", "recon", "group", "refine", "forecast-group"}
+OPTIONAL_PATHS = {i.option for spec in registry.STAGES if spec.cli for i in spec.inputs if not i.required}
+SEEDED = {spec.cli for spec in registry.STAGES if spec.cli and spec.seeded}
+DEVICE = {spec.cli for spec in registry.STAGES if spec.cli and spec.device}
 SCHEMA_NAME = "schema.yaml"  # config/schema.yaml, the file the workflow validates against
 DEVICE = {"recon", "refine"}
 
@@ -49,19 +46,24 @@ def _config_for(args: argparse.Namespace) -> dict[str, Any]:
     from . import config as mcfg
 
     cfg = mcfg.load_yaml(args.configfile)
-    variants = mcfg.load_yaml(cfg.get("ablations_file", "config/ablations.yaml")).get("variants", {}) if args.variant else {}
+    variants = (
+        mcfg.load_yaml(cfg.get("ablations_file", "config/ablations.yaml")).get("variants", {}) if args.variant else {}
+    )
     merged = mcfg.variant_config(cfg, variants, args.variant)
     if args.dataset and args.scene:
         merged = mcfg.scene_config(merged, args.dataset, args.scene)
     _validate(merged, args.configfile)
-    return merged
+    return mcfg.with_defaults(merged)
 
 
 def _validate(cfg: dict[str, Any], configfile: str) -> None:
     """The workflow's schema check (config/schema.yaml, where it is found), so
     a config the workflow would refuse fails here with one line, not a traceback."""
-    places = (Path(configfile).parent / SCHEMA_NAME, Path("config") / SCHEMA_NAME,
-              Path(__file__).resolve().parents[1] / "config" / SCHEMA_NAME)  # beside it, here, the checkout
+    places = (
+        Path(configfile).parent / SCHEMA_NAME,
+        Path("config") / SCHEMA_NAME,
+        Path(__file__).resolve().parents[1] / "config" / SCHEMA_NAME,
+    )  # beside it, here, the checkout
     schema = next((p for p in places if p.is_file()), None)
     if schema is None:
         return
@@ -69,10 +71,9 @@ def _validate(cfg: dict[str, Any], configfile: str) -> None:
         import jsonschema  # noqa: F401
     except ImportError:  # the `workflow` extra is not installed; the stages check their own parameters
         return
-    from . import config as mcfg
-    from .schema import config_error
+    from .schema import config_error, load_config_schema
 
-    error = config_error(cfg, mcfg.load_yaml(schema), [(configfile, cfg)])
+    error = config_error(cfg, load_config_schema(schema), [(configfile, cfg)])
     if error is not None:
         raise error
 
@@ -100,17 +101,29 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--method", required=True)
             p.add_argument("--group", required=True, help="group id, or 'all'")
         if name in DEVICE:
-            p.add_argument("--checkpoint", help="resumable training state (resumed when it matches, removed after success)")
+            p.add_argument(
+                "--checkpoint", help="resumable training state (resumed when it matches, removed after success)"
+            )
         _add_common(p)
-    p = sub.add_parser("forecast", help="merge a method's group jobs into forecast/{method}.h5 "
-                                        "(constant_velocity / frozen: computed here)")
+    p = sub.add_parser(
+        "forecast",
+        help="merge a method's group jobs into forecast/{method}.h5 (constant_velocity / frozen: computed here)",
+    )
     for option in ("model-h5", "groups-h5", "split-h5", "out", "method"):
         p.add_argument(f"--{option}", required=True)
     p.add_argument("--parts", nargs="*", default=[], help="forecast/{method}/group{k}.h5 files")
     _add_common(p)
     p = sub.add_parser("evaluate", help="render forecasts at the evaluation views, write metrics.json")
-    for option in ("scene-h5", "split-h5", "model-h5", "groups-h5", "reconstruction-quality-h5", "grouping-quality-h5",
-                   "out", "renders"):
+    for option in (
+        "scene-h5",
+        "split-h5",
+        "model-h5",
+        "groups-h5",
+        "reconstruction-quality-h5",
+        "grouping-quality-h5",
+        "out",
+        "renders",
+    ):
         p.add_argument(f"--{option}", required=True)
     p.add_argument("--forecast", action="append", default=[], metavar="METHOD=PATH", required=True)
     p.add_argument("--benchmark", action="append", default=[], metavar="STAGE=TSV", help="Snakemake benchmark files")
@@ -149,15 +162,22 @@ def _run(args: argparse.Namespace) -> int:
     if args.command == "synthesize":
         scenes = cfg.get("synthetic") or {}
         if args.scene not in scenes:
-            raise MogafError(f"{args.configfile}: synthesize --scene must be a key of its `synthetic` section "
-                             f"({', '.join(scenes) or 'none'}), got {args.scene!r}")
+            raise MogafError(
+                f"{args.configfile}: synthesize --scene must be a key of its `synthetic` section "
+                f"({', '.join(scenes) or 'none'}), got {args.scene!r}"
+            )
         kwargs["params"] = scenes[args.scene]
     if args.command == "ingest":
         from . import config as mcfg
 
         if not (args.dataset and args.scene):
             raise MogafError("ingest needs --dataset and --scene")
-        kwargs.update(layout=args.layout, options=mcfg.ingest_options(cfg, args.dataset, args.scene), dataset=args.dataset, scene=args.scene)
+        kwargs.update(
+            layout=args.layout,
+            options=mcfg.ingest_options(cfg, args.dataset, args.scene),
+            dataset=args.dataset,
+            scene=args.scene,
+        )
     if args.command == "forecast-group":
         kwargs.update(method=args.method, group=args.group)
     stages.run_stage(fn, None, threads=args.threads, **kwargs)
@@ -177,24 +197,51 @@ def _pairs(items: list[str], what: str) -> dict[str, str]:
 def _run_extra(args: argparse.Namespace) -> int:
     cfg = _config_for(args)
     if args.command == "forecast":
-        stages.run_stage(stages.forecast_merge, None, threads=args.threads, model=args.model_h5, groups=args.groups_h5,
-                         split=args.split_h5, parts=list(args.parts), out=args.out,
-                         params=cfg["forecast"], method=args.method, seed=int(cfg["seed"]))
+        stages.run_stage(
+            stages.forecast_merge,
+            None,
+            threads=args.threads,
+            model=args.model_h5,
+            groups=args.groups_h5,
+            split=args.split_h5,
+            parts=list(args.parts),
+            out=args.out,
+            params=cfg["forecast"],
+            method=args.method,
+            seed=int(cfg["seed"]),
+        )
     elif args.command == "evaluate":
         ids = {"dataset": args.dataset or "", "scene": args.scene or "", "ratio": args.ratio}
-        stages.run_stage(stages.evaluate, None, threads=args.threads, scene=args.scene_h5, split=args.split_h5,
-                         model=args.model_h5, groups=args.groups_h5,
-                         reconstruction_quality=args.reconstruction_quality_h5, grouping_quality=args.grouping_quality_h5,
-                         forecasts=_pairs(args.forecast, "forecast"),
-                         benchmarks=_pairs(args.benchmark, "benchmark"), out_metrics=args.out, out_renders=args.renders,
-                         params=cfg["evaluate"], variant=args.variant or "default", ids=ids)
+        stages.run_stage(
+            stages.evaluate,
+            None,
+            threads=args.threads,
+            scene=args.scene_h5,
+            split=args.split_h5,
+            model=args.model_h5,
+            groups=args.groups_h5,
+            reconstruction_quality=args.reconstruction_quality_h5,
+            grouping_quality=args.grouping_quality_h5,
+            forecasts=_pairs(args.forecast, "forecast"),
+            benchmarks=_pairs(args.benchmark, "benchmark"),
+            out_metrics=args.out,
+            out_renders=args.renders,
+            params=cfg["evaluate"],
+            variant=args.variant or "default",
+            ids=ids,
+        )
     else:
         from . import config as mcfg
         from .report.tables import main_table_paths
 
-        stages.run_stage(stages.tables, None, metrics_files=list(args.metrics),
-                         out_files=main_table_paths(Path(args.out_dir)), params=cfg["report"],
-                         ablations=mcfg.load_yaml(cfg.get("ablations_file", "config/ablations.yaml")))
+        stages.run_stage(
+            stages.tables,
+            None,
+            metrics_files=list(args.metrics),
+            out_files=main_table_paths(Path(args.out_dir)),
+            params=cfg["report"],
+            ablations=mcfg.load_yaml(cfg.get("ablations_file", "config/ablations.yaml")),
+        )
     return 0
 
 

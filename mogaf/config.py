@@ -20,46 +20,16 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from .artefact import config_digest
+from . import registry
 from .errors import MogafError
+from .settings import section_defaults
 
-RESULTS = "results"
-
-# Which config sections determine each stage's artefact (before upstream).
-STAGE_SECTIONS: dict[str, tuple[str, ...]] = {
-    "priors": ("seed", "priors"),
-    "recon": ("seed", "device", "recon"),
-    "group": ("grouping",),
-    "rigid_init": ("rigid_init",),
-    "refine": ("seed", "device", "refine"),
-    "grouping_quality": ("grouping_quality",),
-    # one per model, so the variants forecasting from one model share it
-    "reconstruction_quality:recon": ("reconstruction_quality",),
-    "reconstruction_quality:refine": ("reconstruction_quality",),
-    "evaluate": ("evaluate", "forecast.methods"),
-}
-# Upstream stages of each stage (forecast depends on the method, see below).
-STAGE_UPSTREAM: dict[str, tuple[str, ...]] = {
-    "priors": (),
-    "recon": ("priors",),
-    "group": ("recon", "priors"),
-    "rigid_init": ("group",),
-    "refine": ("recon", "group", "rigid_init"),
-    "grouping_quality": ("group", "recon"),
-    "reconstruction_quality:recon": ("recon",),
-    "reconstruction_quality:refine": ("refine",),
-}
-ARTEFACT_FILES = {
-    "priors": "priors.h5",
-    "recon": "recon.h5",
-    "group": "groups.h5",
-    "rigid_init": "rigid.h5",
-    "refine": "refined.h5",
-    "grouping_quality": "grouping_quality.h5",
-    "reconstruction_quality:recon": "reconstruction_quality/recon.h5",
-    "reconstruction_quality:refine": "reconstruction_quality/refined.h5",
-    "evaluate": "metrics.json",
-}
+# The stage graph (which config sections and upstream stages determine each
+# artefact, and its file) comes from the one registry; forecasts depend on the
+# method and evaluation on the methods listed, see _sections / _upstream.
+STAGE_SECTIONS: dict[str, tuple[str, ...]] = registry.digest_sections()
+STAGE_UPSTREAM: dict[str, tuple[str, ...]] = registry.upstream()
+ARTEFACT_FILES: dict[str, str] = registry.artefact_files()
 FORECAST_METHODS = ("mogaf", "mogaf_paper", "gcn", "ode", "constant_velocity", "frozen")
 VARIANT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
@@ -73,6 +43,13 @@ def deep_merge(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str
         else:
             out[key] = copy.deepcopy(value)
     return out
+
+
+def with_defaults(config: Mapping[str, Any]) -> dict[str, Any]:
+    """The config with every stage setting it leaves out at its default
+    (config/config.yaml holds only what a user is expected to change;
+    the defaults are the stages' settings dataclasses, mogaf.settings)."""
+    return deep_merge(section_defaults(), config)
 
 
 def _get(config: Mapping[str, Any], dotted: str) -> Any:
@@ -97,7 +74,9 @@ def check_scene(config: Mapping[str, Any], dataset: str, scene: str) -> None:
     ds = dataset_config(config, dataset)
     scenes = ds.get("scenes")
     if scenes is not None and scene not in scenes:
-        raise MogafError(f"unknown scene '{scene}' of dataset '{dataset}' (config/config.yaml lists: {', '.join(scenes)})")
+        raise MogafError(
+            f"unknown scene '{scene}' of dataset '{dataset}' (config/config.yaml lists: {', '.join(scenes)})"
+        )
 
 
 def scene_dir(config: Mapping[str, Any], dataset: str, scene: str) -> str:
@@ -161,7 +140,12 @@ def _stage_value(stage: str, config: Mapping[str, Any], key: str) -> Any:
     its part of a shared section (mogaf_paper: forecast.mogaf less `structured`,
     mode fixed), so a change it does not read shares its artefacts."""
     value = _get(config, key)
-    if stage.startswith("forecast:") and key.startswith("forecast.") and key.count(".") == 1 and isinstance(value, Mapping):
+    if (
+        stage.startswith("forecast:")
+        and key.startswith("forecast.")
+        and key.count(".") == 1
+        and isinstance(value, Mapping)
+    ):
         from .forecast import param_section, section_params
 
         method = stage.split(":", 1)[1]
@@ -184,7 +168,10 @@ def _upstream(stage: str, config: Mapping[str, Any]) -> tuple[str, ...]:
         return (forecast_input_stage(config), "group")
     if stage == "evaluate":
         return tuple(f"forecast:{m}" for m in config["forecast"]["methods"]) + (
-            forecast_input_stage(config), "grouping_quality", reconstruction_quality_stage(config))
+            forecast_input_stage(config),
+            "grouping_quality",
+            reconstruction_quality_stage(config),
+        )
     return STAGE_UPSTREAM[stage]
 
 
@@ -213,11 +200,7 @@ def artefact_prefix(stage: str, base: Mapping[str, Any], variant_cfg: Mapping[st
 
 
 def ratio_dir(dataset: str, scene: str, ratio: str) -> str:
-    return f"{RESULTS}/{dataset}/{scene}/ratio{ratio}"
-
-
-def stage_params_digest(params: Mapping[str, Any]) -> str:
-    return config_digest(params)
+    return registry.RATIO_DIR.format(dataset=dataset, scene=scene, ratio=ratio).rstrip("/")
 
 
 def check_variant_name(name: str) -> None:

@@ -22,5 +22,7 @@ def refuse_unknown_params(section: str, params, known) -> None:
     """A key of `params` not in `known` is most likely a typo: refuse it by name."""
     unknown = sorted(set(params or ()) - set(known))
     if unknown:
-        raise MogafError(f"{section}: unknown parameter(s) {', '.join(map(str, unknown))} "
-                         f"(known: {', '.join(sorted(map(str, known)))})")
+        raise MogafError(
+            f"{section}: unknown parameter(s) {', '.join(map(str, unknown))} "
+            f"(known: {', '.join(sorted(map(str, known)))})"
+        )

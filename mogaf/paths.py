@@ -69,8 +69,13 @@ def _inside(path: Path, folder: Path) -> bool:
     return path != folder and path.is_relative_to(folder)
 
 
-def check_outputs(outputs: Mapping[str, str | os.PathLike | None], inputs: Iterable[str | os.PathLike | None] = (),
-                  *, folders: Iterable[str | os.PathLike] = (), directories: Iterable[str] = ()) -> None:
+def check_outputs(
+    outputs: Mapping[str, str | os.PathLike | None],
+    inputs: Iterable[str | os.PathLike | None] = (),
+    *,
+    folders: Iterable[str | os.PathLike] = (),
+    directories: Iterable[str] = (),
+) -> None:
     """Refuse, before anything is opened for writing, outputs that would
     overwrite or delete what a stage reads, with one line naming the output.
 
@@ -89,11 +94,15 @@ def check_outputs(outputs: Mapping[str, str | os.PathLike | None], inputs: Itera
         for raw, src in sources:
             if _same_file(out, src):
                 which = "" if str(raw) == str(name) else f" ({raw})"
-                raise input_error(name, f"is also an input of this stage{which}; refusing to overwrite an input, "
-                                        "write the output elsewhere")
+                raise input_error(
+                    name,
+                    f"is also an input of this stage{which}; refusing to overwrite an input, "
+                    "write the output elsewhere",
+                )
             if role in directories and _inside(src, out):
-                raise input_error(name, f"holds the input {raw}; this stage replaces the whole folder, "
-                                        "write the output elsewhere")
+                raise input_error(
+                    name, f"holds the input {raw}; this stage replaces the whole folder, write the output elsewhere"
+                )
         if out in seen:
             raise input_error(name, f"is given as both the {seen[out]} and the {role} output; give each its own path")
         seen[out] = role
@@ -101,8 +110,11 @@ def check_outputs(outputs: Mapping[str, str | os.PathLike | None], inputs: Itera
             raise input_error(name, "is an existing directory; the output must be a file path")
         folder = next((f for f in dataset_folders if out == f or _inside(out, f)), None) or holding_dataset_folder(out)
         if folder is not None:
-            raise input_error(name, f"lies inside the dataset folder {folder}; no stage writes into a dataset, "
-                                    "write the output elsewhere (e.g. under results/)")
+            raise input_error(
+                name,
+                f"lies inside the dataset folder {folder}; no stage writes into a dataset, "
+                "write the output elsewhere (e.g. under results/)",
+            )
 
 
 def unwritable_folder(path: str | os.PathLike) -> tuple[Path, str] | None:

@@ -32,7 +32,7 @@ from .sh import gaussian_colors
 
 def rasterize(*args: Any, **kwargs: Any):
     """mogaf.render.rasterize, imported late (the renderer is a separate package)."""
-    from .render import rasterize as _rasterize
+    from .render import rasterize as _rasterize  # local: the renderer is a separate package, loaded on the first render
 
     return _rasterize(*args, **kwargs)
 
@@ -53,9 +53,19 @@ def _set_colors(g: GaussianSet, means: torch.Tensor, cam: torch.Tensor) -> torch
     return gaussian_colors(_t(g.color_logits), sh, means, cam)
 
 
-def _render_sets(fg: GaussianSet, fg_means: torch.Tensor, fg_quats: torch.Tensor, bg: GaussianSet | None,
-                 K: Any, w2c: Any, width: int, height: int, features: Any, background: tuple[float, float, float],
-                 backend: str):
+def _render_sets(
+    fg: GaussianSet,
+    fg_means: torch.Tensor,
+    fg_quats: torch.Tensor,
+    bg: GaussianSet | None,
+    K: Any,
+    w2c: Any,
+    width: int,
+    height: int,
+    features: Any,
+    background: tuple[float, float, float],
+    backend: str,
+):
     K_t, w2c_t = _t(K), _t(w2c)
     cam = camera_center(w2c_t)
     means = [fg_means]
@@ -85,7 +95,9 @@ def _render_sets(fg: GaussianSet, fg_means: torch.Tensor, fg_quats: torch.Tensor
     else:
         feats = _t(features)
         if feats.ndim != 2 or feats.shape[0] != n_all:
-            raise MogafError(f"render: custom features must be ({n_all}, C) (fg rows then bg rows), got {tuple(feats.shape)}")
+            raise MogafError(
+                f"render: custom features must be ({n_all}, C) (fg rows then bg rows), got {tuple(feats.shape)}"
+            )
         bgc = torch.zeros(feats.shape[1])
     return rasterize(
         torch.cat(means, 0).contiguous(),
@@ -112,13 +124,25 @@ def timestep_position(model: Model4D, timestep: int) -> int:
     hits = np.flatnonzero(np.asarray(model.timesteps) == int(timestep))
     if hits.size == 0:
         steps = np.asarray(model.timesteps)
-        raise MogafError(f"render: time step {timestep} is not an observed step of the model ({steps.min()}..{steps.max()})")
+        raise MogafError(
+            f"render: time step {timestep} is not an observed step of the model ({steps.min()}..{steps.max()})"
+        )
     return int(hits[0])
 
 
 @torch.no_grad()
-def render_model(model: Model4D, timestep: int, K: Any, w2c: Any, width: int, height: int, *,
-                 features: Any = "rgb", background: tuple[float, float, float] | None = None, backend: str = "auto"):
+def render_model(
+    model: Model4D,
+    timestep: int,
+    K: Any,
+    w2c: Any,
+    width: int,
+    height: int,
+    *,
+    features: Any = "rgb",
+    background: tuple[float, float, float] | None = None,
+    backend: str = "auto",
+):
     """Render `model` at scene time step `timestep` (one of model.timesteps).
 
     Dynamic Gaussians take their stored trajectory pose at that step; the
@@ -133,13 +157,26 @@ def render_model(model: Model4D, timestep: int, K: Any, w2c: Any, width: int, he
 
 
 @torch.no_grad()
-def render_poses(model: Model4D, means: Any, quats: Any, K: Any, w2c: Any, width: int, height: int, *,
-                 features: Any = "rgb", background: tuple[float, float, float] | None = None, backend: str = "auto"):
+def render_poses(
+    model: Model4D,
+    means: Any,
+    quats: Any,
+    K: Any,
+    w2c: Any,
+    width: int,
+    height: int,
+    *,
+    features: Any = "rgb",
+    background: tuple[float, float, float] | None = None,
+    backend: str = "auto",
+):
     """Render the dynamic Gaussians at explicit poses (N_fg,3)/(N_fg,4 wxyz) + the static background."""
     m, q = _t(means), _t(quats)
     n = len(model.fg)
     if m.shape != (n, 3) or q.shape != (n, 4):
-        raise MogafError(f"render_poses: expected means ({n}, 3) and quats ({n}, 4), got {tuple(m.shape)} and {tuple(q.shape)}")
+        raise MogafError(
+            f"render_poses: expected means ({n}, 3) and quats ({n}, 4), got {tuple(m.shape)} and {tuple(q.shape)}"
+        )
     if not (torch.isfinite(m).all() and torch.isfinite(q).all()):
         raise MogafError("render_poses: poses have non-finite values")
     bgc = _background(model, background)

@@ -41,6 +41,7 @@ import torch
 
 from .artefact import read_artefact, write_artefact
 from .errors import input_error
+from .sh import num_sh_rest
 
 MODEL_STAGES = ("recon", "refine")
 GAUSSIAN_KEYS = ("means", "quats", "log_scales", "opacity_logits", "color_logits")
@@ -61,9 +62,15 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     w, x, y, z = normalize_quat(q).unbind(-1)
     return torch.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         dim=-1,
     ).reshape(q.shape[:-1] + (3, 3))
@@ -103,18 +110,24 @@ def quat_sign_continuity(q: np.ndarray, axis: int = 1) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ motion
-def blend_bases(coefs: torch.Tensor, rot6d: torch.Tensor, translations: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def blend_bases(
+    coefs: torch.Tensor, rot6d: torch.Tensor, translations: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Blend per-time bases: coefs (N,B), rot6d (B,...,6), translations (B,...,3).
 
     Returns R (N,...,3,3) and t (N,...,3).
     """
     B = coefs.shape[1]
     r = torch.einsum("nb,bk->nk", coefs, rot6d.reshape(B, -1)).reshape((coefs.shape[0],) + rot6d.shape[1:])
-    t = torch.einsum("nb,bk->nk", coefs, translations.reshape(B, -1)).reshape((coefs.shape[0],) + translations.shape[1:])
+    t = torch.einsum("nb,bk->nk", coefs, translations.reshape(B, -1)).reshape(
+        (coefs.shape[0],) + translations.shape[1:]
+    )
     return rot6d_to_matrix(r), t
 
 
-def deform(means: torch.Tensor, quats: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def deform(
+    means: torch.Tensor, quats: torch.Tensor, R: torch.Tensor, t: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Apply per-Gaussian rigid transforms (N,3,3),(N,3) to canonical poses."""
     means_t = torch.einsum("nij,nj->ni", R, means) + t
     quats_t = matrix_to_quat(R @ quat_to_matrix(quats))
@@ -142,7 +155,7 @@ class GaussianSet:
             d["sh_rest"] = self.sh_rest
         return d
 
-    def subset(self, index: np.ndarray) -> "GaussianSet":
+    def subset(self, index: np.ndarray) -> GaussianSet:
         return GaussianSet(**{k: (None if v is None else v[index]) for k, v in self.__dict__.items()})
 
 
@@ -180,7 +193,9 @@ def _gaussians_from(tree: dict[str, Any], path: Path, prefix: str) -> GaussianSe
     return GaussianSet(**{k: tree[k] for k in GAUSSIAN_KEYS}, sh_rest=tree.get("sh_rest"))
 
 
-def save_model(path: str | os.PathLike, stage: str, model: Model4D, *, config_digest: str, attrs: dict[str, Any] | None = None) -> Path:
+def save_model(
+    path: str | os.PathLike, stage: str, model: Model4D, *, config_digest: str, attrs: dict[str, Any] | None = None
+) -> Path:
     if stage not in MODEL_STAGES:
         raise ValueError(f"stage must be one of {MODEL_STAGES}")
     traj_q = quat_sign_continuity(model.trajectory_quats, axis=1).astype(np.float32)
@@ -208,18 +223,21 @@ def save_model(path: str | os.PathLike, stage: str, model: Model4D, *, config_di
 
 def _check_sh_bands(path: Path, name: str, part: GaussianSet | None, sh_degree: int) -> None:
     """sh_rest must carry exactly the bands of the model's degree (renderers use what is stored)."""
-    from .sh import num_sh_rest
-
     if part is None or len(part) == 0:
         return
     bands = 0 if part.sh_rest is None else int(np.asarray(part.sh_rest).shape[1])
     if bands != num_sh_rest(sh_degree):
-        raise input_error(path, f"entry '{name}/sh_rest' holds {bands} SH coefficients per colour, "
-                                f"expected {num_sh_rest(sh_degree)} for sh_degree {sh_degree}")
+        raise input_error(
+            path,
+            f"entry '{name}/sh_rest' holds {bands} SH coefficients per colour, "
+            f"expected {num_sh_rest(sh_degree)} for sh_degree {sh_degree}",
+        )
 
 
 def load_model(path: str | os.PathLike, stages: tuple[str, ...] = MODEL_STAGES) -> Model4D:
-    art = read_artefact(path, stages, required=["fg/means", "fg/motion_coef_logits", "motion/rot6d", "trajectories/means"])
+    art = read_artefact(
+        path, stages, required=["fg/means", "fg/motion_coef_logits", "motion/rot6d", "trajectories/means"]
+    )
     p = Path(path)
     fg = _gaussians_from(art["fg"], p, "fg")
     N = len(fg)

@@ -137,7 +137,9 @@ def rigid_fit_residual(src, dst, weights=None, R=None, t=None, *, squared: bool 
     return torch.sqrt(ms.clamp_min(1e-30)).to(out_dtype)
 
 
-def procrustes_numpy(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def procrustes_numpy(
+    src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """NumPy convenience wrapper (float64, no gradients)."""
     with torch.no_grad():
         R, t = weighted_procrustes(

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from .artefact import open_artefact, read_rows, write_artefact
+from .artefact import _decode_attr, open_artefact, read_rows, read_tree, write_artefact
 from .camera import pose_problem
 from .errors import MogafError, input_error
 
@@ -185,8 +185,6 @@ def check_scene_file(fh, path: str | os.PathLike) -> tuple[int, int]:
     """scene.h5's attributes and per-frame entry shapes, from its metadata
     alone (nothing read): one line naming the file where a reader would
     otherwise fail later, far from it. Returns (frames, time steps)."""
-    from .artefact import _decode_attr
-
     T = _decode_attr(fh.attrs.get("num_timesteps"))
     if isinstance(T, bool) or not isinstance(T, int) or T < 1:
         raise input_error(path, f"attribute num_timesteps is {T!r}; it must be a positive integer (rerun ingest)")
@@ -200,30 +198,32 @@ def check_scene_file(fh, path: str | os.PathLike) -> tuple[int, int]:
     if len(images) != 4 or images[-1] != 3:
         raise input_error(path, f"entry 'frames/images' has shape {images}, expected (frames, height, width, 3)")
     F, H, W = images[:3]
-    expect = {"K": (F, 3, 3), "w2c": (F, 4, 4), "time": (F,), "time_index": (F,), "camera_id": (F,),
-              "source_split": (F,), "names": (F,)}
+    expect = {
+        "K": (F, 3, 3),
+        "w2c": (F, 4, 4),
+        "time": (F,),
+        "time_index": (F,),
+        "camera_id": (F,),
+        "source_split": (F,),
+        "names": (F,),
+    }
     for key, shape in expect.items():
         if fh[f"frames/{key}"].shape != shape:
-            raise input_error(path, f"entry 'frames/{key}' has shape {fh[f'frames/{key}'].shape}, expected {shape} "
-                                    f"(one per frame; {F} frames)")
+            raise input_error(
+                path,
+                f"entry 'frames/{key}' has shape {fh[f'frames/{key}'].shape}, expected {shape} "
+                f"(one per frame; {F} frames)",
+            )
     for key in OPTIONAL_FRAME_ARRAYS:
         if f"frames/{key}" in fh and fh[f"frames/{key}"].shape[:3] != (F, H, W):
-            raise input_error(path, f"entry 'frames/{key}' has shape {fh[f'frames/{key}'].shape}, expected ({F}, {H}, {W}, ...)")
+            raise input_error(
+                path, f"entry 'frames/{key}' has shape {fh[f'frames/{key}'].shape}, expected ({F}, {H}, {W}, ...)"
+            )
     return int(F), int(T)
 
 
 def _read_group(fh, key: str) -> dict[str, Any]:
-    from .artefact import read_tree  # shared tree reader with finiteness checks
-
     return read_tree(fh[key], Path(fh.filename), prefix=f"{key}/") if key in fh else {}
-
-
-def scene_attrs(path: str | os.PathLike) -> dict[str, Any]:
-    """Scalar attributes of scene.h5 (no frame data read)."""
-    from .artefact import _decode_attr
-
-    with open_artefact(path, SCENE_STAGE) as fh:
-        return {k: _decode_attr(v) for k, v in fh.attrs.items()}
 
 
 def load_scene(
@@ -238,22 +238,25 @@ def load_scene(
     Stages after `split` must pass the frame ids their split gives them (see
     mogaf.split.load_frames); only those rows are read from disk.
     """
-    from .artefact import _decode_attr
-
     p = Path(path)
     with open_artefact(p, SCENE_STAGE) as fh:
         total, _ = check_scene_file(fh, p)
         attrs = {k: _decode_attr(v) for k, v in fh.attrs.items()}
         rows = np.arange(total) if frames is None else np.asarray(frames, dtype=np.int64)
         arrays = {key: read_rows(fh, f"frames/{key}", rows) for key in FRAME_ARRAYS}
-        optional = {key: (read_rows(fh, f"frames/{key}", rows) if f"frames/{key}" in fh else None) for key in OPTIONAL_FRAME_ARRAYS}
+        optional = {
+            key: (read_rows(fh, f"frames/{key}", rows) if f"frames/{key}" in fh else None)
+            for key in OPTIONAL_FRAME_ARRAYS
+        }
         names_all = fh["frames/names"].asstr()[()]
         names = [str(names_all[i]) for i in rows]
         instances = None
         if "instances" in fh:
             g = _read_group(fh, "instances")
             instances = Instances(ids=g["ids"], names=list(g["names"]), rigid=g["rigid"])
-        point_cloud = read_rows(fh, "point_cloud", np.arange(fh["point_cloud"].shape[0])) if "point_cloud" in fh else None
+        point_cloud = (
+            read_rows(fh, "point_cloud", np.arange(fh["point_cloud"].shape[0])) if "point_cloud" in fh else None
+        )
         shipped = _read_group(fh, "shipped") if with_shipped else {}
         ground_truth = _read_group(fh, "ground_truth") if with_ground_truth else {}
     return Scene(

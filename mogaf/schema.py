@@ -15,6 +15,7 @@ import os
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from .config import load_yaml
 from .errors import MogafError
 
 MAX_MESSAGE = 240  # characters of jsonschema's message kept (it may quote a whole section)
@@ -24,9 +25,13 @@ def _depth_set(config: Any, keys: Sequence[Any]) -> int:
     """How many leading `keys` `config` sets (nested mappings and lists)."""
     node, depth = config, 0
     for key in keys:
-        if isinstance(node, Mapping) and key in node:
-            node = node[key]
-        elif isinstance(node, list) and isinstance(key, int) and 0 <= key < len(node):
+        if (
+            isinstance(node, Mapping)
+            and key in node
+            or isinstance(node, list)
+            and isinstance(key, int)
+            and 0 <= key < len(node)
+        ):
             node = node[key]
         else:
             break
@@ -63,8 +68,9 @@ def schema_problem(config: Mapping[str, Any], schema: Mapping[str, Any]) -> tupl
     return list(error.absolute_path), message
 
 
-def config_error(config: Mapping[str, Any], schema: Mapping[str, Any],
-                 layers: Sequence[tuple[str, Mapping[str, Any]]]) -> MogafError | None:
+def config_error(
+    config: Mapping[str, Any], schema: Mapping[str, Any], layers: Sequence[tuple[str, Mapping[str, Any]]]
+) -> MogafError | None:
     """The one-line error for `config` against `schema`, naming the layer
     that sets the failing key and the key; None if the config is valid."""
     found = schema_problem(config, schema)
@@ -77,6 +83,13 @@ def config_error(config: Mapping[str, Any], schema: Mapping[str, Any],
 
 def file_layers(paths: Sequence[str | os.PathLike]) -> list[tuple[str, Mapping[str, Any]]]:
     """(path, contents) of config files, in the order given (lowest precedence first)."""
-    from .config import load_yaml
-
     return [(os.fspath(p), load_yaml(p)) for p in paths]
+
+
+def load_config_schema(path: str | os.PathLike) -> dict[str, Any]:
+    """config/schema.yaml with the stage sections' definitions generated from
+    their settings dataclasses (mogaf.settings): the schema every config is checked against."""
+    from .config import load_yaml  # local: mogaf.config imports this module's neighbours at load
+    from .settings import workflow_schema
+
+    return workflow_schema(load_yaml(path))

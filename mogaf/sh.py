@@ -15,8 +15,15 @@ import torch
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
-         1.445305721320277, -0.5900435899266435)
+SH_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
 
 
 def num_sh_rest(degree: int) -> int:
@@ -45,8 +52,12 @@ def sh_rest_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
     return torch.stack(out, dim=-1)
 
 
-def gaussian_colors(color_logits: torch.Tensor, sh_rest: torch.Tensor | None, means: torch.Tensor | None,
-                    cam_center: torch.Tensor | None) -> torch.Tensor:
+def gaussian_colors(
+    color_logits: torch.Tensor,
+    sh_rest: torch.Tensor | None,
+    means: torch.Tensor | None,
+    cam_center: torch.Tensor | None,
+) -> torch.Tensor:
     """Colour in [0, 1]: sigmoid(colour logits + sum_m sh_rest_m Y_m(view dir)).
 
     The degree-0 term is the colour logit itself (recon.h5 stores

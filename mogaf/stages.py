@@ -75,7 +75,9 @@ def _warning_to_log(log_path: str | os.PathLike | None) -> Callable[..., None]:
     return show
 
 
-def run_stage(fn: Callable[..., Any], log_path: str | os.PathLike | None = None, *, threads: int | None = None, **kwargs: Any) -> Any:
+def run_stage(
+    fn: Callable[..., Any], log_path: str | os.PathLike | None = None, *, threads: int | None = None, **kwargs: Any
+) -> Any:
     """Run one stage; a MogafError becomes one line on stderr and exit 1,
     a warning one line in the log."""
     start = time.perf_counter()
@@ -111,8 +113,11 @@ def _check_groups_cover(model: str, groups: str) -> None:
     with (a groups.h5 of another model would index past it, or leave some out)."""
     assigned, gaussians = _rows(groups, "group_id"), _rows(model, "fg/means")
     if assigned is not None and gaussians is not None and assigned != gaussians:
-        raise input_error(groups, f"assigns groups to {assigned} Gaussians, but the model {model} has {gaussians}; "
-                                  "rerun the grouping for this model")
+        raise input_error(
+            groups,
+            f"assigns groups to {assigned} Gaussians, but the model {model} has {gaussians}; "
+            "rerun the grouping for this model",
+        )
 
 
 def _check_synthetic_target(out_dir: str) -> None:
@@ -122,8 +127,11 @@ def _check_synthetic_target(out_dir: str) -> None:
     if out.exists() and not out.is_dir():
         raise input_error(out, "exists and is not a folder; synthesize writes a scene folder here")
     if out.is_dir() and any(out.iterdir()) and not (out / "splits" / "train.json").is_file():
-        raise input_error(out, "exists and is not a synthetic scene; synthesize replaces its output folder, "
-                               "so it would delete these files: give a new or empty folder")
+        raise input_error(
+            out,
+            "exists and is not a synthetic scene; synthesize replaces its output folder, "
+            "so it would delete these files: give a new or empty folder",
+        )
 
 
 # ------------------------------------------------------------------ stages
@@ -141,7 +149,9 @@ def ingest(folder: str, out: str, layout: str, options: Mapping[str, Any], datas
 
     check_outputs({"out": out}, [folder], folders=[folder])
     scene_model = read_scene(layout, Path(folder), dataset=dataset, scene=scene, options=dict(options))
-    return save_scene(out, scene_model, config_digest=_digest("ingest", options, layout=layout, dataset=dataset, scene=scene))
+    return save_scene(
+        out, scene_model, config_digest=_digest("ingest", options, layout=layout, dataset=dataset, scene=scene)
+    )
 
 
 def split(scene: str, out: str, ratio: str | float) -> Path:
@@ -151,7 +161,9 @@ def split(scene: str, out: str, ratio: str | float) -> Path:
     try:
         r = float(ratio)
     except ValueError:
-        raise MogafError(f"observation ratio '{ratio}' is not a number (target folder ratio<r> needs r in (0, 1))") from None
+        raise MogafError(
+            f"observation ratio '{ratio}' is not a number (target folder ratio<r> needs r in (0, 1))"
+        ) from None
     check_ratio(r)
     with stage_inputs(scene):
         return write_split(out, split_scene(scene, r))
@@ -165,12 +177,23 @@ def priors(scene: str, split: str, out: str, params: Mapping[str, Any], seed: in
         return run_priors_stage(scene, split, out, {**params, "seed": seed})
 
 
-def recon(scene: str, split: str, priors: str, out: str, params: Mapping[str, Any], seed: int, device: str = "auto", checkpoint: str | None = None) -> Path:
+def recon(
+    scene: str,
+    split: str,
+    priors: str,
+    out: str,
+    params: Mapping[str, Any],
+    seed: int,
+    device: str = "auto",
+    checkpoint: str | None = None,
+) -> Path:
     from .recon import run_recon_stage
 
     check_outputs({"out": out, "checkpoint": checkpoint}, [scene, split, priors])
     with stage_inputs(scene, split, priors):
-        return run_recon_stage(scene, split, priors, out, {**params, "device": device}, seed=seed, checkpoint=checkpoint, progress=False)
+        return run_recon_stage(
+            scene, split, priors, out, {**params, "device": device}, seed=seed, checkpoint=checkpoint, progress=False
+        )
 
 
 def group(model: str, priors: str, scene: str, out: str, params: Mapping[str, Any], seed: int = 0) -> Path:
@@ -190,16 +213,42 @@ def rigid_init(model: str, groups: str, out: str, params: Mapping[str, Any]) -> 
         return run_rigid_init_stage(model, groups, out, dict(params))
 
 
-def refine(model: str, groups: str, rigid: str | None, priors: str, scene: str, split: str, out: str, params: Mapping[str, Any], seed: int, device: str = "auto", checkpoint: str | None = None) -> Path:
+def refine(
+    model: str,
+    groups: str,
+    rigid: str | None,
+    priors: str,
+    scene: str,
+    split: str,
+    out: str,
+    params: Mapping[str, Any],
+    seed: int,
+    device: str = "auto",
+    checkpoint: str | None = None,
+) -> Path:
     from .refine import run_refine_stage
 
     check_outputs({"out": out, "checkpoint": checkpoint}, [model, groups, rigid, priors, scene, split])
     with stage_inputs(model, groups, rigid, priors, scene, split):
         _check_groups_cover(model, groups)
-        return run_refine_stage(model, groups, rigid, priors, scene, split, out, {**params, "device": device}, seed=seed, checkpoint=checkpoint, progress=False)
+        return run_refine_stage(
+            model,
+            groups,
+            rigid,
+            priors,
+            scene,
+            split,
+            out,
+            {**params, "device": device},
+            seed=seed,
+            checkpoint=checkpoint,
+            progress=False,
+        )
 
 
-def forecast_group(model: str, groups: str, split: str, out: str, params: Mapping[str, Any], method: str, group: str, seed: int) -> Path:
+def forecast_group(
+    model: str, groups: str, split: str, out: str, params: Mapping[str, Any], method: str, group: str, seed: int
+) -> Path:
     from .forecast.stage import run_forecast_group
 
     check_outputs({"out": out}, [model, groups, split])
@@ -208,7 +257,16 @@ def forecast_group(model: str, groups: str, split: str, out: str, params: Mappin
         return run_forecast_group(model, groups, split, out, dict(params), method=method, job=group, seed=seed)
 
 
-def forecast_merge(model: str, groups: str, split: str, parts: list[str], out: str, params: Mapping[str, Any], method: str, seed: int = 0) -> Path:
+def forecast_merge(
+    model: str,
+    groups: str,
+    split: str,
+    parts: list[str],
+    out: str,
+    params: Mapping[str, Any],
+    method: str,
+    seed: int = 0,
+) -> Path:
     from .forecast.stage import run_forecast_merge
 
     check_outputs({"out": out}, [model, groups, split, *parts])
@@ -217,7 +275,9 @@ def forecast_merge(model: str, groups: str, split: str, parts: list[str], out: s
         return run_forecast_merge(model, groups, split, parts, out, dict(params), method=method, seed=seed)
 
 
-def grouping_quality(grouped_model: str, groups: str, scene: str, split: str, out: str, params: Mapping[str, Any]) -> Path:
+def grouping_quality(
+    grouped_model: str, groups: str, scene: str, split: str, out: str, params: Mapping[str, Any]
+) -> Path:
     from .grouping.quality import run_grouping_quality_stage
 
     check_outputs({"out": out}, [grouped_model, groups, scene, split])
@@ -234,31 +294,68 @@ def reconstruction_quality(model: str, scene: str, split: str, out: str, params:
         return run_reconstruction_quality_stage(model, scene, split, out, dict(params))
 
 
-def evaluate(scene: str, split: str, model: str, groups: str, reconstruction_quality: str, grouping_quality: str, forecasts: Mapping[str, str], benchmarks: Mapping[str, str], out_metrics: str, out_renders: str, params: Mapping[str, Any], variant: str, ids: Mapping[str, str]) -> Path:
+def evaluate(
+    scene: str,
+    split: str,
+    model: str,
+    groups: str,
+    reconstruction_quality: str,
+    grouping_quality: str,
+    forecasts: Mapping[str, str],
+    benchmarks: Mapping[str, str],
+    out_metrics: str,
+    out_renders: str,
+    params: Mapping[str, Any],
+    variant: str,
+    ids: Mapping[str, str],
+) -> Path:
     from .evaluate import run_evaluate_stage
 
     # groups.h5 is read for its lineage only: the forecasts, the model and the
     # grouping's quality must all come from this one grouping, and the
     # reconstruction quality from this model.
-    inputs = [scene, split, model, groups, reconstruction_quality, grouping_quality, *forecasts.values(), *benchmarks.values()]
+    inputs = [
+        scene,
+        split,
+        model,
+        groups,
+        reconstruction_quality,
+        grouping_quality,
+        *forecasts.values(),
+        *benchmarks.values(),
+    ]
     check_outputs({"metrics": out_metrics, "renders": out_renders}, inputs, directories=("renders",))
     with stage_inputs(scene, split, model, groups, reconstruction_quality, grouping_quality, *forecasts.values()):
         check_made_from(reconstruction_quality, model)  # of this very model (refined.h5 vs recon.h5)
         _check_groups_cover(model, groups)
         return run_evaluate_stage(
-            scene=scene, split=split, model=model, reconstruction_quality=reconstruction_quality, grouping_quality=grouping_quality, forecasts=dict(forecasts), benchmarks=dict(benchmarks),
-            out_metrics=out_metrics, out_renders=out_renders, params=dict(params), variant=variant, ids=dict(ids),
+            scene=scene,
+            split=split,
+            model=model,
+            reconstruction_quality=reconstruction_quality,
+            grouping_quality=grouping_quality,
+            forecasts=dict(forecasts),
+            benchmarks=dict(benchmarks),
+            out_metrics=out_metrics,
+            out_renders=out_renders,
+            params=dict(params),
+            variant=variant,
+            ids=dict(ids),
         )
 
 
-def tables(metrics_files: list[str], out_files: list[str], params: Mapping[str, Any], ablations: Mapping[str, Any]) -> list[Path]:
+def tables(
+    metrics_files: list[str], out_files: list[str], params: Mapping[str, Any], ablations: Mapping[str, Any]
+) -> list[Path]:
     from .report.tables import write_tables
 
     check_outputs({f"table {i}": f for i, f in enumerate(out_files)}, metrics_files)
     return write_tables(metrics_files, out_files, dict(params), dict(ablations))
 
 
-def runtime_report(metrics_files: list[str], out_csv: str, out_md: str, out_png: str, params: Mapping[str, Any]) -> list[Path]:
+def runtime_report(
+    metrics_files: list[str], out_csv: str, out_md: str, out_png: str, params: Mapping[str, Any]
+) -> list[Path]:
     from .report.runtime import write_runtime_report
 
     check_outputs({"csv": out_csv, "md": out_md, "png": out_png}, metrics_files)

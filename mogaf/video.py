@@ -30,7 +30,9 @@ def text_strip(width: int, text: str, scale: float) -> np.ndarray:
 
 def to_uint8(img: np.ndarray) -> np.ndarray:
     """[0, 1] float image (H, W, 3) -> uint8."""
-    from .datasets.images import to_uint8 as scaled_to_uint8
+    from .datasets.images import (
+        to_uint8 as scaled_to_uint8,  # local: mogaf.datasets.images imports cv2, which only this path needs
+    )
 
     return scaled_to_uint8(np.asarray(img, np.float64) * 255.0)
 
@@ -42,6 +44,8 @@ def labelled_row(images: Sequence[np.ndarray], labels: Sequence[str], caption: s
         raise ValueError("labelled_row: one label per image, at least one image")
     tiles = [img if img.dtype == np.uint8 else to_uint8(img) for img in images]
     scale = _text_scale(tiles[0].shape[1])
-    columns = [np.concatenate([text_strip(t.shape[1], label, scale), t[..., :3]], axis=0) for t, label in zip(tiles, labels)]
+    columns = [
+        np.concatenate([text_strip(t.shape[1], label, scale), t[..., :3]], axis=0) for t, label in zip(tiles, labels)
+    ]
     body = np.concatenate(columns, axis=1)
     return np.concatenate([text_strip(body.shape[1], caption, scale), body], axis=0)

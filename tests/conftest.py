@@ -1,4 +1,13 @@
-"""Shared fixtures. Tests never need ../shared/data; those that use it skip."""
+"""Shared fixtures and the suite's defaults. Tests never need ../shared/data; those that use it skip.
+
+The helpers behind the fixtures live in tests/support/ (plain modules, not
+test modules): pytest imports this file in its default "prepend" import
+mode, which puts tests/ first on sys.path, in the main process and in every
+xdist worker, so test modules import them as `from support.<module> import ...`.
+
+Tests marked `slow` are deselected unless selected: `-m slow` (or any -m
+expression naming `slow`) or `--run-slow` runs them.
+"""
 
 from __future__ import annotations
 
@@ -8,8 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = (REPO.parent / "shared" / "data").resolve()
+from support.paths import REPO
 
 # Tests share the repository's cache (compiled kernels, LPIPS weights), and
 # matplotlib's too, whichever test file a pytest worker runs first.
@@ -27,14 +35,69 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     torch.set_num_threads(1)
 
 
-def shared_path(*parts: str) -> Path:
-    """A path under ../shared/data, or skip the test with a clear reason."""
-    path = SHARED_DATA.joinpath(*parts)
-    if not path.exists():
-        pytest.skip(f"needs {path} (the read-only shared data folder beside the clone); absent here")
-    return path
+# ------------------------------------------------------------------ slow tests
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--run-slow",
+        action="store_true",
+        default=False,
+        help="also run the tests marked slow (deselected by default; -m slow selects them too)",
+    )
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Deselect `slow` tests unless the user asked for them (--run-slow, or a -m expression naming slow)."""
+    if config.getoption("--run-slow") or "slow" in (config.getoption("markexpr") or ""):
+        return
+    slow = [item for item in items if item.get_closest_marker("slow") is not None]
+    if slow:
+        config.hook.pytest_deselected(items=slow)
+        items[:] = [item for item in items if item.get_closest_marker("slow") is None]
+    if hasattr(config, "workeroutput"):  # an xdist worker: tell the controller, which shows no deselections
+        config.workeroutput["slow_deselected"] = len(slow)
+
+
+_SLOW_ON_WORKERS: list[int] = []
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error) -> None:
+    """xdist controller: note how many slow tests a worker deselected (each worker collects the whole run)."""
+    _SLOW_ON_WORKERS.append(getattr(node, "workeroutput", {}).get("slow_deselected", 0))
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Config) -> None:
+    if _SLOW_ON_WORKERS and max(_SLOW_ON_WORKERS):
+        terminalreporter.write_line(
+            f"{max(_SLOW_ON_WORKERS)} slow tests deselected (run them with -m slow or --run-slow)"
+        )
+
+
+# ------------------------------------------------------------------ fixtures
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(0)
+
+
+@pytest.fixture
+def fake_dnerf_scene(tmp_path: Path) -> Path:
+    """A tiny D-NeRF scene at the fake's defaults (support.fake_datasets), in tmp_path/s."""
+    from support.fake_datasets import fake_dnerf
+
+    return fake_dnerf(tmp_path / "s")
+
+
+@pytest.fixture
+def fake_iphone_scene(tmp_path: Path) -> Path:
+    """A tiny DyCheck iPhone (+ Shape-of-Motion) scene at the fake's defaults, in tmp_path/s."""
+    from support.fake_datasets import fake_iphone
+
+    return fake_iphone(tmp_path / "s")
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
+    """scene.h5, split.h5 and priors.h5 of the tiny rendered scene (support.tiny_scene), once per module."""
+    from support.tiny_scene import make_tiny_scene
+
+    return make_tiny_scene(tmp_path_factory.mktemp("tiny"))

@@ -195,7 +195,9 @@ def test_lineage_is_recorded_and_mismatched_inputs_are_refused(tmp_path):
         with stage_inputs(other_scene, split):  # a split of one scene read with another scene
             pass
     with pytest.raises(MogafError, match=r"priors\.h5: was made from another 'split' artefact"):
-        with stage_inputs(scene, tmp_path / "priors.h5", write_artefact(tmp_path / "split9.h5", "split", {}, config_digest="r0.9")):
+        with stage_inputs(
+            scene, tmp_path / "priors.h5", write_artefact(tmp_path / "split9.h5", "split", {}, config_digest="r0.9")
+        ):
             pass
     # the same settings with other contents (a stage rerun on another machine or GPU): another lineage
     with stage_inputs(scene, split):

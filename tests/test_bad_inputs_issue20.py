@@ -21,23 +21,24 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import REPO
 from mogaf import artefact, cli, stages
 from mogaf.artefact import write_artefact, write_json
 from mogaf.datasets import read_scene
 from mogaf.datasets.common import DatasetWarning
-from mogaf.datasets.fakes import fake_dnerf, write_json as write_dataset_json, write_png
 from mogaf.errors import MogafError
 from mogaf.grouping import write_groups
 from mogaf.grouping.core import Groups
 from mogaf.paths import check_outputs, unwritable_folder
 from mogaf.report import load_metrics
 from mogaf.representation import GaussianSet, Model4D, save_model
-from mogaf.schema import config_error
+from mogaf.schema import config_error, load_config_schema
 from mogaf.split import split_scene
+from support.fake_datasets import fake_dnerf, write_png
+from support.fake_datasets import write_json as write_dataset_json
+from support.paths import REPO
 
 CONFIG = REPO / "config" / "config.yaml"
-SCHEMA = yaml.safe_load((REPO / "config" / "schema.yaml").read_text())
+SCHEMA = load_config_schema(REPO / "config" / "schema.yaml")
 
 
 @pytest.fixture(autouse=True)
@@ -147,9 +148,30 @@ def test_full_disk_real_tmpfs_one_line_no_temp(nearly_full_disk, tmp_path):
     big = fake_dnerf(tmp_path / "big" / "s", counts={"train": 10, "test": 6}, size=128, ply=None)  # ~150 KB
     configfile = _dnerf_config(tmp_path, big)
     out = nearly_full_disk / "scene.h5"
-    res = subprocess.run([sys.executable, "-m", "mogaf", "ingest", "--folder", str(big), "--out", str(out),
-                          "--layout", "dnerf", "--dataset", "fk", "--scene", "s", "--configfile", configfile],
-                         cwd=REPO, capture_output=True, text=True, timeout=120)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mogaf",
+            "ingest",
+            "--folder",
+            str(big),
+            "--out",
+            str(out),
+            "--layout",
+            "dnerf",
+            "--dataset",
+            "fk",
+            "--scene",
+            "s",
+            "--configfile",
+            configfile,
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert res.returncode == 1, res.stderr[-2000:]
     errors = [line for line in res.stderr.splitlines() if " INFO " not in line]
     assert len(errors) == 1, res.stderr[-2000:]
@@ -193,8 +215,23 @@ def test_full_disk_under_a_stage_exits_1_with_one_line(scene_h5, tmp_path, monke
 
 def test_full_file_system_is_refused_before_anything_is_opened(tmp_path, monkeypatch):
     full = os.statvfs(tmp_path)
-    fields = dict(zip(("f_bsize", "f_frsize", "f_blocks", "f_bfree", "f_bavail", "f_files", "f_ffree", "f_favail",
-                       "f_flag", "f_namemax"), full))
+    fields = dict(
+        zip(
+            (
+                "f_bsize",
+                "f_frsize",
+                "f_blocks",
+                "f_bfree",
+                "f_bavail",
+                "f_files",
+                "f_ffree",
+                "f_favail",
+                "f_flag",
+                "f_namemax",
+            ),
+            full,
+        )
+    )
     fields.update(f_bfree=0, f_bavail=0)
     monkeypatch.setattr(artefact.os, "statvfs", lambda path: os.statvfs_result(tuple(fields.values())))
     out = tmp_path / "a.h5"
@@ -232,8 +269,22 @@ def test_split_out_equal_to_its_input_is_refused_and_the_input_kept(in_repo, sce
 def test_ingest_never_writes_inside_the_dataset_folder(in_repo, scene_copy, tmp_path, capsys, target):
     before = _snapshot(scene_copy)
     out = scene_copy / target
-    err = _cli_error(capsys, "ingest", "--folder", str(scene_copy), "--out", str(out), "--layout", "dnerf",
-                     "--dataset", "fk", "--scene", "s", "--configfile", _dnerf_config(tmp_path, scene_copy))
+    err = _cli_error(
+        capsys,
+        "ingest",
+        "--folder",
+        str(scene_copy),
+        "--out",
+        str(out),
+        "--layout",
+        "dnerf",
+        "--dataset",
+        "fk",
+        "--scene",
+        "s",
+        "--configfile",
+        _dnerf_config(tmp_path, scene_copy),
+    )
     assert f"{out}: lies inside the dataset folder {scene_copy.resolve()}" in err
     assert _snapshot(scene_copy) == before
 
@@ -252,7 +303,9 @@ def test_other_outputs_that_would_overwrite_or_delete_inputs(tmp_path):
     # a checkpoint on an input (it is removed after success), two outputs on one path,
     # a replaced folder holding an input
     assert "is also an input" in _fails(check_outputs, {"out": b, "checkpoint": a}, [a])
-    assert "is given as both the out and the checkpoint output" in _fails(check_outputs, {"out": b, "checkpoint": b}, [a])
+    assert "is given as both the out and the checkpoint output" in _fails(
+        check_outputs, {"out": b, "checkpoint": b}, [a]
+    )
     assert "holds the input" in _fails(check_outputs, {"renders": folder}, [folder / "in.h5"], directories=("renders",))
     check_outputs({"out": b, "checkpoint": tmp_path / "c.pt"}, [a])  # fine
 
@@ -278,6 +331,7 @@ def _times(root: Path, split: str, times: list[float]) -> None:
     def edit(d):
         for fr, t in zip(d["frames"], times):
             fr["time"] = t
+
     _edit_json(root / f"transforms_{split}.json", edit)
 
 
@@ -288,11 +342,13 @@ def test_training_frames_all_at_one_time_are_refused(scene_copy):
 
 
 def test_iphone_training_frames_at_one_time_are_refused(tmp_path):
-    from mogaf.datasets.fakes import fake_iphone
+    from support.fake_datasets import fake_iphone
 
     root = fake_iphone(tmp_path / "ip", num_times=3, val_cameras=1)
     _edit_json(root / "splits" / "train.json", lambda d: d.update(time_ids=[0, 0, 0]))
-    _edit_json(root / "metadata.json", lambda d: [d[n].update(warp_id=0, appearance_id=0) for n in ("0_00001", "0_00002")])
+    _edit_json(
+        root / "metadata.json", lambda d: [d[n].update(warp_id=0, appearance_id=0) for n in ("0_00001", "0_00002")]
+    )
     msg = _fails(read_scene, "iphone", root, dataset="fk", scene="s")
     assert msg.startswith(f"{root / 'splits' / 'train.json'}: its 3 training frame(s) are all at one time (0)")
 
@@ -315,7 +371,9 @@ def test_duplicate_frame_times_leaving_a_step_empty_warn(scene_copy):
     found = [str(w.message) for w in record if w.category is DatasetWarning]
     assert len(found) == 1
     text = found[0]
-    assert text.startswith(f"{scene_copy / 'transforms_train.json'}: frames 1 (./train/r_001) and 2 (./train/r_002) share time")
+    assert text.startswith(
+        f"{scene_copy / 'transforms_train.json'}: frames 1 (./train/r_001) and 2 (./train/r_002) share time"
+    )
     assert "time step(s) 2 of its frames' span have no frame" in text
     assert scene.num_timesteps == 10
 
@@ -332,8 +390,16 @@ def test_a_warning_under_a_stage_is_one_log_line(scene_copy, tmp_path, capsys):
     _times(scene_copy, "train", [0.0, 1 / 9, 1 / 9, 3 / 9, 4 / 9, 5 / 9])
     _times(scene_copy, "test", [6 / 9, 7 / 9, 8 / 9, 1.0])
     log = tmp_path / "logs" / "ingest.log"
-    stages.run_stage(stages.ingest, log, folder=str(scene_copy), out=str(tmp_path / "scene.h5"), layout="dnerf",
-                     options={}, dataset="fk", scene="s")
+    stages.run_stage(
+        stages.ingest,
+        log,
+        folder=str(scene_copy),
+        out=str(tmp_path / "scene.h5"),
+        layout="dnerf",
+        options={},
+        dataset="fk",
+        scene="s",
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("mogaf: warning: ") and "share time" in err[0]
     assert "WARNING mogaf: " in log.read_text()
@@ -346,10 +412,13 @@ def test_empty_class_mapping_while_masks_carry_ids(scene_copy):
     assert "has object id 1" in msg
 
 
-@pytest.mark.parametrize("text, words", [
-    ('{"0": "background", "1": "ball", "2": "cloth", "1": "arm"}', "key '1' appears twice in one JSON object"),
-    ('{"0": "background", "1": "ball", "2": "cloth", "01": "arm"}', "class id 1 is listed twice ('1' and '01')"),
-])
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ('{"0": "background", "1": "ball", "2": "cloth", "1": "arm"}', "key '1' appears twice in one JSON object"),
+        ('{"0": "background", "1": "ball", "2": "cloth", "01": "arm"}', "class id 1 is listed twice ('1' and '01')"),
+    ],
+)
 def test_class_mapping_naming_one_id_twice(scene_copy, text, words):
     (scene_copy / "class_mapping.json").write_text(text)
     msg = _fails(read_scene, "dnerf", scene_copy, dataset="fk", scene="s")
@@ -377,21 +446,41 @@ def test_file_path_leaving_the_scene_folder_is_refused(scene_copy, file_path):
 
 # ---------------------------------------------------------------- tables
 def _metrics(path: Path, **changes) -> Path:
-    data = {"dataset": "d", "scene": "s", "ratio": 0.6, "variant": "default", "protocol": "dnerf",
-            "methods": {"mogaf": {"image": {"psnr": 20.0, "ssim": 0.9, "lpips": 0.1}, "tracking": None,
-                                  "runtime": {"total_wall_s": 10.0}}}}
+    data = {
+        "dataset": "d",
+        "scene": "s",
+        "ratio": 0.6,
+        "variant": "default",
+        "protocol": "dnerf",
+        "methods": {
+            "mogaf": {
+                "image": {"psnr": 20.0, "ssim": 0.9, "lpips": 0.1},
+                "tracking": None,
+                "runtime": {"total_wall_s": 10.0},
+            }
+        },
+    }
     data.update(changes)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data))
     return path
 
 
-@pytest.mark.parametrize("change, words", [
-    ({"ratio": 7}, "'ratio' must be a number in (0, 1), got 7"),
-    ({"methods": {"mogaf": {"image": {"psnr": "abc"}}}}, "'methods.mogaf.image.psnr' must be a number or null, got 'abc'"),
-    ({"methods": {"mogaf": {"image": {"psnr": True}}}}, "'methods.mogaf.image.psnr' must be a number or null, got True"),
-    ({"scene": None}, "'scene' must be a non-empty string"),
-])
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        ({"ratio": 7}, "'ratio' must be a number in (0, 1), got 7"),
+        (
+            {"methods": {"mogaf": {"image": {"psnr": "abc"}}}},
+            "'methods.mogaf.image.psnr' must be a number or null, got 'abc'",
+        ),
+        (
+            {"methods": {"mogaf": {"image": {"psnr": True}}}},
+            "'methods.mogaf.image.psnr' must be a number or null, got True",
+        ),
+        ({"scene": None}, "'scene' must be a non-empty string"),
+    ],
+)
 def test_tables_refuse_a_bad_metrics_file(in_repo, tmp_path, capsys, change, words):
     bad = _metrics(tmp_path / "m.json", **change)
     err = _cli_error(capsys, "tables", str(bad), "--out-dir", str(tmp_path / "t"))
@@ -430,13 +519,16 @@ def test_config_error_under_snakemake_names_the_file_and_the_key(tmp_path):
     assert "Failed validating" not in out and len(out.splitlines()) < 10, out
 
 
-@pytest.mark.parametrize("where, edit", [
-    ("datasets.dnerf.scenes.0", lambda c: c["datasets"]["dnerf"].update(scenes=["lego/x"])),
-    ("demo.scene", lambda c: c["demo"].update(scene="my scene")),
-    ("grid.0.scenes.0", lambda c: c.update(grid=[{"dataset": "dnerf", "scenes": [".."], "ratios": [0.6]}])),
-    ("datasets", lambda c: c["datasets"].update({"my data": c["datasets"]["dnerf"]})),
-    ("synthetic", lambda c: c["synthetic"].update({"a/b": {}})),
-])
+@pytest.mark.parametrize(
+    "where, edit",
+    [
+        ("datasets.dnerf.scenes.0", lambda c: c["datasets"]["dnerf"].update(scenes=["lego/x"])),
+        ("demo.scene", lambda c: c["demo"].update(scene="my scene")),
+        ("grid.0.scenes.0", lambda c: c.update(grid=[{"dataset": "dnerf", "scenes": [".."], "ratios": [0.6]}])),
+        ("datasets", lambda c: c["datasets"].update({"my data": c["datasets"]["dnerf"]})),
+        ("synthetic", lambda c: c["synthetic"].update({"a/b": {}})),
+    ],
+)
 def test_scene_and_dataset_names_with_slash_or_space_are_refused(where, edit):
     cfg = yaml.safe_load(CONFIG.read_text())
     assert config_error(cfg, SCHEMA, [("config.yaml", cfg)]) is None
@@ -449,8 +541,18 @@ def test_the_cli_names_a_bad_scene_name_in_one_line(in_repo, tmp_path, capsys):
     cfg = yaml.safe_load(CONFIG.read_text())
     cfg["datasets"]["iphone"]["scenes"].append("a b")
     (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg))
-    err = _cli_error(capsys, "priors", "--scene-h5", "s.h5", "--split-h5", "p.h5", "--out", str(tmp_path / "o.h5"),
-                     "--configfile", str(tmp_path / "cfg.yaml"))
+    err = _cli_error(
+        capsys,
+        "priors",
+        "--scene-h5",
+        "s.h5",
+        "--split-h5",
+        "p.h5",
+        "--out",
+        str(tmp_path / "o.h5"),
+        "--configfile",
+        str(tmp_path / "cfg.yaml"),
+    )
     assert "cfg.yaml: datasets.iphone.scenes.5: 'a b' does not match" in err
 
 
@@ -506,8 +608,13 @@ def test_unwritable_folder_names_the_nearest_existing_folder(tmp_path, monkeypat
 def test_log_file_that_cannot_be_created_is_one_line(scene_h5, tmp_path, capsys):
     (tmp_path / "file").write_text("")
     with pytest.raises(SystemExit) as exc:
-        stages.run_stage(stages.split, tmp_path / "file" / "split.log", scene=str(scene_h5),
-                         out=str(tmp_path / "split.h5"), ratio="0.6")
+        stages.run_stage(
+            stages.split,
+            tmp_path / "file" / "split.log",
+            scene=str(scene_h5),
+            out=str(tmp_path / "split.h5"),
+            ratio="0.6",
+        )
     assert exc.value.code == 1
     err = _one_line(capsys.readouterr().err.strip())
     assert f"{tmp_path / 'file' / 'split.log'}: cannot be written" in err
@@ -515,8 +622,18 @@ def test_log_file_that_cannot_be_created_is_one_line(scene_h5, tmp_path, capsys)
 
 # ---------------------------------------------------------------- one line instead of a traceback
 def test_negative_threads_are_one_line(in_repo, scene_h5, tmp_path, capsys):
-    err = _cli_error(capsys, "split", "--scene-h5", str(scene_h5), "--out", str(tmp_path / "s.h5"), "--ratio", "0.6",
-                     "--threads", "-3")
+    err = _cli_error(
+        capsys,
+        "split",
+        "--scene-h5",
+        str(scene_h5),
+        "--out",
+        str(tmp_path / "s.h5"),
+        "--ratio",
+        "0.6",
+        "--threads",
+        "-3",
+    )
     assert err == "mogaf: error: threads must be a positive integer, got -3"
 
 
@@ -533,11 +650,17 @@ def _w2c_3x4(fh) -> None:
     fh["frames/w2c"] = w2c[:, :3, :]
 
 
-@pytest.mark.parametrize("edit, words", [
-    (_w2c_3x4, "entry 'frames/w2c' has shape (10, 3, 4), expected (10, 4, 4)"),
-    (lambda fh: fh.attrs.__setitem__("num_timesteps", -5), "attribute num_timesteps is -5; it must be a positive integer"),
-    (lambda fh: fh.attrs.__setitem__("mogaf_format_version", "1"), "format version '1' is a str, not an integer"),
-])
+@pytest.mark.parametrize(
+    "edit, words",
+    [
+        (_w2c_3x4, "entry 'frames/w2c' has shape (10, 3, 4), expected (10, 4, 4)"),
+        (
+            lambda fh: fh.attrs.__setitem__("num_timesteps", -5),
+            "attribute num_timesteps is -5; it must be a positive integer",
+        ),
+        (lambda fh: fh.attrs.__setitem__("mogaf_format_version", "1"), "format version '1' is a str, not an integer"),
+    ],
+)
 def test_malformed_scene_h5_is_one_line(in_repo, scene_h5, tmp_path, capsys, edit, words):
     bad = _edited_scene(scene_h5, tmp_path / "bad.h5", edit)
     err = _cli_error(capsys, "split", "--scene-h5", str(bad), "--out", str(tmp_path / "s.h5"), "--ratio", "0.6")
@@ -554,28 +677,55 @@ def test_a_later_stage_refuses_a_w2c_of_the_wrong_shape(scene_h5, tmp_path):
 
 def _tiny_model(path: Path, n: int) -> Path:
     rng = np.random.default_rng(0)
-    fg = GaussianSet(means=rng.normal(size=(n, 3)).astype(np.float32), quats=np.tile([1.0, 0, 0, 0], (n, 1)).astype(np.float32),
-                     log_scales=np.full((n, 3), -3.0, np.float32), opacity_logits=np.zeros(n, np.float32),
-                     color_logits=np.zeros((n, 3), np.float32))
+    fg = GaussianSet(
+        means=rng.normal(size=(n, 3)).astype(np.float32),
+        quats=np.tile([1.0, 0, 0, 0], (n, 1)).astype(np.float32),
+        log_scales=np.full((n, 3), -3.0, np.float32),
+        opacity_logits=np.zeros(n, np.float32),
+        color_logits=np.zeros((n, 3), np.float32),
+    )
     steps = np.arange(4)
-    model = Model4D(fg=fg, motion_coef_logits=np.zeros((n, 1), np.float32),
-                    rot6d=np.tile(np.array([1.0, 0, 0, 0, 1, 0], np.float32), (1, 4, 1)),
-                    translations=np.zeros((1, 4, 3), np.float32), timesteps=steps,
-                    trajectory_means=np.repeat(fg.means[:, None], 4, axis=1),
-                    trajectory_quats=np.repeat(fg.quats[:, None], 4, axis=1))
+    model = Model4D(
+        fg=fg,
+        motion_coef_logits=np.zeros((n, 1), np.float32),
+        rot6d=np.tile(np.array([1.0, 0, 0, 0, 1, 0], np.float32), (1, 4, 1)),
+        translations=np.zeros((1, 4, 3), np.float32),
+        timesteps=steps,
+        trajectory_means=np.repeat(fg.means[:, None], 4, axis=1),
+        trajectory_quats=np.repeat(fg.quats[:, None], 4, axis=1),
+    )
     return save_model(path, "recon", model, config_digest="t")
 
 
 @pytest.mark.parametrize("stage", ["rigid_init", "forecast_group"])
 def test_groups_shorter_than_the_model_are_one_line(tmp_path, stage):
     model = _tiny_model(tmp_path / "recon.h5", 12)
-    groups = write_groups(tmp_path / "groups.h5", Groups(
-        group_id=np.repeat([0, 1], 5), rigid=np.array([1, 1], np.int8), static=np.array([0, 0], np.int8),
-        instance_id=-np.ones(2, np.int64), names=["a", "b"], rigid_source=["config"] * 2, method="ours", params={}))
+    groups = write_groups(
+        tmp_path / "groups.h5",
+        Groups(
+            group_id=np.repeat([0, 1], 5),
+            rigid=np.array([1, 1], np.int8),
+            static=np.array([0, 0], np.int8),
+            instance_id=-np.ones(2, np.int64),
+            names=["a", "b"],
+            rigid_source=["config"] * 2,
+            method="ours",
+            params={},
+        ),
+    )
     out = str(tmp_path / "out.h5")
     if stage == "rigid_init":
         msg = _fails(stages.rigid_init, str(model), str(groups), out, {})
     else:
-        msg = _fails(stages.forecast_group, str(model), str(groups), str(tmp_path / "split.h5"), out, {},
-                     method="constant_velocity", group="all", seed=0)
+        msg = _fails(
+            stages.forecast_group,
+            str(model),
+            str(groups),
+            str(tmp_path / "split.h5"),
+            out,
+            {},
+            method="constant_velocity",
+            group="all",
+            seed=0,
+        )
     assert msg.startswith(f"{groups}: assigns groups to 10 Gaussians, but the model {model} has 12")

@@ -8,15 +8,15 @@ import pytest
 
 from mogaf.bench import recon as bench
 from mogaf.split import read_split
-from test_forecast_stage import _write_model, _write_scene
+from support.forecast_scene import write_model, write_scene
 
 
 def test_score_results_folder(tmp_path, capsys):
-    scene_h5, split_h5 = _write_scene(tmp_path / "fc", with_gt=True)
+    scene_h5, split_h5 = write_scene(tmp_path / "fc", with_gt=True)
     ratio_dir = tmp_path / "fc" / "ratio0.5"
     ratio_dir.mkdir()
     shutil.move(split_h5, ratio_dir / "split.h5")
-    _write_model(ratio_dir / "refined.h5", read_split(ratio_dir / "split.h5").observed_timesteps)
+    write_model(ratio_dir / "refined.h5", read_split(ratio_dir / "split.h5").observed_timesteps)
     assert bench.main(["--score", str(ratio_dir)]) == 0
     out = capsys.readouterr().out
     assert "fc/ratio0.5/refined.h5" in out and "recon.h5" not in out
@@ -34,4 +34,7 @@ def test_score_results_folder(tmp_path, capsys):
 
 def test_score_refuses_a_folder_that_is_not_a_results_folder(tmp_path, capsys):
     assert bench.main(["--score", str(tmp_path)]) == 1
-    assert "no split.h5 and scene.h5 above it (--score takes a results/<dataset>/<scene>/ratio<r> folder" in capsys.readouterr().err
+    assert (
+        "no split.h5 and scene.h5 above it (--score takes a results/<dataset>/<scene>/ratio<r> folder"
+        in capsys.readouterr().err
+    )

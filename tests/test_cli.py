@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from conftest import REPO
 from mogaf import cli
+from support.paths import REPO
 
 
 @pytest.fixture
@@ -42,9 +42,9 @@ def test_config_the_schema_refuses_fails_with_one_line(in_repo, tmp_path, capsys
     bad_seed = _config(tmp_path, lambda c: c.update(seed=-5))
     err = _one_line_error(capsys, *_stage_args(tmp_path, "priors", bad_seed))
     assert "cfg.yaml: seed:" in err
-    no_priors = _config(tmp_path, lambda c: c.pop("priors"))
-    err = _one_line_error(capsys, *_stage_args(tmp_path, "priors", no_priors))
-    assert "cfg.yaml: top level:" in err and "'priors' is a required property" in err
+    no_forecast = _config(tmp_path, lambda c: c.pop("forecast"))  # stage settings may be left out, `forecast` not
+    err = _one_line_error(capsys, *_stage_args(tmp_path, "priors", no_forecast))
+    assert "cfg.yaml: top level:" in err and "'forecast' is a required property" in err
 
 
 def test_unknown_synthetic_scene_names_the_choices(in_repo, tmp_path, capsys):
@@ -103,9 +103,29 @@ def test_reconstruction_quality_gets_its_config_section(in_repo, tmp_path, monke
 def test_evaluate_reads_the_quality_files(in_repo, tmp_path, monkeypatch):
     seen = {}
     monkeypatch.setattr(cli.stages, "run_stage", lambda fn, log, threads=None, **kw: seen.update(kw, fn=fn))
-    args = ["evaluate", "--scene-h5", "s.h5", "--split-h5", "p.h5", "--model-h5", "m.h5", "--groups-h5", "g.h5",
-            "--reconstruction-quality-h5", "rq.h5", "--grouping-quality-h5", "q.h5", "--out", "metrics.json", "--renders", "r", "--forecast", "frozen=f.h5",
-            "--ratio", "0.6"]
+    args = [
+        "evaluate",
+        "--scene-h5",
+        "s.h5",
+        "--split-h5",
+        "p.h5",
+        "--model-h5",
+        "m.h5",
+        "--groups-h5",
+        "g.h5",
+        "--reconstruction-quality-h5",
+        "rq.h5",
+        "--grouping-quality-h5",
+        "q.h5",
+        "--out",
+        "metrics.json",
+        "--renders",
+        "r",
+        "--forecast",
+        "frozen=f.h5",
+        "--ratio",
+        "0.6",
+    ]
     assert cli.main(args) == 0
     assert seen["fn"] is cli.stages.evaluate and seen["grouping_quality"] == "q.h5" and seen["groups"] == "g.h5"
     assert seen["reconstruction_quality"] == "rq.h5"

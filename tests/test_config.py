@@ -7,14 +7,25 @@ import pytest
 import mogaf.config as mcfg
 from mogaf.errors import MogafError
 
-BASE = mcfg.load_yaml("config/config.yaml")
+BASE = mcfg.with_defaults(mcfg.load_yaml("config/config.yaml"))
 VARIANTS = mcfg.load_yaml("config/ablations.yaml")["variants"]
 
 
 def prefixes(variant):
     cfg = mcfg.variant_config(BASE, VARIANTS, variant)
-    stages = ["priors", "recon", "group", "rigid_init", "refine", "grouping_quality", "reconstruction_quality:recon",
-              "reconstruction_quality:refine", "forecast:mogaf", "forecast:gcn", "evaluate"]
+    stages = [
+        "priors",
+        "recon",
+        "group",
+        "rigid_init",
+        "refine",
+        "grouping_quality",
+        "reconstruction_quality:recon",
+        "reconstruction_quality:refine",
+        "forecast:mogaf",
+        "forecast:gcn",
+        "evaluate",
+    ]
     return {s: mcfg.artefact_prefix(s, BASE, cfg, variant) for s in stages}
 
 
@@ -37,7 +48,10 @@ def test_grouping_variant_shares_reconstruction_only():
 def test_reconstruction_knob_invalidates_downstream():
     p = prefixes("rt_fast")
     assert p["priors"] == ""
-    assert all(p[s] == "ablation/rt_fast/" for s in ("recon", "group", "refine", "grouping_quality", "forecast:mogaf", "forecast:gcn"))
+    assert all(
+        p[s] == "ablation/rt_fast/"
+        for s in ("recon", "group", "refine", "grouping_quality", "forecast:mogaf", "forecast:gcn")
+    )
 
 
 def test_reconstruction_quality_is_of_the_model_the_forecasts_start_from():
@@ -47,16 +61,32 @@ def test_reconstruction_quality_is_of_the_model_the_forecasts_start_from():
         assert mcfg.reconstruction_quality_stage(cfg) == f"reconstruction_quality:{model}"
         assert prefixes(variant)[f"reconstruction_quality:{model}"] == ""
     cfg = mcfg.variant_config(BASE, {"n": {"overrides": {"reconstruction_quality": {"max_frames": 2}}}}, "n")
-    p = {s: mcfg.artefact_prefix(s, BASE, cfg, "n") for s in ("refine", "forecast:mogaf", "grouping_quality",
-                                                              "reconstruction_quality:refine", "evaluate")}
-    assert p == {"refine": "", "forecast:mogaf": "", "grouping_quality": "", "reconstruction_quality:refine": "ablation/n/",
-                 "evaluate": "ablation/n/"}
+    p = {
+        s: mcfg.artefact_prefix(s, BASE, cfg, "n")
+        for s in ("refine", "forecast:mogaf", "grouping_quality", "reconstruction_quality:refine", "evaluate")
+    }
+    assert p == {
+        "refine": "",
+        "forecast:mogaf": "",
+        "grouping_quality": "",
+        "reconstruction_quality:refine": "ablation/n/",
+        "evaluate": "ablation/n/",
+    }
 
 
 def test_grouping_quality_settings_touch_only_the_measurement():
     cfg = mcfg.variant_config(BASE, {"px": {"overrides": {"grouping_quality": {"pixels": "all"}}}}, "px")
-    p = {s: mcfg.artefact_prefix(s, BASE, cfg, "px") for s in ("group", "refine", "forecast:mogaf", "grouping_quality", "evaluate")}
-    assert p == {"group": "", "refine": "", "forecast:mogaf": "", "grouping_quality": "ablation/px/", "evaluate": "ablation/px/"}
+    p = {
+        s: mcfg.artefact_prefix(s, BASE, cfg, "px")
+        for s in ("group", "refine", "forecast:mogaf", "grouping_quality", "evaluate")
+    }
+    assert p == {
+        "group": "",
+        "refine": "",
+        "forecast:mogaf": "",
+        "grouping_quality": "ablation/px/",
+        "evaluate": "ablation/px/",
+    }
 
 
 def test_unrefined_input_variant():
@@ -81,8 +111,17 @@ def test_unknown_names_are_one_line_errors():
 
 
 def test_scene_overrides_and_paths():
-    cfg = mcfg.deep_merge(BASE, {"datasets": {"mujoco": {"overrides": {"recon": {"iterations": 7}},
-                                                          "scene_overrides": {"scene3_collision": {"recon": {"iterations": 9}}}}}})
+    cfg = mcfg.deep_merge(
+        BASE,
+        {
+            "datasets": {
+                "mujoco": {
+                    "overrides": {"recon": {"iterations": 7}},
+                    "scene_overrides": {"scene3_collision": {"recon": {"iterations": 9}}},
+                }
+            }
+        },
+    )
     assert mcfg.scene_config(cfg, "mujoco", "scene1_close_proximity")["recon"]["iterations"] == 7
     assert mcfg.scene_config(cfg, "mujoco", "scene3_collision")["recon"]["iterations"] == 9
     assert mcfg.scene_dir(BASE, "iphone", "apple") == "data/iphone/apple"
@@ -98,26 +137,40 @@ def test_rigidity_table():
 def _stage_resolvers():
     from mogaf.evaluate import run_evaluate_stage
     from mogaf.forecast import make_forecaster
-    from mogaf.grouping.core import resolve_params as grouping
+    from mogaf.grouping.params import resolve_params as grouping
     from mogaf.grouping.quality import run_grouping_quality_stage
     from mogaf.grouping.stage import run_rigid_init_stage
     from mogaf.priors import resolve_params as priors
-    from mogaf.reconstruction_quality import run_reconstruction_quality_stage
     from mogaf.recon.params import resolve_params as recon
+    from mogaf.reconstruction_quality import run_reconstruction_quality_stage
     from mogaf.refine import resolve_params as refine
     from mogaf.synth.params import resolve_params as synthetic
 
     missing = "no/such/file.h5"  # the typo must be refused before any input is opened
     return {
-        "synthetic": synthetic, "priors": priors, "recon": recon, "grouping": grouping, "refine": refine,
+        "synthetic": synthetic,
+        "priors": priors,
+        "recon": recon,
+        "grouping": grouping,
+        "refine": refine,
         "rigid_init": lambda p: run_rigid_init_stage(missing, missing, missing, p),
         "grouping_quality": lambda p: run_grouping_quality_stage(missing, missing, missing, missing, missing, p),
         "reconstruction_quality": lambda p: run_reconstruction_quality_stage(missing, missing, missing, missing, p),
         "forecast.mogaf": lambda p: make_forecaster("mogaf", p),
-        "evaluate": lambda p: run_evaluate_stage(scene=missing, split=missing, model=missing, reconstruction_quality=missing,
-                                                 grouping_quality=missing,
-                                                 forecasts={}, benchmarks={}, out_metrics=missing, out_renders=missing,
-                                                 params=p, variant="", ids={}),
+        "evaluate": lambda p: run_evaluate_stage(
+            scene=missing,
+            split=missing,
+            model=missing,
+            reconstruction_quality=missing,
+            grouping_quality=missing,
+            forecasts={},
+            benchmarks={},
+            out_metrics=missing,
+            out_renders=missing,
+            params=p,
+            variant="",
+            ids={},
+        ),
     }
 
 

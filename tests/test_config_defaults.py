@@ -1,5 +1,8 @@
-"""config/config.yaml holds every library default (so the two cannot drift
-apart) and config/schema.yaml refuses keys the library does not know."""
+"""config/config.yaml writes out only what a user changes, each at the
+library's default, and with the rest filled in (mogaf.config.with_defaults)
+it is exactly the library's defaults; the schema (config/schema.yaml plus the
+sections generated from the settings dataclasses) refuses keys and values the
+library does not take."""
 
 from __future__ import annotations
 
@@ -9,7 +12,7 @@ from typing import Any
 import pytest
 import yaml
 
-from conftest import REPO
+from support.paths import REPO
 
 CONFIG = REPO / "config" / "config.yaml"
 SCHEMA = REPO / "config" / "schema.yaml"
@@ -20,9 +23,16 @@ SCHEMA = REPO / "config" / "schema.yaml"
 INJECTED = {"priors": {"seed"}, "grouping": {"seed"}, "recon": {"device"}}
 
 
-def load_config() -> dict[str, Any]:
+def written_config() -> dict[str, Any]:
     with open(CONFIG) as fh:
         return yaml.safe_load(fh)
+
+
+def load_config() -> dict[str, Any]:
+    """config/config.yaml as the workflow and the CLI use it: defaults filled in."""
+    from mogaf.config import with_defaults
+
+    return with_defaults(written_config())
 
 
 def library_defaults() -> dict[str, dict[str, Any]]:
@@ -74,7 +84,9 @@ def same_typed(a: Any, b: Any) -> bool:
 def test_section_equals_library_defaults(name):
     lib = library_defaults()[name]
     cfg = section(load_config(), name)
-    assert sorted(cfg) == sorted(lib), f"{name}: config only {sorted(set(cfg) - set(lib))}, library only {sorted(set(lib) - set(cfg))}"
+    assert sorted(cfg) == sorted(lib), (
+        f"{name}: config only {sorted(set(cfg) - set(lib))}, library only {sorted(set(lib) - set(cfg))}"
+    )
     wrong = {k: (cfg[k], lib[k]) for k in lib if not same_typed(cfg[k], lib[k])}
     assert not wrong, f"{name}: config vs library {wrong}"
 
@@ -116,10 +128,37 @@ def test_forecast_common_holds_no_key():
 
 
 # ------------------------------------------------------------------ schema
-def validate(cfg: dict[str, Any]) -> None:
-    from snakemake.utils import validate as sm_validate
+class SchemaError(Exception):
+    pass
 
-    sm_validate(copy.deepcopy(cfg), schema=str(SCHEMA))
+
+def validate(cfg: dict[str, Any]) -> None:
+    """The workflow's check (workflow/rules/common.smk)."""
+    from mogaf.schema import config_error, load_config_schema
+
+    error = config_error(copy.deepcopy(cfg), load_config_schema(SCHEMA), [("config", cfg)])
+    if error is not None:
+        raise SchemaError(str(error))
+
+
+def test_written_config_validates_and_sets_only_defaults():
+    """What config.yaml writes out validates without the defaults, and every
+    stage setting it writes is at the library's default."""
+    from mogaf.settings import SECTIONS, defaults, section_class
+
+    raw = written_config()
+    validate(raw)
+    for path in SECTIONS:
+        node = raw
+        for part in path.split("."):
+            node = node.get(part) if isinstance(node, dict) else None
+        if not isinstance(node, dict):
+            continue
+        lib = defaults(section_class(path))
+        for key, value in node.items():
+            if isinstance(value, dict) and isinstance(lib[key], dict):
+                continue  # a nested section, checked on its own path
+            assert same_typed(value, lib[key]), f"config.yaml {path}.{key}: {value!r}, library default {lib[key]!r}"
 
 
 def test_config_validates():
@@ -159,11 +198,9 @@ def test_layered_configs_and_ablation_variants_validate():
     ],
 )
 def test_schema_refuses(override):
-    from snakemake.exceptions import WorkflowError
-
     import mogaf.config as mcfg
 
-    with pytest.raises(WorkflowError):
+    with pytest.raises(SchemaError):
         validate(mcfg.deep_merge(load_config(), override))
 
 

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from mogaf.datasets import read_scene
-from mogaf.datasets.fakes import fake_dnerf, fake_iphone, write_json, write_png
 from mogaf.errors import MogafError
+from support.fake_datasets import fake_dnerf, fake_iphone, write_json, write_png
 
 
 def _fails(layout: str, root: Path, *fragments: str, options: dict | None = None) -> str:
@@ -123,7 +123,9 @@ def test_dnerf_non_invertible_or_reflected_pose(dnerf, matrix, words):
     _fails("dnerf", dnerf, "transforms_test.json", "frame 0", words)
 
 
-@pytest.mark.parametrize("matrix", [[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], [1, 2, 3], "eye", [[1, 0, 0, "a"]] * 4, None])
+@pytest.mark.parametrize(
+    "matrix", [[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], [1, 2, 3], "eye", [[1, 0, 0, "a"]] * 4, None]
+)
 def test_dnerf_transform_matrix_wrong_shape(dnerf, matrix):
     _frame(dnerf, "train", 2, lambda fr: fr.update({"transform_matrix": matrix}))
     _fails("dnerf", dnerf, "transforms_train.json", "transform_matrix")
@@ -173,7 +175,9 @@ def test_dnerf_bad_ply(dnerf):
     raw = (dnerf / "fused.ply").read_bytes()
     (dnerf / "fused.ply").write_bytes(raw.replace(b"element vertex 20", b"element vertex 2000000000"))
     _fails("dnerf", dnerf, "fused.ply", "vertices")
-    (dnerf / "fused.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nend_header\n")
+    (dnerf / "fused.ply").write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nend_header\n"
+    )
     _fails("dnerf", dnerf, "fused.ply")
 
 
@@ -232,7 +236,12 @@ def test_iphone_corrupt_or_misshaped_npy(iphone):
     _fails("iphone", iphone, "0_00000.npy", "shape (5, 5)")
     path.write_bytes(b"\x93NUMPY garbage")
     _fails("iphone", iphone, "0_00000.npy", "corrupt")
-    header = b"\x93NUMPY\x01\x00" + struct.pack("<H", 118) + b"{'descr': '<f4', 'fortran_order': False, 'shape': (1000000, 1000000), }".ljust(117) + b"\n"
+    header = (
+        b"\x93NUMPY\x01\x00"
+        + struct.pack("<H", 118)
+        + b"{'descr': '<f4', 'fortran_order': False, 'shape': (1000000, 1000000), }".ljust(117)
+        + b"\n"
+    )
     path.write_bytes(header)
     _fails("iphone", iphone, "0_00000.npy")
 
@@ -245,19 +254,22 @@ def test_iphone_non_finite_disparity(iphone):
     _fails("iphone", iphone, "0_00002.npy", "NaN")
 
 
-@pytest.mark.parametrize("key, value, words", [
-    ("focal_length", -500.0, "focal_length must be positive"),
-    ("focal_length", "big", "focal_length must be a number"),
-    ("pixel_aspect_ratio", 0.0, "pixel_aspect_ratio must be positive"),
-    ("orientation", [[1, 0, 0], [0, 1, 0], [0, 0, 0]], "not orthonormal"),
-    ("orientation", [[1, 0, 0], [0, 1, 0], [0, 0, -1]], "reflection"),
-    ("orientation", [[1, 0, 0], [0, 1, 0]], "orientation"),
-    ("position", [0, 0], "position"),
-    ("principal_point", None, "principal_point"),
-    ("image_size", [10**9, 10**9], "image_size width must be <="),
-    ("image_size", [640], "image_size"),
-    ("radial_distortion", [0.1, "x", 0], "radial_distortion"),
-])
+@pytest.mark.parametrize(
+    "key, value, words",
+    [
+        ("focal_length", -500.0, "focal_length must be positive"),
+        ("focal_length", "big", "focal_length must be a number"),
+        ("pixel_aspect_ratio", 0.0, "pixel_aspect_ratio must be positive"),
+        ("orientation", [[1, 0, 0], [0, 1, 0], [0, 0, 0]], "not orthonormal"),
+        ("orientation", [[1, 0, 0], [0, 1, 0], [0, 0, -1]], "reflection"),
+        ("orientation", [[1, 0, 0], [0, 1, 0]], "orientation"),
+        ("position", [0, 0], "position"),
+        ("principal_point", None, "principal_point"),
+        ("image_size", [10**9, 10**9], "image_size width must be <="),
+        ("image_size", [640], "image_size"),
+        ("radial_distortion", [0.1, "x", 0], "radial_distortion"),
+    ],
+)
 def test_iphone_bad_camera(iphone, key, value, words):
     _camera(iphone, "1_00000", lambda d: d.update({key: value}))
     _fails("iphone", iphone, "1_00000.json", words)
@@ -282,6 +294,7 @@ def test_iphone_frame_in_two_splits(iphone):
         d["frame_names"].append("0_00000")
         d["camera_ids"].append(0)
         d["time_ids"].append(0)
+
     _edit_json(iphone / "splits" / "val.json", dup)
     _fails("iphone", iphone, "val.json", "listed twice")
 

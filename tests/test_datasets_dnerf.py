@@ -9,14 +9,14 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import shared_path
 from mogaf.camera import GL_TO_CV, camera_centers, project
 from mogaf.datasets import describe_missing, read_scene, scene_present
 from mogaf.datasets.common import read_ply_points, time_grid
-from mogaf.datasets.fakes import MARKER, fake_dnerf, write_json, write_ply
 from mogaf.datasets.images import composite_downscale, downscale_labels
 from mogaf.errors import MogafError
 from mogaf.scene import SPLIT_CODES, load_scene, save_scene
+from support.fake_datasets import MARKER, fake_dnerf, write_json, write_ply
+from support.paths import shared_path
 
 MUJOCO = ("scene1_close_proximity", "scene3_collision", "scene4_occlusion", "scene5_rapid_motion", "scene7_deformation")
 
@@ -55,7 +55,9 @@ def test_mujoco_scene_reads_and_matches_jsons(mujoco):
             assert scene.frame_names[row] == fr["file_path"][2:]
             assert scene.time[row] == fr["time"]
             # Intrinsics scaled exactly by 1/4, poses converted from OpenGL c2w.
-            assert np.allclose(scene.K[row], [[fr["fl_x"] / 4, 0, fr["cx"] / 4], [0, fr["fl_y"] / 4, fr["cy"] / 4], [0, 0, 1]])
+            assert np.allclose(
+                scene.K[row], [[fr["fl_x"] / 4, 0, fr["cx"] / 4], [0, fr["fl_y"] / 4, fr["cy"] / 4], [0, 0, 1]]
+            )
             c2w_cv = np.asarray(fr["transform_matrix"]) @ GL_TO_CV
             assert np.allclose(scene.w2c[row] @ c2w_cv, np.eye(4), atol=1e-9)
         all_times += [fr["time"] for fr in frames]
@@ -76,7 +78,9 @@ def test_mujoco_scene_reads_and_matches_jsons(mujoco):
 @pytest.mark.shared_data
 def test_mujoco_scene_round_trips_through_scene_h5(tmp_path):
     root = shared_path("mujoco", "scene4_occlusion")
-    scene = read_scene("dnerf", root, dataset="mujoco", scene="scene4_occlusion", options={"downscale": 8, "frame_stride": 10})
+    scene = read_scene(
+        "dnerf", root, dataset="mujoco", scene="scene4_occlusion", options={"downscale": 8, "frame_stride": 10}
+    )
     assert scene.images.shape[1:3] == (100, 100)
     assert scene.num_timesteps == 120  # the grid uses every frame, not only those read
     save_scene(tmp_path / "scene.h5", scene, config_digest="test")
@@ -188,8 +192,8 @@ def test_mujoco_projection_full_resolution_and_negative_control():
 
 
 # ---------------------------------------------------------------- fake scenes
-def test_fake_scene_marker_lands_on_its_pixel(tmp_path):
-    root = fake_dnerf(tmp_path / "s")
+def test_fake_scene_marker_lands_on_its_pixel(fake_dnerf_scene):
+    root = fake_dnerf_scene
     scene = read_scene("dnerf", root, dataset="fake", scene="s", options={})
     jsons = {s: json.loads((root / f"transforms_{s}.json").read_text())["frames"] for s in ("train", "val", "test")}
     for f, name in enumerate(scene.frame_names):

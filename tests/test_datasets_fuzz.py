@@ -19,8 +19,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mogaf.datasets import read_scene
-from mogaf.datasets.fakes import fake_dnerf, fake_iphone
 from mogaf.errors import MogafError
+from support.fake_datasets import fake_dnerf, fake_iphone
 
 FUZZ = settings(
     max_examples=60,
@@ -43,7 +43,9 @@ json_values = st.recursive(
 matrices = st.one_of(
     st.lists(st.lists(numbers, min_size=4, max_size=4), min_size=4, max_size=4),  # mostly non-rigid
     st.lists(st.lists(numbers, min_size=0, max_size=5), min_size=0, max_size=5),  # ragged / wrong shapes
-    st.builds(lambda s: (np.diag([s[0], s[1], s[2], 1.0])).tolist(), st.tuples(*[st.sampled_from([-1.0, 0.0, 1.0, 2.0])] * 3)),
+    st.builds(
+        lambda s: (np.diag([s[0], s[1], s[2], 1.0])).tolist(), st.tuples(*[st.sampled_from([-1.0, 0.0, 1.0, 2.0])] * 3)
+    ),
 )
 sizes = st.one_of(st.integers(min_value=-5, max_value=10**12), st.sampled_from([16, 12, 8, 10**9, 2**31, 2**64]))
 
@@ -117,7 +119,10 @@ def test_fuzz_dnerf_poses_focals_sizes(dnerf_base, matrix, focal, w, h, angle):
 
 
 @FUZZ
-@given(text=st.one_of(st.text(max_size=60), st.binary(max_size=60).map(lambda b: b.decode("latin-1"))), which=st.sampled_from(["transforms_train.json", "class_mapping.json"]))
+@given(
+    text=st.one_of(st.text(max_size=60), st.binary(max_size=60).map(lambda b: b.decode("latin-1"))),
+    which=st.sampled_from(["transforms_train.json", "class_mapping.json"]),
+)
 def test_fuzz_dnerf_malformed_json_text(dnerf_base, text, which):
     path = dnerf_base / which
     with _Restore(path):
@@ -125,8 +130,17 @@ def test_fuzz_dnerf_malformed_json_text(dnerf_base, text, which):
         _check("dnerf", dnerf_base)
 
 
-CAMERA_KEYS = ["orientation", "position", "focal_length", "principal_point", "pixel_aspect_ratio", "skew",
-               "image_size", "radial_distortion", "tangential_distortion"]
+CAMERA_KEYS = [
+    "orientation",
+    "position",
+    "focal_length",
+    "principal_point",
+    "pixel_aspect_ratio",
+    "skew",
+    "image_size",
+    "radial_distortion",
+    "tangential_distortion",
+]
 
 
 @FUZZ
@@ -158,8 +172,12 @@ def test_fuzz_iphone_poses_focals_sizes(iphone_base, orientation, focal, size, r
 
 @FUZZ
 @given(
-    which=st.sampled_from(["splits/train.json", "splits/val.json", "metadata.json", "dataset.json", "scene.json", "extra.json"]),
-    key=st.sampled_from(["frame_names", "camera_ids", "time_ids", "ids", "count", "0_00000", "center", "scale", "fps", "bbox"]),
+    which=st.sampled_from(
+        ["splits/train.json", "splits/val.json", "metadata.json", "dataset.json", "scene.json", "extra.json"]
+    ),
+    key=st.sampled_from(
+        ["frame_names", "camera_ids", "time_ids", "ids", "count", "0_00000", "center", "scale", "fps", "bbox"]
+    ),
     value=json_values,
     whole=st.one_of(st.none(), st.text(max_size=40)),
 )

@@ -13,13 +13,13 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import shared_path
 from mogaf.camera import project, w2c_from_orientation_position
 from mogaf.datasets import describe_missing, read_scene, scene_present
-from mogaf.datasets.fakes import MARKER, fake_iphone, write_json
 from mogaf.datasets.iphone import DistortionWarning, read_iphone_layout
 from mogaf.errors import MogafError
 from mogaf.scene import SPLIT_CODES, load_scene, save_scene
+from support.fake_datasets import MARKER, fake_iphone, write_json
+from support.paths import shared_path
 
 
 def _windmill_farm(tmp_path: Path, scale: int) -> Path:
@@ -76,8 +76,8 @@ def test_paper_windmill_metadata(tmp_path):
     assert "0_00000.png" in str(exc.value) and "90x120" in str(exc.value) and "45x60" in str(exc.value)
 
 
-def test_fake_iphone_cameras_put_marker_on_its_pixel(tmp_path):
-    root = fake_iphone(tmp_path / "s")
+def test_fake_iphone_cameras_put_marker_on_its_pixel(fake_iphone_scene):
+    root = fake_iphone_scene
     scene = read_iphone_layout(root, "fake", "s", {})
     markers = json.loads((root / "markers.json").read_text())
     for f, name in enumerate(scene.frame_names):
@@ -122,8 +122,8 @@ def test_fake_iphone_layout_and_priors(tmp_path):
     assert scene.meta["scene_scale"] == 0.5 and scene.meta["near"] == 0.1 and "not rescaled" in scene.meta["world"]
 
 
-def test_fake_iphone_round_trip(tmp_path):
-    root = fake_iphone(tmp_path / "s")
+def test_fake_iphone_round_trip(tmp_path, fake_iphone_scene):
+    root = fake_iphone_scene
     scene = read_scene("iphone", root, dataset="fake", scene="s", options={})
     save_scene(tmp_path / "scene.h5", scene, config_digest="t")
     back = load_scene(tmp_path / "scene.h5", with_shipped=True)
@@ -134,11 +134,15 @@ def test_fake_iphone_round_trip(tmp_path):
 
 def test_tracks_options(tmp_path):
     root = fake_iphone(tmp_path / "s", num_times=6, track_points=10)
-    scene = read_scene("iphone", root, dataset="fake", scene="s", options={"tracks_query_stride": 2, "tracks_max_points": 4})
+    scene = read_scene(
+        "iphone", root, dataset="fake", scene="s", options={"tracks_query_stride": 2, "tracks_max_points": 4}
+    )
     tr = scene.shipped["tracks_2d"]
     assert list(tr["query_frame"]) == [0, 2, 4] and list(tr["offsets"]) == [0, 4, 8, 12]
     assert np.allclose(tr["values"][:4, 0, 0], np.array([0, 3, 6, 9]) + 0.5)
-    scene = read_scene("iphone", root, dataset="fake", scene="s", options={"tracks": False, "priors": False, "depth": False})
+    scene = read_scene(
+        "iphone", root, dataset="fake", scene="s", options={"tracks": False, "priors": False, "depth": False}
+    )
     # DyCheck's own keypoints stay; Shape-of-Motion priors and depth are skipped.
     assert set(scene.shipped) == {"keypoints"} and scene.instance_mask is None and scene.depth is None
 
@@ -151,8 +155,8 @@ def test_keypoints_at_2x_are_rescaled(tmp_path):
     assert np.allclose(scene.shipped["keypoints"]["values"][0, 0], [0.75, 1.25, 1])
 
 
-def test_distortion_is_recorded_and_warned(tmp_path):
-    root = fake_iphone(tmp_path / "s")
+def test_distortion_is_recorded_and_warned(fake_iphone_scene):
+    root = fake_iphone_scene
     path = root / "camera" / "1_00002.json"
     cam = json.loads(path.read_text())
     cam["radial_distortion"] = [0.01, 0.0, 0.0]

@@ -9,20 +9,7 @@ from mogaf.errors import MogafError
 from mogaf.forecast import METHODS, defaults, fit_and_rollout, make_forecaster, quat
 from mogaf.forecast.gcn import farthest_point_sampling
 from mogaf.forecast.synthetic import rigid_box, rigid_motion
-
-# Small budgets: these tests check behaviour, not converged accuracy.
-FAST = {
-    "mogaf": {"iterations": 40, "batch_size": 32},
-    "mogaf_paper": {"iterations": 40, "batch_size": 32},
-    "gcn": {"n_nodes": 12, "num_stage": 1, "linear_size": 16, "epochs": 10, "num_threads": 1},
-    "ode": {
-        "latent_dim": 8, "d_model": 16, "nhead": 2, "num_encoder_layers": 1, "num_decoder_layers": 2,
-        "ode_nhidden": 16, "decoder_nhidden": 16, "epochs": 1, "batch_size": 128, "max_gaussians_per_epoch": 32,
-        "num_threads": 1,
-    },
-    "constant_velocity": {},
-    "frozen": {},
-}
+from support.forecast_params import FAST
 
 
 def _rigid_rotation(g: int, t: int, omega: float, seed: int = 0, screw: float = 0.0) -> np.ndarray:
@@ -237,11 +224,22 @@ def test_ode_learns_per_gaussian_trajectories_given_steps():
     spread about their centroid (an encoder that lost its input would predict
     one trajectory for all: spread 0, EPE >= 0.58 here). Measured: EPE 52 % of
     frozen, spread 90 % of the true one. After 10 steps the spread is 14 %:
-    the group's mean is learnt first (see README, ODE at paper settings)."""
+    the group's mean is learnt first (docs/forecasting.md, the baselines' budgets)."""
     traj = _circular_motion(g=64, t=40)
     obs, fut = traj[:, :30], traj[:, 30:]
-    params = {"latent_dim": 16, "d_model": 32, "nhead": 4, "num_encoder_layers": 1, "num_decoder_layers": 2,
-              "ode_nhidden": 32, "decoder_nhidden": 32, "epochs": 60, "batch_size": 256, "num_threads": 1, "lr": 3e-3}
+    params = {
+        "latent_dim": 16,
+        "d_model": 32,
+        "nhead": 4,
+        "num_encoder_layers": 1,
+        "num_decoder_layers": 2,
+        "ode_nhidden": 32,
+        "decoder_nhidden": 32,
+        "epochs": 60,
+        "batch_size": 256,
+        "num_threads": 1,
+        "lr": 3e-3,
+    }
     res = fit_and_rollout("ode", obs, 10, params, seed=0)
     pred = res.poses[..., :3]
     epe = np.linalg.norm(pred - fut[..., :3], axis=-1).mean()

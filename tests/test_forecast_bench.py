@@ -39,9 +39,7 @@ def test_split_rejects_bad_input():
 
 def test_cli_procedural_npz_and_source(tmp_path, capsys, monkeypatch):
     (tmp_path / "my_gt_source.py").write_text(
-        "from mogaf.forecast.synthetic import rigid_box\n"
-        "def tiny():\n"
-        "    return {'tiny': rigid_box(8, 16)}\n"
+        "from mogaf.forecast.synthetic import rigid_box\ndef tiny():\n    return {'tiny': rigid_box(8, 16)}\n"
     )
     monkeypatch.syspath_prepend(str(tmp_path))
     npz = tmp_path / "gt.npz"
@@ -49,12 +47,22 @@ def test_cli_procedural_npz_and_source(tmp_path, capsys, monkeypatch):
     out_json = tmp_path / "rows.json"
     rc = bench.main(
         [
-            "--sets", "static", "--gaussians", "10", "--frames", "20",
-            "--npz", str(npz),
-            "--source", "my_gt_source:tiny",
-            "--methods", "frozen,constant_velocity,mogaf",
-            "--params", '{"mogaf": {"iterations": 3, "batch_size": 8}}',
-            "--json", str(out_json),
+            "--sets",
+            "static",
+            "--gaussians",
+            "10",
+            "--frames",
+            "20",
+            "--npz",
+            str(npz),
+            "--source",
+            "my_gt_source:tiny",
+            "--methods",
+            "frozen,constant_velocity,mogaf",
+            "--params",
+            '{"mogaf": {"iterations": 3, "batch_size": 8}}',
+            "--json",
+            str(out_json),
         ]
     )
     assert rc == 0
@@ -75,8 +83,20 @@ def test_cli_errors_are_one_line(capsys):
 
 def test_cli_resume_keeps_finished_rows_and_only_filters(tmp_path, capsys):
     out_json = tmp_path / "rows.json"
-    base = ["--sets", "static,rigid_box", "--only", "stat*", "--gaussians", "6", "--frames", "20", "--ratios", "0.6",
-            "--json", str(out_json)]
+    base = [
+        "--sets",
+        "static,rigid_box",
+        "--only",
+        "stat*",
+        "--gaussians",
+        "6",
+        "--frames",
+        "20",
+        "--ratios",
+        "0.6",
+        "--json",
+        str(out_json),
+    ]
     assert bench.main(base + ["--methods", "frozen"]) == 0
     doc = json.loads(out_json.read_text())
     assert [(r["set"], r["method"]) for r in doc["rows"]] == [("static", "frozen")]
@@ -105,15 +125,23 @@ def _bench_file(path, budget, rows):
 
 def test_comparison_table_merges_files_and_refuses_disagreement(tmp_path, capsys):
     box = {"set": "default/box", "ratio": 0.6}
-    cpu = _bench_file(tmp_path / "cpu.json", "cpu", [
-        {**box, "method": "frozen", "epe": 0.2, "train_s": 0.0},
-        {**box, "method": "gcn", "epe": 0.5, "train_s": 30.0},
-    ])
-    paper = _bench_file(tmp_path / "paper.json", "paper", [
-        {**box, "method": "gcn", "epe": 0.1, "train_s": 3600.0, "flags": ["window_clipped"]},
-        {**box, "method": "frozen", "epe": 0.2, "train_s": 0.0},  # the same row twice is fine
-        {"set": "default/box", "ratio": 0.8, "method": "frozen", "epe": 0.3, "train_s": 0.0},
-    ])
+    cpu = _bench_file(
+        tmp_path / "cpu.json",
+        "cpu",
+        [
+            {**box, "method": "frozen", "epe": 0.2, "train_s": 0.0},
+            {**box, "method": "gcn", "epe": 0.5, "train_s": 30.0},
+        ],
+    )
+    paper = _bench_file(
+        tmp_path / "paper.json",
+        "paper",
+        [
+            {**box, "method": "gcn", "epe": 0.1, "train_s": 3600.0, "flags": ["window_clipped"]},
+            {**box, "method": "frozen", "epe": 0.2, "train_s": 0.0},  # the same row twice is fine
+            {"set": "default/box", "ratio": 0.8, "method": "frozen", "epe": 0.3, "train_s": 0.0},
+        ],
+    )
     assert bench.main(["--from-json", str(cpu), "--from-json", str(paper)]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == "| set | ratio | gcn EPE | gcn* EPE | frozen EPE | gcn train s | gcn* train s |"
@@ -122,11 +150,19 @@ def test_comparison_table_merges_files_and_refuses_disagreement(tmp_path, capsys
     assert "shortened training" in lines[-1] and "gcn" in lines[-1]
 
     other = _bench_file(tmp_path / "other.json", "paper", [{**box, "method": "frozen", "epe": 0.25, "train_s": 0.0}])
-    with pytest.raises(MogafError, match=r"other\.json: default/box ratio 0\.6 frozen has EPE 0\.25, .*cpu\.json has 0\.2"):
+    with pytest.raises(
+        MogafError, match=r"other\.json: default/box ratio 0\.6 frozen has EPE 0\.25, .*cpu\.json has 0\.2"
+    ):
         bench.comparison_table([cpu, other])
     longer = tmp_path / "longer.json"
-    longer.write_text(json.dumps({"budget": "paper", "rows": [{**box, "method": "ode", "epe": 0.1, "train_s": 1.0,
-                                                                "gaussians": 4, "observed_frames": 13}]}))
+    longer.write_text(
+        json.dumps(
+            {
+                "budget": "paper",
+                "rows": [{**box, "method": "ode", "epe": 0.1, "train_s": 1.0, "gaussians": 4, "observed_frames": 13}],
+            }
+        )
+    )
     with pytest.raises(MogafError, match="scored on other trajectories"):
         bench.comparison_table([cpu, longer])
     broken = tmp_path / "broken.json"
@@ -136,12 +172,12 @@ def test_comparison_table_merges_files_and_refuses_disagreement(tmp_path, capsys
 
 
 def test_docs_forecast_tables_are_made_from_the_committed_rows():
-    from conftest import REPO
+    from support.paths import REPO
 
     bench_dir = REPO / "results" / "bench"
     page = (REPO / "docs" / "forecasting.md").read_text()
     start, end = "<!-- forecast-gt-table -->\n", "\n<!-- /forecast-gt-table -->"
-    shown = page[page.index(start) + len(start): page.index(end)]
+    shown = page[page.index(start) + len(start) : page.index(end)]
     files = [bench_dir / f"forecast_gt_{name}.json" for name in ("defaults", "paper_gcn", "paper_ode")]
     assert shown == bench.markdown_report(files)
 
@@ -150,8 +186,11 @@ def test_summary_counts_wins_over_the_references(tmp_path):
     rows = []
     for i, (a, cv, fr) in enumerate([(0.1, 0.2, 0.3), (0.3, 0.2, 0.4), (0.1, 0.5, 0.05)]):
         key = {"set": f"s{i}", "ratio": 0.6, "epe_per_step": [0.0, 0.1]}
-        rows += [{**key, "method": "mogaf", "epe": a, "train_s": 1.0}, {**key, "method": "constant_velocity", "epe": cv, "train_s": 0.0},
-                 {**key, "method": "frozen", "epe": fr, "train_s": 0.0}]
+        rows += [
+            {**key, "method": "mogaf", "epe": a, "train_s": 1.0},
+            {**key, "method": "constant_velocity", "epe": cv, "train_s": 0.0},
+            {**key, "method": "frozen", "epe": fr, "train_s": 0.0},
+        ]
     path = _bench_file(tmp_path / "d.json", "cpu", rows)
     summary = bench.summary_table([path]).splitlines()
     assert summary[2] == "| mogaf | **0.1667** | 2 of 3 (67 %) | 2 of 3 (67 %) |"

@@ -9,9 +9,9 @@ import pytest
 
 from mogaf.forecast import METHODS, fit_and_rollout, make_forecaster, quat
 from mogaf.forecast.synthetic import STRESS_SETS, rigid_box
-from test_forecast import FAST as FAST_FIT
+from support.forecast_params import FAST as FAST_FIT
 
-# Tiny budgets (test_forecast.FAST): stability must not depend on training well.
+# Tiny budgets (support.forecast_params.FAST): stability must not depend on training well.
 FAST = {**FAST_FIT, "mogaf": {"iterations": 30, "batch_size": 32}, "mogaf_paper": {"iterations": 30, "batch_size": 32}}
 
 
@@ -137,15 +137,11 @@ def test_unit_quaternions_after_long_constant_twist():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("scenario", ["rigid_box", "ballistic_sphere", "waving_sheet", "static"])
-def test_mogaf_defaults_train_within_a_minute_and_long_rollout_is_bounded(scenario, request):
+def test_mogaf_defaults_train_within_a_minute_and_long_rollout_is_bounded(scenario):
     """The hard budget: one group of 3000 Gaussians, T = 36, at the default
     settings trains in <= 60 s; a rollout of 3x the 24-frame horizon stays sane.
-    Runs only when selected with -m slow (the marker is not deselected globally)."""
+    Runs only when selected (-m slow or --run-slow; conftest deselects it otherwise)."""
     from mogaf.forecast.synthetic import TRAJECTORY_SETS
-
-    expr = request.config.getoption("markexpr") or ""
-    if "slow" not in expr or "not slow" in expr:
-        pytest.skip("slow: run with -m slow")
 
     traj = TRAJECTORY_SETS[scenario](3000, 60)
     obs = traj[:, :36]

@@ -1,10 +1,10 @@
 """Forecast stage (mogaf.forecast.stage): job lists, group jobs, the merge, quick EPE.
 
-Inputs are written here with the library's own writers: a scene.h5 of tiny
-blank frames (8 time steps, ratio 0.5: steps 0-3 observed, 4-7 forecast)
-with ground-truth 3D points riding on the rigid group, its split.h5, a
-refine-stage model whose 30 foreground Gaussians have known trajectories,
-and a groups.h5 with three groups:
+Inputs are written with the library's own writers (support.forecast_scene):
+a scene.h5 of tiny blank frames (8 time steps, ratio 0.5: steps 0-3
+observed, 4-7 forecast) with ground-truth 3D points riding on the rigid
+group, its split.h5, a refine-stage model whose 30 foreground Gaussians have
+known trajectories, and (here) a groups.h5 with three groups:
   0 static (10 Gaussians, never move)
   1 rigid dynamic (10 Gaussians, one common constant velocity)
   2 non-rigid dynamic (10 Gaussians, each its own constant velocity and a
@@ -32,108 +32,49 @@ from mogaf.forecast.stage import (
 )
 from mogaf.grouping.core import Groups
 from mogaf.grouping.stage import write_groups
-from mogaf.representation import GaussianSet, Model4D, load_model, save_model
-from mogaf.scene import SPLIT_CODES, Scene, save_scene
-from mogaf.split import read_split, split_scene, write_split
+from mogaf.representation import load_model
+from mogaf.split import read_split
+from support.forecast_scene import (
+    N_PER,
+    NONRIGID,
+    RIGID,
+    RIGID_VELOCITY,
+    STATIC,
+    T_OBS,
+    N,
+    T,
+    members,
+    world,
+    write_model,
+    write_scene,
+)
 
-T, RATIO = 8, 0.5
-T_OBS = 4
-N_PER = 10
-N = 3 * N_PER
-STATIC, RIGID, NONRIGID = 0, 1, 2
-RIGID_VELOCITY = np.array([0.1, 0.05, -0.02])
 # gate off: the learned candidate runs, so the seed matters (the gate may pick one that trains nothing)
 MOGAF_FAST = {"mogaf": {"iterations": 5, "structured": {"gate": False}}}
-
-
-def _members(k: int) -> np.ndarray:
-    return np.arange(k * N_PER, (k + 1) * N_PER)
-
-
-def _world(seed: int = 0):
-    """Positions (N, T, 3) and orientations (N, 4) over the full time grid."""
-    rng = np.random.default_rng(seed)
-    centres = np.array([[-5.0, 0.0, 0.0], [0.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
-    start = np.concatenate([c + rng.uniform(-0.3, 0.3, size=(N_PER, 3)) for c in centres])
-    velocity = np.zeros((N, 3))
-    velocity[_members(RIGID)] = RIGID_VELOCITY
-    velocity[_members(NONRIGID)] = rng.uniform(-0.2, 0.2, size=(N_PER, 3))
-    pos = start[:, None, :] + velocity[:, None, :] * np.arange(T)[None, :, None]
-    quats = np.tile([1.0, 0.0, 0.0, 0.0], (N, 1))
-    q = rng.normal(size=(N_PER, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    quats[_members(NONRIGID)] = q * np.sign(q[:, :1])
-    return pos, quats, velocity
-
-
-def _write_scene(folder: Path, *, with_gt: bool) -> tuple[Path, Path]:
-    pos, _, _ = _world()
-    names, K, w2c, time, tidx, cams, splits = [], [], [], [], [], [], []
-    for t in range(T):
-        for cam in (0, 1):
-            names.append(f"{cam}_{t:05d}")
-            K.append([[10.0, 0, 2], [0, 10.0, 2], [0, 0, 1]])
-            m = np.eye(4)
-            m[:3, 3] = [0.1 * cam, 0.0, 10.0]
-            w2c.append(m)
-            time.append(t / (T - 1))
-            tidx.append(t)
-            cams.append(cam)
-            splits.append(SPLIT_CODES["train"] if cam == 0 else SPLIT_CODES["val"])
-    F = len(names)
-    gt = {}
-    if with_gt:
-        # surface points riding exactly on the rigid group's Gaussians
-        gt = {"points3d": pos[_members(RIGID)].astype(np.float64) + np.array([0.01, 0.0, 0.0])}
-    scene = Scene(
-        dataset="test", name="fc", layout="iphone", frame_names=names, images=np.zeros((F, 4, 4, 3), np.uint8),
-        K=np.array(K), w2c=np.array(w2c), time=np.array(time), time_index=np.array(tidx), num_timesteps=T,
-        camera_id=np.array(cams), source_split=np.array(splits, np.int8), ground_truth=gt,
-        meta={"background": [1.0, 1.0, 1.0]},
-    )
-    folder.mkdir(parents=True, exist_ok=True)
-    scene_h5 = save_scene(folder / "scene.h5", scene, config_digest="fc-test")
-    split_h5 = write_split(folder / "split.h5", split_scene(scene_h5, RATIO))
-    return scene_h5, split_h5
-
-
-def _write_model(path: Path, observed_timesteps: np.ndarray) -> Path:
-    pos, quats, _ = _world()
-    steps = np.asarray(observed_timesteps)
-    Tm = steps.size
-    rng = np.random.default_rng(1)
-    fg = GaussianSet(
-        means=pos[:, 0].astype(np.float32), quats=quats.astype(np.float32),
-        log_scales=np.full((N, 3), -3.0, np.float32), opacity_logits=np.zeros(N, np.float32),
-        color_logits=rng.normal(size=(N, 3)).astype(np.float32),
-    )
-    model = Model4D(
-        fg=fg, motion_coef_logits=np.zeros((N, 1), np.float32),
-        rot6d=np.tile(np.array([1.0, 0, 0, 0, 1, 0], np.float32), (1, Tm, 1)),
-        translations=np.zeros((1, Tm, 3), np.float32), timesteps=steps.astype(np.int64),
-        trajectory_means=pos[:, steps].astype(np.float32),
-        trajectory_quats=np.repeat(quats[:, None], Tm, axis=1).astype(np.float32),
-    )
-    return save_model(path, "refine", model, config_digest="fc-test")
 
 
 def _groups(group_id: np.ndarray, static: list[int], rigid: list[int]) -> Groups:
     K = len(static)
     return Groups(
-        group_id=np.asarray(group_id, np.int64), rigid=np.asarray(rigid, np.int8), static=np.asarray(static, np.int8),
-        instance_id=-np.ones(K, np.int64), names=[f"g{k}" for k in range(K)], rigid_source=["config"] * K,
-        method="ours", params={"seed": 0},
+        group_id=np.asarray(group_id, np.int64),
+        rigid=np.asarray(rigid, np.int8),
+        static=np.asarray(static, np.int8),
+        instance_id=-np.ones(K, np.int64),
+        names=[f"g{k}" for k in range(K)],
+        rigid_source=["config"] * K,
+        method="ours",
+        params={"seed": 0},
     )
 
 
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory) -> dict[str, Path]:
     folder = tmp_path_factory.mktemp("fc")
-    scene_h5, split_h5 = _write_scene(folder, with_gt=True)
+    scene_h5, split_h5 = write_scene(folder, with_gt=True)
     split = read_split(split_h5)
     assert split.observed_timesteps.tolist() == list(range(T_OBS))
     assert split.forecast_timesteps.tolist() == list(range(T_OBS, T))
-    model_h5 = _write_model(folder / "refined.h5", split.observed_timesteps)
+    model_h5 = write_model(folder / "refined.h5", split.observed_timesteps)
     group_id = np.repeat([STATIC, RIGID, NONRIGID], N_PER)
     groups_h5 = write_groups(folder / "groups.h5", _groups(group_id, static=[1, 0, 0], rigid=[1, 1, 0]))
     return {"folder": folder, "scene": scene_h5, "split": split_h5, "model": model_h5, "groups": groups_h5}
@@ -142,14 +83,32 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
 @pytest.fixture(scope="module")
 def mogaf_parts(inputs, tmp_path_factory) -> list[Path]:
     out = tmp_path_factory.mktemp("parts")
-    return [run_forecast_group(str(inputs["model"]), str(inputs["groups"]), str(inputs["split"]), str(out / f"group{j}.h5"),
-                               MOGAF_FAST, method="mogaf", job=j, seed=7)
-            for j in forecast_jobs(inputs["groups"], groupwise=True)]
+    return [
+        run_forecast_group(
+            str(inputs["model"]),
+            str(inputs["groups"]),
+            str(inputs["split"]),
+            str(out / f"group{j}.h5"),
+            MOGAF_FAST,
+            method="mogaf",
+            job=j,
+            seed=7,
+        )
+        for j in forecast_jobs(inputs["groups"], groupwise=True)
+    ]
 
 
 def _merge(inputs, out: Path, parts: list, method: str, params=None, seed: int = 0) -> Path:
-    return run_forecast_merge(str(inputs["model"]), str(inputs["groups"]), str(inputs["split"]),
-                              [str(p) for p in parts], str(out), params or {}, method=method, seed=seed)
+    return run_forecast_merge(
+        str(inputs["model"]),
+        str(inputs["groups"]),
+        str(inputs["split"]),
+        [str(p) for p in parts],
+        str(out),
+        params or {},
+        method=method,
+        seed=seed,
+    )
 
 
 def _arrays(path: Path) -> dict[str, np.ndarray]:
@@ -168,7 +127,9 @@ def test_forecast_jobs_lists_dynamic_groups(inputs, tmp_path):
     g = write_groups(tmp_path / "holes.h5", _groups(gid, static=[1, 0, 0, 0], rigid=[1, 1, 0, 0]))
     assert forecast_jobs(g, groupwise=True) == ["1", "3"]
     # an all-static grouping has nothing to forecast
-    still = write_groups(tmp_path / "static.h5", _groups(np.repeat([0, 1, 2], N_PER), static=[1, 1, 1], rigid=[1, 1, 1]))
+    still = write_groups(
+        tmp_path / "static.h5", _groups(np.repeat([0, 1, 2], N_PER), static=[1, 1, 1], rigid=[1, 1, 1])
+    )
     assert forecast_jobs(still, groupwise=True) == []
     assert forecast_jobs(still, groupwise=False) == []
 
@@ -187,23 +148,39 @@ def test_method_jobs(inputs):
 
 # ------------------------------------------------------------------ group jobs
 def test_group_job_constant_velocity(inputs, tmp_path):
-    out = run_forecast_group(str(inputs["model"]), str(inputs["groups"]), str(inputs["split"]), str(tmp_path / "g.h5"), {},
-                             method="constant_velocity", job=str(NONRIGID), seed=0)
+    out = run_forecast_group(
+        str(inputs["model"]),
+        str(inputs["groups"]),
+        str(inputs["split"]),
+        str(tmp_path / "g.h5"),
+        {},
+        method="constant_velocity",
+        job=str(NONRIGID),
+        seed=0,
+    )
     art = read_artefact(out, "forecast_group")
-    assert art["members"].tolist() == _members(NONRIGID).tolist()
+    assert art["members"].tolist() == members(NONRIGID).tolist()
     assert art["means"].shape == (N_PER, T - T_OBS, 3) and art["quats"].shape == (N_PER, T - T_OBS, 4)
     assert art.attrs["method"] == "constant_velocity" and art.attrs["job"] == str(NONRIGID)
     assert art.attrs["num_gaussians"] == N_PER
-    pos, quats, _ = _world()
-    np.testing.assert_allclose(art["means"], pos[_members(NONRIGID), T_OBS:], atol=1e-5)
-    np.testing.assert_allclose(np.abs(np.sum(art["quats"] * quats[_members(NONRIGID), None], -1)), 1.0, atol=1e-5)
+    pos, quats, _ = world()
+    np.testing.assert_allclose(art["means"], pos[members(NONRIGID), T_OBS:], atol=1e-5)
+    np.testing.assert_allclose(np.abs(np.sum(art["quats"] * quats[members(NONRIGID), None], -1)), 1.0, atol=1e-5)
 
 
 def test_group_job_mogaf_all(inputs, tmp_path):
-    out = run_forecast_group(str(inputs["model"]), str(inputs["groups"]), str(inputs["split"]), str(tmp_path / "all.h5"),
-                             MOGAF_FAST, method="mogaf", job="all", seed=0)
+    out = run_forecast_group(
+        str(inputs["model"]),
+        str(inputs["groups"]),
+        str(inputs["split"]),
+        str(tmp_path / "all.h5"),
+        MOGAF_FAST,
+        method="mogaf",
+        job="all",
+        seed=0,
+    )
     art = read_artefact(out, "forecast_group")
-    dynamic = np.concatenate([_members(RIGID), _members(NONRIGID)])
+    dynamic = np.concatenate([members(RIGID), members(NONRIGID)])
     assert art["members"].tolist() == dynamic.tolist()
     assert art["means"].shape == (2 * N_PER, T - T_OBS, 3) and art["quats"].shape == (2 * N_PER, T - T_OBS, 4)
     assert np.all(np.isfinite(art["means"]))
@@ -226,36 +203,54 @@ def test_group_job_refuses_static_and_bad_jobs(inputs, tmp_path):
 
 
 def test_group_job_checks_model_against_split(inputs, tmp_path):
-    short = _write_model(tmp_path / "short.h5", np.arange(T_OBS - 1))
+    short = write_model(tmp_path / "short.h5", np.arange(T_OBS - 1))
     with pytest.raises(MogafError, match="split observes"):
-        run_forecast_group(str(short), str(inputs["groups"]), str(inputs["split"]), str(tmp_path / "x.h5"), {},
-                           method="constant_velocity", job=str(RIGID), seed=0)
+        run_forecast_group(
+            str(short),
+            str(inputs["groups"]),
+            str(inputs["split"]),
+            str(tmp_path / "x.h5"),
+            {},
+            method="constant_velocity",
+            job=str(RIGID),
+            seed=0,
+        )
     gid = np.repeat([0, 1], N_PER)
     small = write_groups(tmp_path / "small.h5", _groups(gid, static=[1, 0], rigid=[1, 1]))
     with pytest.raises(MogafError, match="Gaussians"):
-        run_forecast_group(str(inputs["model"]), str(small), str(inputs["split"]), str(tmp_path / "x.h5"), {},
-                           method="constant_velocity", job="1", seed=0)
+        run_forecast_group(
+            str(inputs["model"]),
+            str(small),
+            str(inputs["split"]),
+            str(tmp_path / "x.h5"),
+            {},
+            method="constant_velocity",
+            job="1",
+            seed=0,
+        )
 
 
 # ------------------------------------------------------------------ merge
 def test_merge_inline_constant_velocity(inputs, tmp_path):
     out = _merge(inputs, tmp_path / "constant_velocity.h5", [], "constant_velocity", {"groupwise": True})
     art = read_artefact(out, "forecast")
-    pos, quats, _ = _world()
+    pos, quats, _ = world()
     means, q = np.asarray(art["means"]), np.asarray(art["quats"])
     assert art["timesteps"].tolist() == list(range(T_OBS, T))
     assert means.shape == (N, T - T_OBS, 3) and q.shape == (N, T - T_OBS, 4)
     assert art["group_id"].tolist() == np.repeat([0, 1, 2], N_PER).tolist()
     # static: exactly the last observed pose (bit for bit) at every step
     model = load_model(inputs["model"])
-    s = _members(STATIC)
+    s = members(STATIC)
     for i in range(T - T_OBS):
         np.testing.assert_array_equal(means[s, i], model.trajectory_means[s, -1])
         np.testing.assert_array_equal(q[s, i], model.trajectory_quats[s, -1])
     # linear movers continue linearly: x(t) = x(T_obs - 1) + v (t - T_obs + 1)
-    dyn = np.concatenate([_members(RIGID), _members(NONRIGID)])
+    dyn = np.concatenate([members(RIGID), members(NONRIGID)])
     np.testing.assert_allclose(means[dyn], pos[dyn, T_OBS:], atol=1e-5)
-    np.testing.assert_allclose(means[_members(RIGID), -1] - means[_members(RIGID), 0], np.tile(3 * RIGID_VELOCITY, (N_PER, 1)), atol=1e-5)
+    np.testing.assert_allclose(
+        means[members(RIGID), -1] - means[members(RIGID), 0], np.tile(3 * RIGID_VELOCITY, (N_PER, 1)), atol=1e-5
+    )
     np.testing.assert_allclose(np.abs(np.sum(q[dyn] * quats[dyn, None], -1)), 1.0, atol=1e-5)
     assert art.attrs["method"] == "constant_velocity" and art.attrs["groupwise"] is True
     assert art.attrs["params"] == {}
@@ -265,7 +260,7 @@ def test_merge_inline_constant_velocity(inputs, tmp_path):
 def test_merge_inline_not_groupwise_and_frozen(inputs, tmp_path):
     art = read_artefact(_merge(inputs, tmp_path / "cv.h5", [], "constant_velocity", {"groupwise": False}), "forecast")
     assert set(art.attrs["flags"]) == {"all"} and art.attrs["groupwise"] is False
-    pos, _, _ = _world()
+    pos, _, _ = world()
     np.testing.assert_allclose(art["means"][N_PER:], pos[N_PER:, T_OBS:], atol=1e-5)
     frozen = read_artefact(_merge(inputs, tmp_path / "frozen.h5", [], "frozen"), "forecast")
     last = load_model(inputs["model"]).trajectory_means[:, -1]
@@ -273,8 +268,16 @@ def test_merge_inline_not_groupwise_and_frozen(inputs, tmp_path):
 
 
 def test_merge_inline_refuses_parts(inputs, tmp_path):
-    part = run_forecast_group(str(inputs["model"]), str(inputs["groups"]), str(inputs["split"]), str(tmp_path / "g1.h5"), {},
-                              method="constant_velocity", job=str(RIGID), seed=0)
+    part = run_forecast_group(
+        str(inputs["model"]),
+        str(inputs["groups"]),
+        str(inputs["split"]),
+        str(tmp_path / "g1.h5"),
+        {},
+        method="constant_velocity",
+        job=str(RIGID),
+        seed=0,
+    )
     with pytest.raises(MogafError, match="takes no group files"):
         _merge(inputs, tmp_path / "out.h5", [part], "constant_velocity")
     assert not (tmp_path / "out.h5").exists()
@@ -292,7 +295,7 @@ def test_merge_trained_method_covers_every_dynamic_gaussian(inputs, mogaf_parts,
         part = read_artefact(p, "forecast_group")
         np.testing.assert_array_equal(means[part["members"]], part["means"])
         np.testing.assert_array_equal(np.asarray(art["quats"])[part["members"]], part["quats"])
-    s = _members(STATIC)
+    s = members(STATIC)
     np.testing.assert_array_equal(means[s], np.repeat(model.trajectory_means[s, -1:], T - T_OBS, axis=1))
     covered = np.concatenate([read_artefact(p, "forecast_group")["members"] for p in mogaf_parts])
     assert sorted(covered.tolist()) == list(range(N_PER, N))
@@ -305,8 +308,16 @@ def test_merge_refuses_missing_overlapping_and_foreign_parts(inputs, mogaf_parts
         _merge(inputs, tmp_path / "b.h5", [], "mogaf", MOGAF_FAST)
     with pytest.raises(MogafError, match="overlaps"):
         _merge(inputs, tmp_path / "c.h5", [mogaf_parts[0], mogaf_parts[0]], "mogaf", MOGAF_FAST)
-    whole = run_forecast_group(str(inputs["model"]), str(inputs["groups"]), str(inputs["split"]), str(tmp_path / "all.h5"),
-                               MOGAF_FAST, method="mogaf", job="all", seed=7)
+    whole = run_forecast_group(
+        str(inputs["model"]),
+        str(inputs["groups"]),
+        str(inputs["split"]),
+        str(tmp_path / "all.h5"),
+        MOGAF_FAST,
+        method="mogaf",
+        job="all",
+        seed=7,
+    )
     with pytest.raises(MogafError, match="overlaps"):
         _merge(inputs, tmp_path / "d.h5", [mogaf_parts[0], whole], "mogaf", MOGAF_FAST)
     with pytest.raises(MogafError, match="expected 'gcn'"):
@@ -319,26 +330,38 @@ def test_evaluation_quick_epe_measures_the_error(inputs, tmp_path):
     """The quick 3D check lives in evaluation: the forecast stage never opens the scene (its future)."""
     model = load_model(inputs["model"])
     split = read_split(inputs["split"])
-    pos, quats, _ = _world()
+    pos, quats, _ = world()
     q = np.repeat(quats[:, None], T - T_OBS, axis=1)
     scene = str(inputs["scene"])
-    assert tracking_section(model, {"means": pos[:, T_OBS:], "quats": q}, scene, split, EVAL_PARAMS)[1] == pytest.approx(0.0, abs=1e-5)
+    assert tracking_section(model, {"means": pos[:, T_OBS:], "quats": q}, scene, split, EVAL_PARAMS)[
+        1
+    ] == pytest.approx(0.0, abs=1e-5)
     shifted = pos[:, T_OBS:] + np.array([0.0, 0.3, 0.0])
-    assert tracking_section(model, {"means": shifted, "quats": q}, scene, split, EVAL_PARAMS)[1] == pytest.approx(0.3, abs=1e-5)
+    assert tracking_section(model, {"means": shifted, "quats": q}, scene, split, EVAL_PARAMS)[1] == pytest.approx(
+        0.3, abs=1e-5
+    )
     # frozen leaves the GT points riding the rigid group behind by 1..4 steps of its velocity
     frozen = read_artefact(_merge(inputs, tmp_path / "frozen.h5", [], "frozen"), "forecast")
     fc = {"means": np.asarray(frozen["means"]), "quats": np.asarray(frozen["quats"])}
     expected = np.linalg.norm(RIGID_VELOCITY) * np.mean(np.arange(1, T - T_OBS + 1))
     assert tracking_section(model, fc, scene, split, EVAL_PARAMS)[1] == pytest.approx(expected, rel=1e-3)
     assert "epe_3d_quick" not in frozen.attrs
-    scene_h5, _ = _write_scene(tmp_path / "nogt", with_gt=False)
+    scene_h5, _ = write_scene(tmp_path / "nogt", with_gt=False)
     assert tracking_section(model, fc, str(scene_h5), split, EVAL_PARAMS) == (None, None)
 
 
 # ------------------------------------------------------------------ determinism
 def test_same_inputs_same_seed_same_arrays(inputs, mogaf_parts, tmp_path):
-    again = run_forecast_group(str(inputs["model"]), str(inputs["groups"]), str(inputs["split"]), str(tmp_path / "g.h5"),
-                               MOGAF_FAST, method="mogaf", job=Path(mogaf_parts[0]).stem.removeprefix("group"), seed=7)
+    again = run_forecast_group(
+        str(inputs["model"]),
+        str(inputs["groups"]),
+        str(inputs["split"]),
+        str(tmp_path / "g.h5"),
+        MOGAF_FAST,
+        method="mogaf",
+        job=Path(mogaf_parts[0]).stem.removeprefix("group"),
+        seed=7,
+    )
     a, b = _arrays(mogaf_parts[0]), _arrays(again)
     assert a.keys() == b.keys()
     for k in a:
@@ -352,6 +375,14 @@ def test_same_inputs_same_seed_same_arrays(inputs, mogaf_parts, tmp_path):
     for k in c1:
         np.testing.assert_array_equal(c1[k], c2[k], err_msg=k)
     # ... and the seed matters (so the comparison above can tell runs apart)
-    other = run_forecast_group(str(inputs["model"]), str(inputs["groups"]), str(inputs["split"]), str(tmp_path / "o.h5"),
-                               MOGAF_FAST, method="mogaf", job=Path(mogaf_parts[0]).stem.removeprefix("group"), seed=8)
+    other = run_forecast_group(
+        str(inputs["model"]),
+        str(inputs["groups"]),
+        str(inputs["split"]),
+        str(tmp_path / "o.h5"),
+        MOGAF_FAST,
+        method="mogaf",
+        job=Path(mogaf_parts[0]).stem.removeprefix("group"),
+        seed=8,
+    )
     assert not np.array_equal(_arrays(other)["means"], a["means"])

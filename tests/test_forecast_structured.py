@@ -141,7 +141,9 @@ def test_rigid_poses_from_the_true_future_series_are_the_truth():
 def test_still_part_stays_still_beside_a_moving_part():
     rng = np.random.default_rng(2)
     moving = rigid_box(64, 30)
-    body = np.repeat(np.concatenate([rng.uniform(-1, 1, (64, 1, 3)), np.tile([1.0, 0, 0, 0], (64, 1, 1))], -1), 30, axis=1)
+    body = np.repeat(
+        np.concatenate([rng.uniform(-1, 1, (64, 1, 3)), np.tile([1.0, 0, 0, 0], (64, 1, 1))], -1), 30, axis=1
+    )
     obs = add_noise(np.concatenate([moving, body]), pos_sigma=5e-4, rot_sigma=0.0, seed=3)
     res = fit_and_rollout("mogaf", obs, 15, QUICK, seed=0, rigid=False)
     assert res.info["still_fraction"] == pytest.approx(0.5)
@@ -176,8 +178,18 @@ def test_learned_rigid_forecast_learns_a_fall():
 def test_info_records_the_decision():
     obs = rigid_box(32, 24)
     info = fit_and_rollout("mogaf", obs, 4, QUICK, seed=0).info
-    for key in ("mode", "rigid", "rigid_residual_rel", "rigid_source", "choice", "backtest_frames",
-                "backtest_epe_learned", "backtest_epe_constant_velocity", "backtest_epe_frozen", "still_fraction"):
+    for key in (
+        "mode",
+        "rigid",
+        "rigid_residual_rel",
+        "rigid_source",
+        "choice",
+        "backtest_frames",
+        "backtest_epe_learned",
+        "backtest_epe_constant_velocity",
+        "backtest_epe_frozen",
+        "still_fraction",
+    ):
         assert key in info, key
     assert info["mode"] == "structured" and info["rigid_source"] == "residual"
 
@@ -232,4 +244,9 @@ def test_coherence_is_zero_for_rigid_and_still_and_not_for_drift():
     bad = coherence(observed, np.concatenate([drift, still_fut + 0.02, moving_fut]), group_id, static, rigid)
     assert bad["rigid_distance_change"] > 1e-3 and bad["still_displacement"] == pytest.approx(np.sqrt(3) * 0.02)
     # members of static groups are not counted (no forecaster moves them)
-    assert coherence(observed, np.concatenate([fut, still_fut, moving_fut]), group_id, np.array([False, True]), rigid)["still_gaussians"] == 0
+    assert (
+        coherence(observed, np.concatenate([fut, still_fut, moving_fut]), group_id, np.array([False, True]), rigid)[
+            "still_gaussians"
+        ]
+        == 0
+    )

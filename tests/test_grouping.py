@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from sklearn.metrics import adjusted_rand_score
 
-from mogaf.grouping import DEFAULT_PARAMS, MaskFrames, group_gaussians, mask_gaussians, rigid_init
-from mogaf.grouping.rigidity import decide_rigidity, estimate_rigid
-from mogaf.grouping.core import InstanceTable
-from mogaf.grouping.toy import look_at, model_from_points, two_object_scene
-from mogaf.grouping.voting import knn_vote
 from mogaf.errors import MogafError
+from mogaf.grouping import DEFAULT_PARAMS, MaskFrames, group_gaussians, mask_gaussians, rigid_init
+from mogaf.grouping.core import InstanceTable
+from mogaf.grouping.rigidity import decide_rigidity, estimate_rigid
+from mogaf.grouping.voting import knn_vote
 from mogaf.scene import Instances
+from support.toy_grouping import look_at, model_from_points, two_object_scene
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +69,7 @@ def test_ours_needs_the_motion_feature_on_touching_objects():
     # exact masks (no dilation), so every seed is right.
     K = np.array([[100.0, 0, 48], [0, 100.0, 32], [0, 0, 1]])
     w2c = look_at(np.array([0.0, -5.0, 0.0]), np.zeros(3))
-    from mogaf.grouping.toy import splat_instance_masks
+    from support.toy_grouping import splat_instance_masks
 
     masks = splat_instance_masks(traj[:, 0], labels, K, w2c, 96, 64, radius=0)[None]
     frames = MaskFrames(K=K[None], w2c=w2c[None], time_index=[0])
@@ -245,8 +245,12 @@ def test_rigidity_estimate_rigid_vs_nonrigid():
     ok, r = estimate_rigid(pts, wave_traj, DEFAULT_PARAMS["rigidity_threshold"])
     assert not ok and r > 0.05
     # Sources: config override > label > estimate.
-    table = InstanceTable(ids=np.array([1, 2, 3]), names=["a", "b", "c"], rigid=np.array([0, -1, -1], np.int8),
-                          rigid_source=["label", "label", "label"])
+    table = InstanceTable(
+        ids=np.array([1, 2, 3]),
+        names=["a", "b", "c"],
+        rigid=np.array([0, -1, -1], np.int8),
+        rigid_source=["label", "label", "label"],
+    )
     traj = np.concatenate([rigid_traj, wave_traj, rigid_traj])
     canon = np.concatenate([pts, pts, pts])
     gid = np.repeat([0, 1, 2], P)

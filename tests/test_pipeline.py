@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import REPO
+from support.paths import REPO
 
 SNAKEFILE = str(REPO / "Snakefile")
 CONFIGS = [str(REPO / "config" / "config.yaml"), str(REPO / ".test" / "config.yaml")]
@@ -35,8 +35,11 @@ METHODS = ["mogaf", "mogaf_paper", "gcn", "ode", "constant_velocity", "frozen"]
 
 def _env(work: Path) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if k != "MOGAF_CACHE_DIR"}  # the config's cache_dir decides
-    env.update(HOME=str(work / "home"), XDG_CACHE_HOME=str(work / "home" / ".cache"),
-               XDG_CONFIG_HOME=str(work / "home" / ".config"))
+    env.update(
+        HOME=str(work / "home"),
+        XDG_CACHE_HOME=str(work / "home" / ".cache"),
+        XDG_CONFIG_HOME=str(work / "home" / ".config"),
+    )
     return env
 
 
@@ -46,8 +49,9 @@ def _prepare(work: Path) -> None:
     src = REPO / ".cache" / "mogaf"
     for sub in ("lpips", "kernels"):
         if (src / sub).is_dir():
-            shutil.copytree(src / sub, work / ".cache" / "mogaf" / sub,
-                            ignore=shutil.ignore_patterns("*.tar.gz", "*.tmp*"))
+            shutil.copytree(
+                src / sub, work / ".cache" / "mogaf" / sub, ignore=shutil.ignore_patterns("*.tar.gz", "*.tmp*")
+            )
 
 
 def _command() -> list[str]:
@@ -73,8 +77,14 @@ def runs(tmp_path_factory):
     # second run: killed during reconstruction, then rerun
     second = tmp_path_factory.mktemp("run2")
     _prepare(second)
-    proc = subprocess.Popen(_command(), cwd=second, env=_env(second), stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(
+        _command(),
+        cwd=second,
+        env=_env(second),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     checkpoint = second / RATIO / "checkpoints" / "recon.pt"
     deadline = time.monotonic() + 300
     while not checkpoint.exists() and proc.poll() is None and time.monotonic() < deadline:
@@ -84,12 +94,19 @@ def runs(tmp_path_factory):
     proc.wait()
     after_kill = _files(second)
     # A killed Snakemake leaves its lock behind: --unlock, then a plain rerun.
-    unlock = subprocess.run(_command() + ["--unlock"], cwd=second, env=_env(second), capture_output=True, text=True,
-                            timeout=120)
+    unlock = subprocess.run(
+        _command() + ["--unlock"], cwd=second, env=_env(second), capture_output=True, text=True, timeout=120
+    )
     assert unlock.returncode == 0, unlock.stderr[-3000:]
     rerun = _run(second)
-    return {"first": first, "second": second, "before": before, "killed": killed, "after_kill": after_kill,
-            "rerun": rerun}
+    return {
+        "first": first,
+        "second": second,
+        "before": before,
+        "killed": killed,
+        "after_kill": after_kill,
+        "rerun": rerun,
+    }
 
 
 def test_every_method_has_finite_metrics(runs):
@@ -102,7 +119,9 @@ def test_every_method_has_finite_metrics(runs):
         # the quick 3D check against GT trajectories, computed by evaluation (never by a forecast job)
         assert math.isfinite(section["forecast"]["epe_3d_quick"]), method
         # the structure figures of the forecast (mogaf.forecast.coherence), from the forecast artefact
-        assert {"rigid_groups", "rigid_distance_change", "still_displacement"} <= set(section["forecast"]["coherence"]), method
+        assert {"rigid_groups", "rigid_distance_change", "still_displacement"} <= set(
+            section["forecast"]["coherence"]
+        ), method
     # the default MoGaF records its per-group decision; the paper's mode runs beside it
     (job,) = metrics["methods"]["mogaf"]["forecast"]["jobs"].values()
     assert job["mode"] == "structured" and job["choice"] in ("learned", "constant_velocity", "frozen")
@@ -127,7 +146,9 @@ def test_videos_show_every_method_beside_the_ground_truth(runs):
         assert videos, name
     video = next(p for p in (renders / "all_methods.mp4", renders / "all_methods.gif") if p.exists())
     frame = np.asarray(iio2.mimread(video, memtest=False)[0])[..., :3]
-    one = np.asarray(iio2.mimread(next(p for p in (renders / "frozen.mp4", renders / "frozen.gif") if p.exists()), memtest=False)[0])
+    one = np.asarray(
+        iio2.mimread(next(p for p in (renders / "frozen.mp4", renders / "frozen.gif") if p.exists()), memtest=False)[0]
+    )
     # GT plus one panel per method, side by side: (1 + len(METHODS)) / 3 as wide as a GT | method | error video
     assert abs(frame.shape[1] / one.shape[1] - (1 + len(METHODS)) / 3) < 0.05
 
@@ -136,7 +157,9 @@ def test_artefacts_record_their_lineage(runs):
     from mogaf.artefact import read_lineage
 
     ratio = runs["first"] / RATIO
-    lineage = {name: read_lineage(ratio / name) for name in ("split.h5", "priors.h5", "recon.h5", "groups.h5", "refined.h5")}
+    lineage = {
+        name: read_lineage(ratio / name) for name in ("split.h5", "priors.h5", "recon.h5", "groups.h5", "refined.h5")
+    }
     scene = read_lineage(runs["first"] / RATIO.parent / "scene.h5")
     assert lineage["priors.h5"].inputs == {"ingest": (scene.digest,), "split": (lineage["split.h5"].digest,)}
     refined = lineage["refined.h5"].inputs
@@ -144,7 +167,9 @@ def test_artefacts_record_their_lineage(runs):
     quality = read_lineage(ratio / "grouping_quality.h5").inputs
     assert quality["recon"] == (lineage["recon.h5"].digest,) and quality["group"] == (lineage["groups.h5"].digest,)
     # the reconstruction quality is of the model the forecasts start from
-    assert read_lineage(ratio / "reconstruction_quality" / "refined.h5").inputs["refine"] == (lineage["refined.h5"].digest,)
+    assert read_lineage(ratio / "reconstruction_quality" / "refined.h5").inputs["refine"] == (
+        lineage["refined.h5"].digest,
+    )
     forecast = read_lineage(ratio / "forecast" / "mogaf.h5")
     assert forecast.inputs["refine"] == (lineage["refined.h5"].digest,)
 
@@ -153,12 +178,15 @@ def test_writes_only_results_snakemake_and_cache(runs):
     work = runs["first"]
     new = _files(work) - runs["before"]
     allowed = (("results",), (".snakemake",), (".cache", "mogaf"))
-    outside = sorted(str(p) for p in new if not any(p.parts[:len(a)] == a for a in allowed))
+    outside = sorted(str(p) for p in new if not any(p.parts[: len(a)] == a for a in allowed))
     assert not outside, outside
     # HOME may only hold Snakemake's own source cache (~/.cache/snakemake), like .snakemake/ its own.
     home = work / "home"
-    elsewhere = sorted(str(p.relative_to(home)) for p in home.rglob("*") if p.is_file()
-                       and p.relative_to(home).parts[:2] != (".cache", "snakemake"))
+    elsewhere = sorted(
+        str(p.relative_to(home))
+        for p in home.rglob("*")
+        if p.is_file() and p.relative_to(home).parts[:2] != (".cache", "snakemake")
+    )
     assert not elsewhere, elsewhere
 
 

@@ -13,8 +13,7 @@ from mogaf.errors import MogafError
 from mogaf.priors import DEFAULT_PARAMS, build_priors, run_priors_stage
 from mogaf.scene import SPLIT_CODES, Instances, Scene, save_scene
 from mogaf.split import split_scene, write_split
-
-from test_priors_tracks import moving_squares
+from support.moving_squares import moving_squares
 
 T, H, W = 12, 64, 80
 RATIO = 0.5  # 6 observed steps
@@ -29,8 +28,16 @@ def _pose(tx: float) -> np.ndarray:
     return w2c
 
 
-def make_scene(layout: str = "iphone", *, depth: bool = True, instances: bool = False, shipped_tracks: bool = False,
-               shipped_disparity: bool = False, gt_tracks: bool = False, som_foreground: bool = False) -> tuple[Scene, np.ndarray]:
+def make_scene(
+    layout: str = "iphone",
+    *,
+    depth: bool = True,
+    instances: bool = False,
+    shipped_tracks: bool = False,
+    shipped_disparity: bool = False,
+    gt_tracks: bool = False,
+    som_foreground: bool = False,
+) -> tuple[Scene, np.ndarray]:
     rng = np.random.default_rng(3)
     frames, alphas, _ = moving_squares(rng, T, H, W, SQUARES)
     K = np.array([[60.0, 0, W / 2], [0, 60.0, H / 2], [0, 0, 1]])
@@ -53,11 +60,18 @@ def make_scene(layout: str = "iphone", *, depth: bool = True, instances: bool = 
     for k in range(len(SQUARES)):
         inst[masks[k] > 0.5] = k + 1
     scene = Scene(
-        dataset="toy", name="squares", layout=layout,
-        frame_names=[f"f{i:03d}" for i in range(F)], images=images.astype(np.uint8),
-        K=np.repeat(K[None], F, 0), w2c=np.stack([_pose(float(c)) for c in cam]),
-        time=t_idx / (T - 1.0), time_index=t_idx.astype(np.int64), num_timesteps=T,
-        camera_id=cam.astype(np.int64), source_split=split.astype(np.int8),
+        dataset="toy",
+        name="squares",
+        layout=layout,
+        frame_names=[f"f{i:03d}" for i in range(F)],
+        images=images.astype(np.uint8),
+        K=np.repeat(K[None], F, 0),
+        w2c=np.stack([_pose(float(c)) for c in cam]),
+        time=t_idx / (T - 1.0),
+        time_index=t_idx.astype(np.int64),
+        num_timesteps=T,
+        camera_id=cam.astype(np.int64),
+        source_split=split.astype(np.int8),
         meta={"background": [0.0, 0.0, 0.0]},
     )
     if depth:
@@ -72,8 +86,11 @@ def make_scene(layout: str = "iphone", *, depth: bool = True, instances: bool = 
     if shipped_disparity:
         # The iPhone reader's layout: rows that have a map (here train frames but the last two).
         rows = np.arange(T - 2)
-        scene.shipped["disparity"] = {"frame": rows, "time_index": t_idx[rows],
-                                      "values": (0.5 + 0.1 * rng.random((len(rows), H, W))).astype(np.float32)}
+        scene.shipped["disparity"] = {
+            "frame": rows,
+            "time_index": t_idx[rows],
+            "values": (0.5 + 0.1 * rng.random((len(rows), H, W))).astype(np.float32),
+        }
     P = 40
     track_xy = rng.uniform(5, 60, (P, T, 2)).astype(np.float32)
     track_vis = rng.random((P, T)) > 0.2
@@ -85,15 +102,25 @@ def make_scene(layout: str = "iphone", *, depth: bool = True, instances: bool = 
         vals[..., 2] = rng.normal(-2.0, 3.0, vals.shape[:2])
         vals[..., 3] = rng.normal(-2.0, 1.0, vals.shape[:2])
         scene.shipped["tracks_2d"] = {
-            "query_frame": queries, "query_time_index": t_idx[queries],
-            "target_frame": np.arange(T), "target_time_index": t_idx[:T],
-            "offsets": np.arange(0, 8 * len(queries) + 1, 8), "values": vals,
+            "query_frame": queries,
+            "query_time_index": t_idx[queries],
+            "target_frame": np.arange(T),
+            "target_time_index": t_idx[:T],
+            "offsets": np.arange(0, 8 * len(queries) + 1, 8),
+            "values": vals,
         }
-        scene.shipped["keypoints"] = {"frame": np.arange(T), "time_index": t_idx[:T], "values": rng.random((T, 3, 3)).astype(np.float32)}
+        scene.shipped["keypoints"] = {
+            "frame": np.arange(T),
+            "time_index": t_idx[:T],
+            "values": rng.random((T, 3, 3)).astype(np.float32),
+        }
     if gt_tracks:
-        scene.ground_truth = {"tracks2d": track_xy, "visible": track_vis.astype(np.uint8),
-                              "points3d": rng.random((P, T, 3)).astype(np.float32),
-                              "points_instance": (np.arange(P) % 2 + 1).astype(np.int64)}
+        scene.ground_truth = {
+            "tracks2d": track_xy,
+            "visible": track_vis.astype(np.uint8),
+            "points3d": rng.random((P, T, 3)).astype(np.float32),
+            "points_instance": (np.arange(P) % 2 + 1).astype(np.int64),
+        }
     return scene, t_idx
 
 
@@ -121,7 +148,7 @@ def poison_future(scene_h5: str, t_idx: np.ndarray, train_code_rows: np.ndarray)
             ds[:, T_OBS:] = rng.uniform(-5, 60, ds[:, T_OBS:].shape)
             for q, qt in enumerate(g["query_time_index"][()]):
                 if qt >= T_OBS:
-                    ds[off[q]:off[q + 1]] = rng.uniform(-5, 60, ds[off[q]:off[q + 1]].shape)
+                    ds[off[q] : off[q + 1]] = rng.uniform(-5, 60, ds[off[q] : off[q + 1]].shape)
         for key in ("frames/images", "frames/depth", "frames/instance_mask"):
             if key not in fh:
                 continue
@@ -185,8 +212,12 @@ def test_priors_depend_only_on_observed_frames(tmp_path, kind):
         assert before.sources["masks"].startswith("motion_segmentation")
         assert before.sources["instances"].startswith("track_clustering")
     elif kind == "ground_truth":
-        assert before.sources == {"depth": "shipped/disparity", "tracks": "ground_truth",
-                                  "masks": "dataset_instance_masks", "instances": "dataset_instance_masks"}
+        assert before.sources == {
+            "depth": "shipped/disparity",
+            "tracks": "ground_truth",
+            "masks": "dataset_instance_masks",
+            "instances": "dataset_instance_masks",
+        }
         assert before.depth_kind == "disparity"
     else:
         assert before.sources["tracks"] == "shipped" and before.sources["masks"] == "dataset_foreground_mask"
@@ -328,7 +359,7 @@ def test_unknown_parameter_is_refused(tmp_path):
 def test_iphone_reader_layout_end_to_end(tmp_path):
     """Shape-of-Motion files as the iPhone reader stores them (fake DyCheck scene)."""
     from mogaf.datasets import read_scene
-    from mogaf.datasets.fakes import fake_iphone
+    from support.fake_datasets import fake_iphone
 
     root = fake_iphone(tmp_path / "scene", num_times=8, full_size=(64, 48), track_points=3)
     scene = read_scene("iphone", root, dataset="fake", scene="s", options={"scale": 2})
@@ -349,7 +380,7 @@ def test_iphone_reader_layout_end_to_end(tmp_path):
 
 def test_iphone_without_any_depth_names_the_files(tmp_path):
     from mogaf.datasets import read_scene
-    from mogaf.datasets.fakes import fake_iphone
+    from support.fake_datasets import fake_iphone
 
     root = fake_iphone(tmp_path / "scene", num_times=8, full_size=(64, 48), depth=False, som=False)
     scene = read_scene("iphone", root, dataset="fake", scene="s", options={"scale": 2})

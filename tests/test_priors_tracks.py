@@ -8,51 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import shared_path
 from mogaf.priors import DEFAULT_PARAMS, compute_flow_tracks
 from mogaf.priors.instances import cluster_tracks, label_pixels
-
-
-def texture(rng: np.random.Generator, h: int, w: int, sigma: float = 1.5) -> np.ndarray:
-    """Smooth random colour texture in [0, 255] (float32)."""
-    t = rng.uniform(0, 255, (h, w, 3)).astype(np.float32)
-    t = cv2.GaussianBlur(t, (0, 0), sigma)
-    t -= t.min(axis=(0, 1))
-    t *= 255.0 / np.maximum(t.max(axis=(0, 1)), 1e-6)
-    return t
-
-
-def paste(canvas: np.ndarray, tex: np.ndarray, x: float, y: float) -> np.ndarray:
-    """Composite `tex` with its top-left corner at sub-pixel (x, y); returns the alpha."""
-    H, W = canvas.shape[:2]
-    M = np.float32([[1, 0, x], [0, 1, y]])
-    layer = cv2.warpAffine(tex, M, (W, H), flags=cv2.INTER_LINEAR)
-    alpha = cv2.warpAffine(np.ones(tex.shape[:2], np.float32), M, (W, H), flags=cv2.INTER_LINEAR)[..., None]
-    canvas[:] = canvas * (1 - alpha) + layer * alpha
-    return alpha[..., 0]
-
-
-def moving_squares(rng, T, H, W, squares, occluder=None):
-    """Frames with textured squares [(x0, y0, vx, vy, size)] over a static textured background.
-
-    Returns frames (T,H,W,3) uint8, per-square alpha (S,T,H,W) and occluder alpha (T,H,W).
-    """
-    bg = texture(rng, H, W, 2.0) * 0.6
-    texs = [texture(rng, s, s, 1.2) for *_, s in squares]
-    occ_tex = texture(rng, H, 30, 1.2) if occluder else None
-    frames = np.zeros((T, H, W, 3), np.uint8)
-    alphas = np.zeros((len(squares), T, H, W), np.float32)
-    occ = np.zeros((T, H, W), np.float32)
-    for t in range(T):
-        c = bg.copy()
-        for k, ((x0, y0, vx, vy, _), tex) in enumerate(zip(squares, texs)):
-            alphas[k, t] = paste(c, tex, x0 + vx * t, y0 + vy * t)
-        if occluder:
-            ox0, ovx, t_in = occluder
-            if t >= t_in:
-                occ[t] = paste(c, occ_tex, ox0 + ovx * (t - t_in), 0.0)
-        frames[t] = np.clip(np.rint(c), 0, 255).astype(np.uint8)
-    return frames, alphas, occ
+from support.moving_squares import moving_squares
+from support.paths import shared_path
 
 
 @pytest.mark.parametrize("method, tol", [("dis", (0.15, 0.5, 0.1)), ("rlof", (0.4, 2.0, 0.2))])
@@ -173,10 +132,18 @@ def test_carphone_stage(tmp_path):
     t = np.concatenate([np.arange(T), np.arange(T)])
     F = 2 * T
     scene = Scene(
-        dataset="video", name="carphone", layout="iphone", frame_names=[f"{i:03d}" for i in range(F)],
-        images=np.concatenate([frames, frames]), K=np.repeat(np.array([[150.0, 0, W / 2], [0, 150.0, H / 2], [0, 0, 1]])[None], F, 0),
-        w2c=np.repeat(np.eye(4)[None], F, 0), time=t / (T - 1.0), time_index=t, num_timesteps=T,
-        camera_id=np.repeat([0, 1], T), source_split=np.repeat([SPLIT_CODES["train"], SPLIT_CODES["val"]], T).astype(np.int8),
+        dataset="video",
+        name="carphone",
+        layout="iphone",
+        frame_names=[f"{i:03d}" for i in range(F)],
+        images=np.concatenate([frames, frames]),
+        K=np.repeat(np.array([[150.0, 0, W / 2], [0, 150.0, H / 2], [0, 0, 1]])[None], F, 0),
+        w2c=np.repeat(np.eye(4)[None], F, 0),
+        time=t / (T - 1.0),
+        time_index=t,
+        num_timesteps=T,
+        camera_id=np.repeat([0, 1], T),
+        source_split=np.repeat([SPLIT_CODES["train"], SPLIT_CODES["val"]], T).astype(np.int8),
         depth=np.ones((F, H, W), np.float32),
     )
     save_scene(tmp_path / "scene.h5", scene, config_digest="test")
@@ -186,7 +153,9 @@ def test_carphone_stage(tmp_path):
     seconds = time.perf_counter() - t0
     art = read_artefact(out, "priors")
     a = art.attrs
-    print(f"carphone stage: { {k: v for k, v in a.items() if k.startswith('track_')} } sources {a['sources']} in {seconds:.2f} s")
+    print(
+        f"carphone stage: { {k: v for k, v in a.items() if k.startswith('track_')} } sources {a['sources']} in {seconds:.2f} s"
+    )
     assert art["tracks/xy"].shape[1] == 24 and a["track_count"] == art["tracks/xy"].shape[0] > 20
     assert np.all(np.isfinite(art["tracks/xy"]))
     assert 0 < a["track_fb_error_median_px"] < a["track_fb_error_p95_px"]

@@ -20,7 +20,8 @@ def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
 def test_procrustes_init_recovers_rigid_motion_of_lifted_tracks():
     """Tracks of a rigidly moving point set, lifted from depth maps, give back the motion as a basis."""
     from mogaf.recon.data import TrainData
-    from mogaf.recon.init import bases_from_clusters, fill_in_time, lift_tracks
+    from mogaf.recon.init_tracks import bases_from_clusters, lift_tracks
+    from mogaf.recon.interpolation import fill_in_time
     from mogaf.representation import rot6d_to_matrix
 
     rng = np.random.default_rng(0)
@@ -47,10 +48,20 @@ def test_procrustes_init_recovers_rigid_motion_of_lifted_tracks():
         assert len({tuple(p) for p in px}) == len(px)  # one point per pixel
         depth[f, px[:, 1], px[:, 0]] = cam[:, 2]
     data = TrainData(
-        images=np.zeros((F, H, W, 3), np.float32), fg_masks=np.ones((F, H, W), np.float32), K=np.repeat(K[None], F, 0),
-        w2c=np.repeat(w2c[None], F, 0), tidx=np.arange(F), timesteps=np.arange(F), frame_ids=np.arange(F), layout="iphone",
-        background=np.ones(3, np.float32), depth=depth, depth_valid=depth > 0, tracks_xy=xy,
-        tracks_visible=np.ones((len(X0), F), bool), tracks_query=np.zeros(len(X0), np.int64),
+        images=np.zeros((F, H, W, 3), np.float32),
+        fg_masks=np.ones((F, H, W), np.float32),
+        K=np.repeat(K[None], F, 0),
+        w2c=np.repeat(w2c[None], F, 0),
+        tidx=np.arange(F),
+        timesteps=np.arange(F),
+        frame_ids=np.arange(F),
+        layout="iphone",
+        background=np.ones(3, np.float32),
+        depth=depth,
+        depth_valid=depth > 0,
+        tracks_xy=xy,
+        tracks_visible=np.ones((len(X0), F), bool),
+        tracks_query=np.zeros(len(X0), np.int64),
     )
     xyz, ok = lift_tracks(data)
     assert ok.all()
@@ -86,7 +97,9 @@ def _model(n_fg: int, n_bg: int, scales_fg: np.ndarray, scales_bg: np.ndarray):
             d["labels"] = torch.arange(n)
         return d
 
-    m = ReconModel(part(n_fg, scales_fg, True), torch.zeros(2, 3, 6), torch.zeros(2, 3, 3), part(n_bg, scales_bg, False))
+    m = ReconModel(
+        part(n_fg, scales_fg, True), torch.zeros(2, 3, 6), torch.zeros(2, 3, 3), part(n_bg, scales_bg, False)
+    )
     opts = {k: torch.optim.Adam([p], lr=1e-3) for k, p in m.named_tensors().items()}
     # give every tensor some Adam state
     loss = sum((p * p).sum() for p in m.named_tensors().values())

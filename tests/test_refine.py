@@ -1,4 +1,4 @@
-"""Group-wise refinement on the tiny rendered scene of test_recon."""
+"""Group-wise refinement on the tiny rendered scene of support.tiny_scene."""
 
 from __future__ import annotations
 
@@ -11,14 +11,22 @@ from mogaf.grouping.stage import load_groups, run_rigid_init_stage, write_groups
 from mogaf.recon import run_recon_stage
 from mogaf.refine import neighbour_pairs, resolve_params, rigid_residuals, run_refine_stage
 from mogaf.representation import load_model
-from test_recon import TINY_PARAMS, assert_same_arrays, make_tiny_scene
+from support.tiny_scene import TINY_PARAMS, assert_same_arrays, make_tiny_scene
 
 REFINE = {"iterations": 40, "rigid_times": 2, "recon": {"checkpoint_every": 10}}
 
 
 def _groups(n: int, *, rigid: int, static: int = 0) -> Groups:
-    return Groups(group_id=np.zeros(n, np.int64), rigid=np.array([rigid], np.int8), static=np.array([static], np.int8),
-                  instance_id=np.array([1]), names=["cluster"], rigid_source=["config"], method="test", params={})
+    return Groups(
+        group_id=np.zeros(n, np.int64),
+        rigid=np.array([rigid], np.int8),
+        static=np.array([static], np.int8),
+        instance_id=np.array([1]),
+        names=["cluster"],
+        rigid_source=["config"],
+        method="test",
+        params={},
+    )
 
 
 @pytest.fixture(scope="module")
@@ -30,13 +38,32 @@ def tiny(tmp_path_factory):
     rigid_groups = write_groups(folder / "groups_rigid.h5", _groups(n, rigid=1))
     nr_groups = write_groups(folder / "groups_nr.h5", _groups(n, rigid=0))
     rigid = run_rigid_init_stage(recon, rigid_groups, folder / "rigid.h5", {})
-    return {"folder": folder, "scene": scene, "split": split, "priors": priors, "recon": recon,
-            "rigid_groups": rigid_groups, "nr_groups": nr_groups, "rigid": rigid}
+    return {
+        "folder": folder,
+        "scene": scene,
+        "split": split,
+        "priors": priors,
+        "recon": recon,
+        "rigid_groups": rigid_groups,
+        "nr_groups": nr_groups,
+        "rigid": rigid,
+    }
 
 
 def _refine(t, out, groups="rigid_groups", rigid="rigid", params=REFINE, **kw):
-    return run_refine_stage(t["recon"], t[groups], t[rigid] if rigid else None, t["priors"], t["scene"], t["split"],
-                            t["folder"] / out, params, seed=0, progress=False, **kw)
+    return run_refine_stage(
+        t["recon"],
+        t[groups],
+        t[rigid] if rigid else None,
+        t["priors"],
+        t["scene"],
+        t["split"],
+        t["folder"] / out,
+        params,
+        seed=0,
+        progress=False,
+        **kw,
+    )
 
 
 def test_rigid_group_residual_drops_and_schema_matches_recon(tiny):
@@ -69,8 +96,18 @@ def test_nonrigid_group_needs_no_rigid_file_and_smooths_coefficients(tiny):
 def test_static_scene_is_a_noop(tiny):
     n = len(load_model(tiny["recon"]).fg)
     static = write_groups(tiny["folder"] / "groups_static.h5", _groups(n, rigid=1, static=1))
-    out = run_refine_stage(tiny["recon"], static, None, tiny["priors"], tiny["scene"], tiny["split"],
-                           tiny["folder"] / "refined_static.h5", REFINE, seed=0, progress=False)
+    out = run_refine_stage(
+        tiny["recon"],
+        static,
+        None,
+        tiny["priors"],
+        tiny["scene"],
+        tiny["split"],
+        tiny["folder"] / "refined_static.h5",
+        REFINE,
+        seed=0,
+        progress=False,
+    )
     recon, refined = load_model(tiny["recon"]), load_model(out, ("refine",))
     assert refined.attrs["noop"] == 1
     np.testing.assert_array_equal(refined.trajectory_means, recon.trajectory_means)

@@ -17,7 +17,7 @@ import time
 import pytest
 
 from mogaf.recon import run_recon_stage
-from test_recon import TINY_PARAMS, assert_same_arrays, make_tiny_scene
+from support.tiny_scene import TINY_PARAMS, assert_same_arrays, make_tiny_scene
 
 PARAMS = {**TINY_PARAMS, "iterations": 150, "checkpoint_every": 5}
 
@@ -44,8 +44,14 @@ def test_killed_recon_resumes_to_identical_result(tiny, sig, caplog):
     work = folder / sig.name
     work.mkdir()
     out, checkpoint = work / "recon.h5", work / "recon.pt"
-    args = {"scene": str(scene), "split": str(split), "priors": str(priors), "out": str(out),
-            "params": PARAMS, "checkpoint": str(checkpoint)}
+    args = {
+        "scene": str(scene),
+        "split": str(split),
+        "priors": str(priors),
+        "out": str(out),
+        "params": PARAMS,
+        "checkpoint": str(checkpoint),
+    }
     proc = subprocess.Popen([sys.executable, "-c", CHILD, json.dumps(args)], stderr=subprocess.PIPE)
     deadline = time.monotonic() + 120
     while not checkpoint.exists() and proc.poll() is None and time.monotonic() < deadline:

@@ -1,4 +1,4 @@
-"""Reports (mogaf.report.tables, mogaf.report.runtime) from hand-made metrics.json files.
+"""Reports (mogaf.report.tables, .runtime, .glance) from hand-made metrics.json files.
 
 The files are built with the structure mogaf.evaluate.run_evaluate_stage
 writes (and written the same way: evaluate._round, then write_json), so the
@@ -18,14 +18,17 @@ from mogaf.artefact import write_json
 from mogaf.evaluate import _round
 from mogaf.forecast import defaults
 from mogaf.report import NO_RESULT, load_metrics
+from mogaf.report.glance import END, START, glance_table, replace_section, write_section
 from mogaf.report.runtime import collect_points, pareto_front, write_runtime_report
 from mogaf.report.tables import (
     METHOD_LABELS,
+    MISSING,
     TABLE_NAMES,
     build_tables,
     dnerf_table,
     fmt,
     forecast_table,
+    groupwise_table,
     iphone_table,
     main_table_paths,
     write_tables,
@@ -33,6 +36,8 @@ from mogaf.report.tables import (
 
 ABLATIONS = {
     "variants": {
+        "lw_opt_fc": {"labels": {"encoder": "LW", "opt": True, "forecast": True}},
+        "hc_opt_fc": {"labels": {"encoder": "HC", "opt": True, "forecast": True}},
         "gaga4d": {"labels": {"grouping": "Gaga-4D"}},
         "no_masking": {"labels": {"masking": False}},
         "rt_fast": {"labels": {"knob": "iterations x0.25"}},
@@ -40,57 +45,114 @@ ABLATIONS = {
 }
 
 
-def method_section(image: dict[str, float], *, method: str, wall: float, epe: float | None = None,
-                   params: dict[str, Any] | None = None) -> dict[str, Any]:
+def method_section(
+    image: dict[str, float], *, method: str, wall: float, epe: float | None = None, params: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """methods.<m> as evaluate.run_evaluate_stage writes it."""
     tracking = None
     if epe is not None:
-        tracking = {"epe_3d": epe, "delta_3d@0.05": 0.4, "delta_3d@0.10": 0.6, "aj": 0.3, "delta_avg": 0.5,
-                    "occlusion_accuracy": 0.8}
+        tracking = {
+            "epe_3d": epe,
+            "delta_3d@0.05": 0.4,
+            "delta_3d@0.10": 0.6,
+            "aj": 0.3,
+            "delta_avg": 0.5,
+            "occlusion_accuracy": 0.8,
+        }
     return {
         "image": dict(image),
         "per_view": [{"frame": "1_00040", "timestep": 40, **image}],
         "tracking": tracking,
-        "forecast": {"method": method, "groupwise": True, "num_groups_trained": 2,
-                     "params": defaults(method) if params is None else params, "jobs": {"1": {"final_loss": 0.1}}},
+        "forecast": {
+            "method": method,
+            "groupwise": True,
+            "num_groups_trained": 2,
+            "params": defaults(method) if params is None else params,
+            "jobs": {"1": {"final_loss": 0.1}},
+        },
         "runtime": {"total_wall_s": wall},
     }
 
 
-def write_metrics(path: Path, *, dataset: str, scene: str, ratio: float, protocol: str, methods: dict[str, Any],
-                  variant: str = "default", grouping: dict[str, Any] | None = None) -> Path:
+def write_metrics(
+    path: Path,
+    *,
+    dataset: str,
+    scene: str,
+    ratio: float,
+    protocol: str,
+    methods: dict[str, Any],
+    variant: str = "default",
+    grouping: dict[str, Any] | None = None,
+) -> Path:
     result = {
         "mogaf_version": "0.0.0",
-        "dataset": dataset, "scene": scene, "ratio": ratio, "variant": variant, "protocol": protocol,
-        "num_evaluation_views": 1, "forecast_timesteps": [40, 41],
+        "dataset": dataset,
+        "scene": scene,
+        "ratio": ratio,
+        "variant": variant,
+        "protocol": protocol,
+        "num_evaluation_views": 1,
+        "forecast_timesteps": [40, 41],
         "methods": methods,
         "reconstruction": {"heldout_observed": {"psnr": 25.0}, "num_frames": 1},
         "grouping": grouping or {"method": "ours", "num_groups": 3, "ari": 0.9, "mean_iou": 0.8},
-        "runtime": {"stages": {"recon": {"wall_s": 100.0, "max_rss_mb": 500.0}},
-                    "total_wall_s": {m: s["runtime"]["total_wall_s"] for m, s in methods.items()}},
+        "runtime": {
+            "stages": {"recon": {"wall_s": 100.0, "max_rss_mb": 500.0}},
+            "total_wall_s": {m: s["runtime"]["total_wall_s"] for m, s in methods.items()},
+        },
     }
     path.parent.mkdir(parents=True, exist_ok=True)
     return write_json(path, _round(result))
 
 
-IPHONE_A = {"mogaf": {"mpsnr": 17.123456, "mssim": 0.612345, "mlpips": 0.351234, "psnr": 16.5, "ssim": 0.6, "lpips": 0.4},
-            "frozen": {"mpsnr": 15.5, "mssim": 0.55, "mlpips": 0.42, "psnr": 15.0, "ssim": 0.5, "lpips": 0.45}}
-IPHONE_B = {"mogaf": {"mpsnr": 18.987654, "mssim": 0.701111, "mlpips": 0.300049, "psnr": 17.5, "ssim": 0.65, "lpips": 0.35}}
-DNERF_C = {"mogaf": {"psnr": 22.25, "ssim": 0.912345, "lpips": 0.081234},
-           "ode": {"psnr": 21.5, "ssim": 0.9, "lpips": 0.09}}
+IPHONE_A = {
+    "mogaf": {"mpsnr": 17.123456, "mssim": 0.612345, "mlpips": 0.351234, "psnr": 16.5, "ssim": 0.6, "lpips": 0.4},
+    "frozen": {"mpsnr": 15.5, "mssim": 0.55, "mlpips": 0.42, "psnr": 15.0, "ssim": 0.5, "lpips": 0.45},
+}
+IPHONE_B = {
+    "mogaf": {"mpsnr": 18.987654, "mssim": 0.701111, "mlpips": 0.300049, "psnr": 17.5, "ssim": 0.65, "lpips": 0.35}
+}
+DNERF_C = {
+    "mogaf": {"psnr": 22.25, "ssim": 0.912345, "lpips": 0.081234},
+    "ode": {"psnr": 21.5, "ssim": 0.9, "lpips": 0.09},
+}
 
 
 @pytest.fixture
 def metrics_files(tmp_path) -> list[Path]:
     ode_params = {**defaults("ode"), "epochs": 20}
     return [
-        write_metrics(tmp_path / "iphone/a/metrics.json", dataset="iphone", scene="a", ratio=0.6, protocol="iphone",
-                      methods={m: method_section(v, method=m, wall=100.0 + i, epe=0.1 * (i + 1)) for i, (m, v) in enumerate(IPHONE_A.items())}),
-        write_metrics(tmp_path / "iphone/b/metrics.json", dataset="iphone", scene="b", ratio=0.6, protocol="iphone",
-                      methods={"mogaf": method_section(IPHONE_B["mogaf"], method="mogaf", wall=210.4)}),
-        write_metrics(tmp_path / "dnerf/c/metrics.json", dataset="dnerf", scene="c", ratio=0.8, protocol="dnerf",
-                      methods={"mogaf": method_section(DNERF_C["mogaf"], method="mogaf", wall=50.0),
-                               "ode": method_section(DNERF_C["ode"], method="ode", wall=75.6, params=ode_params)}),
+        write_metrics(
+            tmp_path / "iphone/a/metrics.json",
+            dataset="iphone",
+            scene="a",
+            ratio=0.6,
+            protocol="iphone",
+            methods={
+                m: method_section(v, method=m, wall=100.0 + i, epe=0.1 * (i + 1))
+                for i, (m, v) in enumerate(IPHONE_A.items())
+            },
+        ),
+        write_metrics(
+            tmp_path / "iphone/b/metrics.json",
+            dataset="iphone",
+            scene="b",
+            ratio=0.6,
+            protocol="iphone",
+            methods={"mogaf": method_section(IPHONE_B["mogaf"], method="mogaf", wall=210.4)},
+        ),
+        write_metrics(
+            tmp_path / "dnerf/c/metrics.json",
+            dataset="dnerf",
+            scene="c",
+            ratio=0.8,
+            protocol="dnerf",
+            methods={
+                "mogaf": method_section(DNERF_C["mogaf"], method="mogaf", wall=50.0),
+                "ode": method_section(DNERF_C["ode"], method="ode", wall=75.6, params=ode_params),
+            },
+        ),
     ]
 
 
@@ -110,8 +172,13 @@ def test_write_tables_writes_every_format(metrics_files, tmp_path):
         tex = Path(tmp_path / "tables" / f"table_{name}.tex").read_text()
         rows = list(csv.reader(io.StringIO(Path(tmp_path / "tables" / f"table_{name}.csv").read_text())))
         assert md.startswith("### ") and md.endswith("\n")
-        assert tex.startswith(r"\begin{table}") and r"\end{tabular}" in tex and tex.count(r"\\") >= 2
+        assert tex.startswith(r"\begin{table}") and tex.endswith("\\end{table}\n")
         assert rows and all(len(r) == len(rows[0]) for r in rows)
+        if len(rows) > 1:  # a table with results
+            assert r"\end{tabular}" in tex and tex.count(r"\\") >= 2 and "| " in md
+        else:  # no ablation variant was run: one line, no table of "no result"
+            assert name in ("grouping", "groupwise", "masking")
+            assert NO_RESULT in md and "|" not in md and r"\begin{tabular}" not in tex
     with pytest.raises(ValueError, match="unexpected table output"):
         write_tables([str(p) for p in metrics_files], [str(tmp_path / "table_nosuch.md")], {}, ABLATIONS)
 
@@ -126,15 +193,15 @@ def test_iphone_table_numbers_missing_cells_and_average(metrics_files):
     a, b, avg = rows["iphone/a"], rows["iphone/b"], rows["Average"]
     assert a[0] == "60%"
     assert a[2:] == ["17.12", "0.6123", "0.3512", "15.50", "0.5500", "0.4200"]
-    # scene b has no frozen result
-    assert b[2:] == ["18.99", "0.7011", "0.3000", NO_RESULT, NO_RESULT, NO_RESULT]
+    # scene b has no frozen result: dashes among the present cells
+    assert b[2:] == ["18.99", "0.7011", "0.3000", MISSING, MISSING, MISSING]
     # averages: means of the rows' values (the missing cell is left out)
     assert avg[2] == f"{(17.123456 + 18.987654) / 2:.2f}"
     assert avg[3] == f"{(0.612345 + 0.701111) / 2:.4f}"
     assert avg[4] == f"{(0.351234 + 0.300049) / 2:.4f}"
     assert avg[5:] == ["15.50", "0.5500", "0.4200"]
     md = t.markdown()
-    assert "| 60% | iphone/b | 18.99 | 0.7011 | 0.3000 | no result | no result | no result |" in md
+    assert "| 60% | iphone/b | 18.99 | 0.7011 | 0.3000 | – | – | – |" in md and NO_RESULT not in md
     # no method here ran off its defaults
     assert "*" not in "".join(label for label, _ in t.spans) and not any(n.startswith("*") for n in t.notes)
 
@@ -159,17 +226,34 @@ def test_forecast_table_rows_equal_the_files(metrics_files):
     by = {(r[1], r[4]): r for r in t.rows}
     mogaf_a = by[("a", METHOD_LABELS["mogaf"])]
     assert mogaf_a[:4] == ["iphone", "a", "0.6", "default"]
-    assert mogaf_a[5:] == [fmt(16.5, "psnr"), fmt(0.6, "ssim"), fmt(0.4, "lpips"), fmt(17.123456, "mpsnr"), "0.100", "100"]
-    assert by[("b", METHOD_LABELS["mogaf"])][-2:] == [NO_RESULT, "210"]  # no tracking; 210.4 s to 0 digits
+    assert mogaf_a[5:] == [
+        fmt(16.5, "psnr"),
+        fmt(0.6, "ssim"),
+        fmt(0.4, "lpips"),
+        fmt(17.123456, "mpsnr"),
+        "0.100",
+        "100",
+    ]
+    assert by[("b", METHOD_LABELS["mogaf"])][-2:] == [MISSING, "210"]  # no tracking; 210.4 s to 0 digits
     ode_c = by[("c", METHOD_LABELS["ode"] + "*")]
-    assert ode_c[5:] == ["21.50", "0.9000", "0.0900", NO_RESULT, NO_RESULT, "76"]
+    assert ode_c[5:] == ["21.50", "0.9000", "0.0900", MISSING, MISSING, "76"]
+    # the CSV leaves a missing cell empty
+    rows = list(csv.reader(io.StringIO(t.csv())))
+    ode_csv = next(r for r in rows if r[1] == "c" and r[4] == METHOD_LABELS["ode"] + "*")
+    assert ode_csv[5:] == ["21.50", "0.9000", "0.0900", "", "", "76"]
     assert any("epochs (default 40) = 20" in n for n in t.notes)
 
 
 def test_gcn_off_defaults_is_marked(tmp_path):
     gcn = {**defaults("gcn"), "epochs": 20, "num_threads": 4}
-    f = write_metrics(tmp_path / "m.json", dataset="d", scene="s", ratio=0.8, protocol="dnerf",
-                      methods={"gcn": method_section({"psnr": 20.0, "ssim": 0.9, "lpips": 0.1}, method="gcn", wall=10.0, params=gcn)})
+    f = write_metrics(
+        tmp_path / "m.json",
+        dataset="d",
+        scene="s",
+        ratio=0.8,
+        protocol="dnerf",
+        methods={"gcn": method_section({"psnr": 20.0, "ssim": 0.9, "lpips": 0.1}, method="gcn", wall=10.0, params=gcn)},
+    )
     t = dnerf_table(load_metrics([f]))
     assert t.spans[1][0] == METHOD_LABELS["gcn"] + "*"
     note = next(n for n in t.notes if n.startswith("*"))
@@ -178,32 +262,129 @@ def test_gcn_off_defaults_is_marked(tmp_path):
 
 
 def test_gcn_at_defaults_is_not_marked(tmp_path):
-    f = write_metrics(tmp_path / "m.json", dataset="d", scene="s", ratio=0.8, protocol="dnerf",
-                      methods={"gcn": method_section({"psnr": 20.0, "ssim": 0.9, "lpips": 0.1}, method="gcn", wall=10.0)})
+    f = write_metrics(
+        tmp_path / "m.json",
+        dataset="d",
+        scene="s",
+        ratio=0.8,
+        protocol="dnerf",
+        methods={"gcn": method_section({"psnr": 20.0, "ssim": 0.9, "lpips": 0.1}, method="gcn", wall=10.0)},
+    )
     t = dnerf_table(load_metrics([f]))
     assert t.spans[1][0] == METHOD_LABELS["gcn"]
     assert not any(n.startswith("*") for n in t.notes)
 
 
-def test_empty_tables_say_no_result(tmp_path):
+def test_empty_tables_say_so_in_one_line(tmp_path):
     tables = build_tables([], ABLATIONS)
     assert set(tables) == set(TABLE_NAMES)
-    for name in ("forecast", "grouping", "masking"):
-        assert tables[name].rows == []
-        assert NO_RESULT in tables[name].markdown() and NO_RESULT in tables[name].latex()
+    for name in TABLE_NAMES:
+        t = tables[name]
+        assert t.rows == []
+        md, tex = t.markdown(), t.latex()
+        # one line, not a row of "no result" under every column
+        assert md.count(NO_RESULT) == 1 and "|" not in md
+        assert tex.count(NO_RESULT) == 1 and r"\begin{tabular}" not in tex
+        assert t.csv().splitlines() == [",".join(t.columns)]  # the CSV keeps its header
+
+
+def test_tables_leave_out_what_was_not_run(tmp_path):
+    """Columns, rows and methods with no result in any file are not printed
+    (they were printed as "no result" in every cell before)."""
+    dnerf = {"psnr": 22.0, "ssim": 0.9, "lpips": 0.1}  # no masked metrics, no tracking
+    files = [
+        write_metrics(
+            tmp_path / f"{s}.json",
+            dataset="dnerf",
+            scene=s,
+            ratio=0.8,
+            protocol="dnerf",
+            methods={
+                "mogaf": method_section(dnerf, method="mogaf", wall=10.0),
+                # frozen ran but scored nothing: no image metric, no tracking
+                "frozen": method_section({}, method="frozen", wall=1.0),
+            },
+        )
+        for s in ("c", "d")
+    ]
+    files.append(
+        write_metrics(
+            tmp_path / "lw.json",
+            dataset="dnerf",
+            scene="c",
+            ratio=0.8,
+            protocol="dnerf",
+            variant="lw_opt_fc",
+            methods={"mogaf": method_section(dnerf, method="mogaf", wall=10.0, epe=0.2)},
+        )
+    )
+    tables = build_tables(load_metrics(files), ABLATIONS)
+    text = "".join(t.markdown() + t.latex() + t.csv() for t in tables.values())
+    assert NO_RESULT not in text.replace(tables["iphone"].empty_line(), "").replace(
+        tables["grouping"].empty_line(), ""
+    ).replace(tables["masking"].empty_line(), "")
+    f = tables["forecast"]
+    assert f.columns == [
+        "dataset",
+        "scene",
+        "ratio",
+        "variant",
+        "method",
+        "PSNR↑",
+        "SSIM↑",
+        "LPIPS↓",
+        "EPE↓",
+        "time [s]",
+    ]  # no mPSNR
+    # frozen's rows keep their run time; the default results have no tracking: a dash among present EPEs
+    assert [r[-2:] for r in f.rows if r[4] == METHOD_LABELS["frozen"]] == [[MISSING, "1"], [MISSING, "1"]]
+    d = tables["dnerf"]
+    # frozen has no image metric in any file: its columns and header go
+    assert [label for label, _ in d.spans] == ["", METHOD_LABELS["mogaf"]]
+    assert d.columns == ["Obs. ratio", "Scene", "PSNR↑", "SSIM↑", "LPIPS↓"]
+    assert [r[1] for r in d.rows] == ["dnerf/c", "dnerf/d", "Average"]
+    # group-wise ablation: only the variant that ran has a row (HC has none)
+    g = groupwise_table(load_metrics(files), ABLATIONS)
+    assert [r[0] for r in g.rows] == ["LW (1 results)"]
+    assert g.rows[0][3:] == ["0.200", "60.0", "40.0", "30.0", "50.0", "80.0"]
+    # nothing of the iPhone layout was run: one line, no table
+    assert tables["iphone"].rows == [] and "|" not in tables["iphone"].markdown()
 
 
 def test_grouping_and_masking_ablation_tables(tmp_path):
     img = lambda x: {"mpsnr": x, "mssim": 0.5, "mlpips": 0.3, "psnr": x - 1, "ssim": 0.5, "lpips": 0.3}  # noqa: E731
-    default = write_metrics(tmp_path / "d.json", dataset="iphone", scene="a", ratio=0.6, protocol="iphone",
-                            methods={"mogaf": method_section(img(18.0), method="mogaf", wall=10.0)},
-                            grouping={"method": "ours", "num_groups": 3, "ari": 0.9, "mean_iou": 0.8})
-    gaga = write_metrics(tmp_path / "g.json", dataset="iphone", scene="a", ratio=0.6, protocol="iphone", variant="gaga4d",
-                         methods={"mogaf": method_section(img(16.0), method="mogaf", wall=10.0)},
-                         grouping={"method": "gaga4d", "num_groups": 5, "ari": 0.5, "mean_iou": 0.4})
-    nomask = write_metrics(tmp_path / "n.json", dataset="iphone", scene="a", ratio=0.6, protocol="iphone", variant="no_masking",
-                           methods={"mogaf": method_section(img(17.0), method="mogaf", wall=10.0,
-                                                            params={**defaults("mogaf"), "masking": False})})
+    default = write_metrics(
+        tmp_path / "d.json",
+        dataset="iphone",
+        scene="a",
+        ratio=0.6,
+        protocol="iphone",
+        methods={"mogaf": method_section(img(18.0), method="mogaf", wall=10.0)},
+        grouping={"method": "ours", "num_groups": 3, "ari": 0.9, "mean_iou": 0.8},
+    )
+    gaga = write_metrics(
+        tmp_path / "g.json",
+        dataset="iphone",
+        scene="a",
+        ratio=0.6,
+        protocol="iphone",
+        variant="gaga4d",
+        methods={"mogaf": method_section(img(16.0), method="mogaf", wall=10.0)},
+        grouping={"method": "gaga4d", "num_groups": 5, "ari": 0.5, "mean_iou": 0.4},
+    )
+    nomask = write_metrics(
+        tmp_path / "n.json",
+        dataset="iphone",
+        scene="a",
+        ratio=0.6,
+        protocol="iphone",
+        variant="no_masking",
+        methods={
+            "mogaf": method_section(
+                img(17.0), method="mogaf", wall=10.0, params={**defaults("mogaf"), "masking": False}
+            )
+        },
+    )
     tables = build_tables(load_metrics([default, gaga, nomask]), ABLATIONS)
     g = {r[1]: r for r in tables["grouping"].rows}
     assert set(g) == {"Gaga-4D", "Ours"}
@@ -218,10 +399,16 @@ def test_grouping_and_masking_ablation_tables(tmp_path):
 
 # ------------------------------------------------------------------ runtime
 def test_pareto_front_hand_example():
-    pts = [{"wall_s": w, "psnr": e, "id": i} for i, (w, e) in enumerate([(10, 20.0), (20, 25.0), (30, 22.0), (40, 26.0), (40, 24.0), (5, 19.0)])]
+    pts = [
+        {"wall_s": w, "psnr": e, "id": i}
+        for i, (w, e) in enumerate([(10, 20.0), (20, 25.0), (30, 22.0), (40, 26.0), (40, 24.0), (5, 19.0)])
+    ]
     assert [p["id"] for p in pareto_front(pts, "psnr")] == [5, 0, 1, 3]
     # lower is better for an error such as EPE
-    pts = [{"wall_s": w, "epe_3d": e, "id": i} for i, (w, e) in enumerate([(10, 0.5), (20, 0.3), (30, 0.4), (40, 0.1), (20, 0.2)])]
+    pts = [
+        {"wall_s": w, "epe_3d": e, "id": i}
+        for i, (w, e) in enumerate([(10, 0.5), (20, 0.3), (30, 0.4), (40, 0.1), (20, 0.2)])
+    ]
     assert [p["id"] for p in pareto_front(pts, "epe_3d")] == [0, 4, 3]
     assert pareto_front([], "psnr") == []
 
@@ -229,12 +416,26 @@ def test_pareto_front_hand_example():
 def _runtime_files(tmp_path: Path) -> list[Path]:
     files = []
     # (variant, mogaf (wall, psnr), frozen (wall, psnr))
-    for variant, mg, fz in [("default", (100.0, 20.0), (60.0, 15.0)), ("rt_half", (70.0, 21.0), (40.0, 15.5)),
-                            ("rt_fast", (50.0, 18.0), (45.0, 14.0)), ("unrelated", (10.0, 30.0), (10.0, 30.0))]:
-        files.append(write_metrics(tmp_path / variant / "metrics.json", dataset="iphone", scene="a", ratio=0.6, protocol="iphone",
-                                   variant=variant,
-                                   methods={"mogaf": method_section({"psnr": mg[1]}, method="mogaf", wall=mg[0]),
-                                            "frozen": method_section({"psnr": fz[1]}, method="frozen", wall=fz[0])}))
+    for variant, mg, fz in [
+        ("default", (100.0, 20.0), (60.0, 15.0)),
+        ("rt_half", (70.0, 21.0), (40.0, 15.5)),
+        ("rt_fast", (50.0, 18.0), (45.0, 14.0)),
+        ("unrelated", (10.0, 30.0), (10.0, 30.0)),
+    ]:
+        files.append(
+            write_metrics(
+                tmp_path / variant / "metrics.json",
+                dataset="iphone",
+                scene="a",
+                ratio=0.6,
+                protocol="iphone",
+                variant=variant,
+                methods={
+                    "mogaf": method_section({"psnr": mg[1]}, method="mogaf", wall=mg[0]),
+                    "frozen": method_section({"psnr": fz[1]}, method="frozen", wall=fz[0]),
+                },
+            )
+        )
     return files
 
 
@@ -244,7 +445,9 @@ def test_runtime_points_and_report(tmp_path):
     points = collect_points(load_metrics(files), "psnr", params["runtime_variants"])
     assert len(points) == 6 and "unrelated" not in {p["variant"] for p in points}
     out = tmp_path / "report"
-    written = write_runtime_report([str(f) for f in files], str(out / "e.csv"), str(out / "e.md"), str(out / "e.png"), params)
+    written = write_runtime_report(
+        [str(f) for f in files], str(out / "e.csv"), str(out / "e.md"), str(out / "e.png"), params
+    )
     assert [p.name for p in written] == ["e.csv", "e.md", "e.png"]
     assert (out / "e.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rows = list(csv.DictReader(io.StringIO((out / "e.csv").read_text())))
@@ -282,3 +485,116 @@ def test_load_metrics_rejects_foreign_json(tmp_path):
         load_metrics([bad])
     with pytest.raises(MogafError, match=r"absent\.json: no such metrics file"):  # a mistyped path is not "no result"
         load_metrics([tmp_path / "absent.json"])
+
+
+# ------------------------------------------------------------------ glance (README "Results at a glance")
+# The demo's numbers as docs/forecasting.md gives them (make demo, results/synthetic/default/ratio0.6/metrics.json):
+# method -> (PSNR, LPIPS, mPSNR, tracking EPE); GCN and ODE at config/demo.yaml's shortened budgets.
+DEMO = {
+    "gcn": (16.72, 0.2584, 20.78, 0.433),
+    "ode": (16.44, 0.3182, 19.63, 1.603),
+    "mogaf": (17.42, 0.1942, 23.43, 0.094),
+    "mogaf_paper": (16.93, 0.2440, 21.70, 0.196),
+    "constant_velocity": (17.16, 0.2252, 22.30, 0.165),
+    "frozen": (17.27, 0.2219, 22.55, 0.156),
+}
+DEMO_FILE = "results/synthetic/default/ratio0.6/metrics.json"
+
+
+def _demo_metrics(root: Path) -> Path:
+    params = {
+        "gcn": {**defaults("gcn"), "epochs": 20},
+        "ode": {**defaults("ode"), "epochs": 1, "max_gaussians_per_epoch": 256},
+    }
+    methods = {
+        m: method_section(
+            {"psnr": p, "lpips": lp, "mpsnr": mp, "ssim": 0.5}, method=m, wall=10.0, epe=epe, params=params.get(m)
+        )
+        for m, (p, lp, mp, epe) in DEMO.items()
+    }
+    return write_metrics(
+        root / DEMO_FILE, dataset="synthetic", scene="default", ratio=0.6, protocol="iphone", methods=methods
+    )
+
+
+def test_glance_table_marks_the_best_and_the_shortened_budgets(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    _demo_metrics(tmp_path)
+    lines = glance_table(load_metrics([DEMO_FILE])).splitlines()
+    assert lines[0] == f"From `{DEMO_FILE}`; best in bold."
+    assert lines[2] == "| method | PSNR↑ | LPIPS↓ | mPSNR↑ | tracking EPE (m)↓ |"
+    rows = md_rows("\n".join(lines))[1:]
+    assert [r[0] for r in rows] == [
+        METHOD_LABELS["gcn"] + "*",
+        METHOD_LABELS["ode"] + "*",
+        METHOD_LABELS["mogaf"],
+        METHOD_LABELS["mogaf_paper"],
+        METHOD_LABELS["constant_velocity"],
+        METHOD_LABELS["frozen"],
+    ]
+    assert rows[2][1:] == ["**17.42**", "**0.1942**", "**23.43**", "**0.094**"]  # higher PSNR, lower LPIPS / EPE
+    assert rows[5][1:] == ["17.27", "0.2219", "22.55", "0.156"]
+    assert lines[-1].startswith("Methods marked * ran off their papers' settings")
+
+
+def test_glance_table_leaves_out_what_was_not_run(metrics_files):
+    # the D-NeRF file has no masked metric and no tracking: two columns, no dash-only column
+    lines = glance_table(load_metrics([metrics_files[2]])).splitlines()
+    assert lines[2] == "| method | PSNR↑ | LPIPS↓ |"
+    assert md_rows("\n".join(lines))[1:] == [
+        [METHOD_LABELS["ode"] + "*", "21.50", "0.0900"],
+        [METHOD_LABELS["mogaf"], "**22.25**", "**0.0812**"],
+    ]
+    # several files: a row per result and method, the best marked per result
+    rows = md_rows(glance_table(load_metrics(metrics_files)))
+    assert rows[0] == ["result", "method", "PSNR↑", "LPIPS↓", "mPSNR↑", "tracking EPE (m)↓"]
+    assert [r[:2] for r in rows[1:]] == [
+        ["dnerf/c 0.8", METHOD_LABELS["ode"] + "*"],
+        ["dnerf/c 0.8", METHOD_LABELS["mogaf"]],
+        ["iphone/a 0.6", METHOD_LABELS["mogaf"]],
+        ["iphone/a 0.6", METHOD_LABELS["frozen"]],
+        ["iphone/b 0.6", METHOD_LABELS["mogaf"]],
+    ]
+    assert rows[5][2:] == ["**17.50**", "**0.3500**", "**18.99**", MISSING]
+
+
+def test_glance_section_is_replaced_between_the_markers(tmp_path):
+    from mogaf.errors import MogafError
+
+    doc = tmp_path / "README.md"
+    doc.write_text(f"# x\n\nbefore\n{START}\nold table\n{END}\nafter\n")
+    assert write_section(doc, "| new |\n") is True
+    assert doc.read_text() == f"# x\n\nbefore\n{START}\n| new |\n{END}\nafter\n"
+    assert write_section(doc, "| new |") is False  # already there: the file is left alone
+    doc.write_text("# no markers\n")
+    with pytest.raises(MogafError, match=r"README\.md: has no '<!-- glance:start -->'"):
+        write_section(doc, "| new |\n")
+    assert doc.read_text() == "# no markers\n"
+
+
+def test_glance_cli_writes_and_checks(tmp_path, monkeypatch, capsys):
+    from mogaf.report.__main__ import main
+
+    monkeypatch.chdir(tmp_path)
+    _demo_metrics(tmp_path)
+    doc = tmp_path / "doc.md"
+    doc.write_text(f"{START}\n{END}\n")
+    assert main(["glance", DEMO_FILE, "--check", str(doc)]) == 1
+    assert "glance section differs" in capsys.readouterr().err
+    assert main(["glance", DEMO_FILE, "--write", str(doc)]) == 0
+    assert main(["glance", DEMO_FILE, "--check", str(doc)]) == 0
+    assert main(["glance", DEMO_FILE]) == 0
+    assert capsys.readouterr().out.endswith(glance_table(load_metrics([DEMO_FILE])))
+    assert main(["glance", "absent.json"]) == 1
+    assert capsys.readouterr().err.strip() == "mogaf.report: error: absent.json: no such metrics file"
+
+
+def test_readme_glance_section_is_what_the_generator_prints(tmp_path, monkeypatch):
+    """The README's table is the generator's output for the demo's numbers."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    assert readme.count(START) == 1 and readme.count(END) == 1
+    assert f"python -m mogaf.report glance {DEMO_FILE} --write README.md" in readme
+    monkeypatch.chdir(tmp_path)
+    _demo_metrics(tmp_path)
+    block = glance_table(load_metrics([DEMO_FILE]))
+    assert replace_section(readme, block) == readme

@@ -143,7 +143,9 @@ def test_rotation_near_pi(delta):
 def test_gradcheck_well_posed():
     g = torch.Generator().manual_seed(7)
     src = torch.randn(6, 3, dtype=torch.float64, generator=g, requires_grad=True)
-    dst = (src.detach() @ _rot([1.0, 1.0, 0.0], 0.4).T + 0.05 * torch.randn(6, 3, dtype=torch.float64, generator=g)).requires_grad_(True)
+    dst = (
+        src.detach() @ _rot([1.0, 1.0, 0.0], 0.4).T + 0.05 * torch.randn(6, 3, dtype=torch.float64, generator=g)
+    ).requires_grad_(True)
     assert torch.autograd.gradcheck(lambda a, b: weighted_procrustes(a, b)[0], (src, dst), atol=1e-5)
 
 

@@ -9,7 +9,15 @@ import pytest
 from mogaf.artefact import read_dataset, time_steps_index
 from mogaf.errors import MogafError
 from mogaf.scene import SPLIT_CODES, Scene, save_scene
-from mogaf.split import load_evenly_spaced_frames, load_frames, load_ground_truth, make_split, read_split, split_scene, write_split
+from mogaf.split import (
+    load_evenly_spaced_frames,
+    load_frames,
+    load_ground_truth,
+    make_split,
+    read_split,
+    split_scene,
+    write_split,
+)
 
 
 def iphone_meta(T=60):
@@ -63,9 +71,18 @@ def _tiny_scene(T=8, H=6, W=5):
     K = np.repeat(np.array([[10.0, 0, 2.5], [0, 10.0, 3.0], [0, 0, 1]])[None], F, axis=0)
     rng = np.random.default_rng(0)
     return Scene(
-        dataset="toy", name="s", layout="iphone", frame_names=[f"{c}_{t:05d}" for c in (0, 1) for t in range(T)],
-        images=rng.integers(0, 255, (F, H, W, 3), dtype=np.uint8), K=K, w2c=w2c, time=ti / (T - 1), time_index=ti,
-        num_timesteps=T, camera_id=np.repeat([0, 1], T), source_split=np.repeat([0, 1], T).astype(np.int8),
+        dataset="toy",
+        name="s",
+        layout="iphone",
+        frame_names=[f"{c}_{t:05d}" for c in (0, 1) for t in range(T)],
+        images=rng.integers(0, 255, (F, H, W, 3), dtype=np.uint8),
+        K=K,
+        w2c=w2c,
+        time=ti / (T - 1),
+        time_index=ti,
+        num_timesteps=T,
+        camera_id=np.repeat([0, 1], T),
+        source_split=np.repeat([0, 1], T).astype(np.int8),
         depth=np.ones((F, H, W), np.float32),
         ground_truth={"points3d": rng.normal(size=(4, T, 3)), "visible": np.ones((4, T), bool)},
     )
@@ -144,7 +161,9 @@ def test_evenly_spaced_frames_span_the_role(tmp_path, limit, expect):
     frames = load_evenly_spaced_frames(scene_h5, sp, "evaluation", limit)
     assert frames.num_frames == expect
     rows = sp.frame_ids["evaluation"]
-    assert frames.frame_names[0] == f"1_{int(rows[0]) - 8:05d}" and frames.frame_names[-1] == f"1_{int(rows[-1]) - 8:05d}"
+    assert (
+        frames.frame_names[0] == f"1_{int(rows[0]) - 8:05d}" and frames.frame_names[-1] == f"1_{int(rows[-1]) - 8:05d}"
+    )
 
 
 def test_a_split_of_another_scene_is_refused(tmp_path):
@@ -154,7 +173,9 @@ def test_a_split_of_another_scene_is_refused(tmp_path):
     reversed_scene.time_index = reversed_scene.time_index[::-1].copy()  # same rows, other time steps
     reversed_scene.time = reversed_scene.time[::-1].copy()
     other = save_scene(tmp_path / "b.h5", reversed_scene, config_digest="d")
-    with pytest.raises(MogafError, match=r"b\.h5: frame 0 of split role 'observed' is at time step 7, outside .*another scene"):
+    with pytest.raises(
+        MogafError, match=r"b\.h5: frame 0 of split role 'observed' is at time step 7, outside .*another scene"
+    ):
         load_frames(other, sp, "observed")
     longer = save_scene(tmp_path / "c.h5", _tiny_scene(T=10), config_digest="d")
     for call in (lambda: load_frames(longer, sp, "observed"), lambda: load_ground_truth(longer, sp, "observed")):

@@ -37,9 +37,13 @@ def never_run(monkeypatch):
     def body(*args, **kwargs):
         raise AssertionError("the stage ran on inputs of another lineage")
 
-    for module, name in ((mogaf.refine, "run_refine_stage"), (mogaf.forecast.stage, "run_forecast_group"),
-                         (mogaf.grouping.quality, "run_grouping_quality_stage"), (mogaf.evaluate, "run_evaluate_stage"),
-                         (mogaf.reconstruction_quality, "run_reconstruction_quality_stage")):
+    for module, name in (
+        (mogaf.refine, "run_refine_stage"),
+        (mogaf.forecast.stage, "run_forecast_group"),
+        (mogaf.grouping.quality, "run_grouping_quality_stage"),
+        (mogaf.evaluate, "run_evaluate_stage"),
+        (mogaf.reconstruction_quality, "run_reconstruction_quality_stage"),
+    ):
         monkeypatch.setattr(module, name, body)
 
 
@@ -48,11 +52,28 @@ def test_stages_refuse_inputs_of_another_lineage(tmp_path, never_run):
     b = _chain(tmp_path / "b", recon_digest="recon-other-budget")  # e.g. a run-time sweep variant's reconstruction
     assert read_lineage(a["recon"]).digest != read_lineage(b["recon"]).digest
     with pytest.raises(MogafError, match=r"a/groups\.h5: was made from another 'recon' artefact than .*b/recon\.h5"):
-        stages.refine(model=str(b["recon"]), groups=str(a["groups"]), rigid=None, priors=str(a["priors"]),
-                      scene=str(a["scene"]), split=str(a["split"]), out=str(tmp_path / "r.h5"), params={}, seed=0)
+        stages.refine(
+            model=str(b["recon"]),
+            groups=str(a["groups"]),
+            rigid=None,
+            priors=str(a["priors"]),
+            scene=str(a["scene"]),
+            split=str(a["split"]),
+            out=str(tmp_path / "r.h5"),
+            params={},
+            seed=0,
+        )
     with pytest.raises(MogafError, match=r"groups\.h5: was made from another 'recon' artefact"):
-        stages.forecast_group(model=str(b["recon"]), groups=str(a["groups"]), split=str(a["split"]),
-                              out=str(tmp_path / "f.h5"), params={}, method="frozen", group="1", seed=0)
+        stages.forecast_group(
+            model=str(b["recon"]),
+            groups=str(a["groups"]),
+            split=str(a["split"]),
+            out=str(tmp_path / "f.h5"),
+            params={},
+            method="frozen",
+            group="1",
+            seed=0,
+        )
     with stage_inputs(a["recon"], a["groups"], a["split"]):
         forecast = write_artefact(tmp_path / "frozen.h5", "forecast", {}, config_digest="frozen")
     with stage_inputs(b["recon"], b["groups"], b["scene"], b["split"]):
@@ -62,40 +83,99 @@ def test_stages_refuse_inputs_of_another_lineage(tmp_path, never_run):
     with stage_inputs(a["recon"], a["scene"], a["split"]):
         a_model_quality = write_artefact(tmp_path / "a_quality.h5", "reconstruction_quality", {}, config_digest="m")
     with pytest.raises(MogafError, match=r"a/groups\.h5: was made from another 'recon' artefact"):
-        stages.grouping_quality(grouped_model=str(b["recon"]), groups=str(a["groups"]), scene=str(a["scene"]),
-                                split=str(a["split"]), out=str(tmp_path / "q.h5"), params={})
+        stages.grouping_quality(
+            grouped_model=str(b["recon"]),
+            groups=str(a["groups"]),
+            scene=str(a["scene"]),
+            split=str(a["split"]),
+            out=str(tmp_path / "q.h5"),
+            params={},
+        )
     with pytest.raises(MogafError, match=r"frozen\.h5: was made from another 'recon' artefact"):
-        stages.evaluate(scene=str(a["scene"]), split=str(a["split"]), model=str(b["recon"]), groups=str(b["groups"]),
-                        reconstruction_quality=str(model_quality), grouping_quality=str(quality), forecasts={"frozen": str(forecast)}, benchmarks={},
-                        out_metrics=str(tmp_path / "m.json"), out_renders=str(tmp_path / "renders"), params={},
-                        variant="default", ids={})
+        stages.evaluate(
+            scene=str(a["scene"]),
+            split=str(a["split"]),
+            model=str(b["recon"]),
+            groups=str(b["groups"]),
+            reconstruction_quality=str(model_quality),
+            grouping_quality=str(quality),
+            forecasts={"frozen": str(forecast)},
+            benchmarks={},
+            out_metrics=str(tmp_path / "m.json"),
+            out_renders=str(tmp_path / "renders"),
+            params={},
+            variant="default",
+            ids={},
+        )
     with stage_inputs(a["recon"], a["groups"], a["scene"], a["split"]):
-        a_grouping_quality = write_artefact(tmp_path / "a_grouping_quality.h5", "grouping_quality", {}, config_digest="q")
+        a_grouping_quality = write_artefact(
+            tmp_path / "a_grouping_quality.h5", "grouping_quality", {}, config_digest="q"
+        )
     # the grouping's quality of other groups than the forecasts' (same reconstruction: e.g. Gaga-4D's)
     with stage_inputs(a["recon"], a["priors"], a["scene"]):
         other_groups = write_artefact(tmp_path / "gaga" / "groups.h5", "group", {}, config_digest="gaga4d")
     with stage_inputs(a["recon"], other_groups, a["scene"], a["split"]):
-        other_quality = write_artefact(tmp_path / "gaga" / "grouping_quality.h5", "grouping_quality", {}, config_digest="q")
-    with pytest.raises(MogafError, match=r"gaga/grouping_quality\.h5: was made from another 'group' artefact than .*a/groups\.h5"):
-        stages.evaluate(scene=str(a["scene"]), split=str(a["split"]), model=str(a["recon"]), groups=str(a["groups"]),
-                        reconstruction_quality=str(a_model_quality), grouping_quality=str(other_quality), forecasts={"frozen": str(forecast)}, benchmarks={},
-                        out_metrics=str(tmp_path / "m.json"), out_renders=str(tmp_path / "renders"), params={},
-                        variant="default", ids={})
+        other_quality = write_artefact(
+            tmp_path / "gaga" / "grouping_quality.h5", "grouping_quality", {}, config_digest="q"
+        )
+    with pytest.raises(
+        MogafError, match=r"gaga/grouping_quality\.h5: was made from another 'group' artefact than .*a/groups\.h5"
+    ):
+        stages.evaluate(
+            scene=str(a["scene"]),
+            split=str(a["split"]),
+            model=str(a["recon"]),
+            groups=str(a["groups"]),
+            reconstruction_quality=str(a_model_quality),
+            grouping_quality=str(other_quality),
+            forecasts={"frozen": str(forecast)},
+            benchmarks={},
+            out_metrics=str(tmp_path / "m.json"),
+            out_renders=str(tmp_path / "renders"),
+            params={},
+            variant="default",
+            ids={},
+        )
     # the reconstruction quality of another model than the forecasts start from
     with pytest.raises(MogafError, match=r"b_quality\.h5: was made from another 'recon' artefact than .*a/recon\.h5"):
-        stages.evaluate(scene=str(a["scene"]), split=str(a["split"]), model=str(a["recon"]), groups=str(a["groups"]),
-                        reconstruction_quality=str(model_quality), grouping_quality=str(a_grouping_quality),
-                        forecasts={"frozen": str(forecast)}, benchmarks={}, out_metrics=str(tmp_path / "m.json"),
-                        out_renders=str(tmp_path / "renders"), params={}, variant="default", ids={})
+        stages.evaluate(
+            scene=str(a["scene"]),
+            split=str(a["split"]),
+            model=str(a["recon"]),
+            groups=str(a["groups"]),
+            reconstruction_quality=str(model_quality),
+            grouping_quality=str(a_grouping_quality),
+            forecasts={"frozen": str(forecast)},
+            benchmarks={},
+            out_metrics=str(tmp_path / "m.json"),
+            out_renders=str(tmp_path / "renders"),
+            params={},
+            variant="default",
+            ids={},
+        )
     # one lineage, yet a measurement of recon.h5 where the forecasts start from refined.h5
     with stage_inputs(a["recon"], a["groups"], a["scene"], a["split"]):
         refined = write_artefact(tmp_path / "refined.h5", "refine", {}, config_digest="refine")
     with stage_inputs(refined, a["groups"], a["split"]):
         forecast_of_refined = write_artefact(tmp_path / "frozen_refined.h5", "forecast", {}, config_digest="frozen")
-    with pytest.raises(MogafError, match=r"a_quality\.h5: was not made from .*refined\.h5 \(a 'refine' artefact; it was "
-                                         r"made from 'ingest', 'recon', 'split'\)"):
-        stages.evaluate(scene=str(a["scene"]), split=str(a["split"]), model=str(refined), groups=str(a["groups"]),
-                        reconstruction_quality=str(a_model_quality), grouping_quality=str(a_grouping_quality),
-                        forecasts={"frozen": str(forecast_of_refined)}, benchmarks={}, out_metrics=str(tmp_path / "m.json"),
-                        out_renders=str(tmp_path / "renders"), params={}, variant="default", ids={})
+    with pytest.raises(
+        MogafError,
+        match=r"a_quality\.h5: was not made from .*refined\.h5 \(a 'refine' artefact; it was "
+        r"made from 'ingest', 'recon', 'split'\)",
+    ):
+        stages.evaluate(
+            scene=str(a["scene"]),
+            split=str(a["split"]),
+            model=str(refined),
+            groups=str(a["groups"]),
+            reconstruction_quality=str(a_model_quality),
+            grouping_quality=str(a_grouping_quality),
+            forecasts={"frozen": str(forecast_of_refined)},
+            benchmarks={},
+            out_metrics=str(tmp_path / "m.json"),
+            out_renders=str(tmp_path / "renders"),
+            params={},
+            variant="default",
+            ids={},
+        )
     assert not any((tmp_path / name).exists() for name in ("r.h5", "q.h5", "m.json"))

@@ -19,7 +19,11 @@ SMALL = {"width": 64, "height": 48, "num_frames": 6, "supersample": 1, "num_trac
 
 
 def _tree_digest(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 @pytest.fixture(scope="module")
@@ -51,14 +55,27 @@ def test_params_defaults_presets_and_errors():
     assert hard["num_frames"] > p["num_frames"] and hard["speed"] > p["speed"] and hard["num_extra_objects"] > 0
     assert set(PRESETS) >= {"default", "hard"} and set(DEFAULT_PARAMS) == set(p)
     assert resolve_params({"preset": "hard", "num_frames": 30})["num_frames"] == 30
-    for bad in ({"bogus": 1}, {"preset": "nope"}, {"nonrigid": "jelly"}, {"num_frames": 1}, {"width": 10.5}, {"box_velocity": [1, 2]}):
+    for bad in (
+        {"bogus": 1},
+        {"preset": "nope"},
+        {"nonrigid": "jelly"},
+        {"num_frames": 1},
+        {"width": 10.5},
+        {"box_velocity": [1, 2]},
+    ):
         with pytest.raises(MogafError):
             resolve_params(bad)
 
 
 def test_worlds_keep_objects_in_view_and_apart():
     """build_world refuses worlds where an object leaves a view; presets and variants pass."""
-    for params in ({}, {"preset": "hard"}, {"nonrigid": "arm"}, {"preset": "hard", "seed": 3, "num_extra_objects": 6}, {"num_frames": 200}):
+    for params in (
+        {},
+        {"preset": "hard"},
+        {"nonrigid": "arm"},
+        {"preset": "hard", "seed": 3, "num_extra_objects": 6},
+        {"num_frames": 200},
+    ):
         world = build_world(resolve_params(params))
         assert check_world(world) is None
     hard = build_world(resolve_params({"preset": "hard"}))
@@ -72,7 +89,16 @@ def test_worlds_keep_objects_in_view_and_apart():
 # ---------------------------------------------------------------- layout + reader
 def test_layout_files(default_dir):
     T = DEFAULT_PARAMS["num_frames"]
-    for rel in ("dataset.json", "metadata.json", "scene.json", "extra.json", "splits/train.json", "splits/val.json", "points.npy", "mogaf_gt/instances.json"):
+    for rel in (
+        "dataset.json",
+        "metadata.json",
+        "scene.json",
+        "extra.json",
+        "splits/train.json",
+        "splits/val.json",
+        "points.npy",
+        "mogaf_gt/instances.json",
+    ):
         assert (default_dir / rel).is_file(), rel
     assert len(list((default_dir / "camera").glob("*.json"))) == 3 * T
     assert len(list((default_dir / "rgb/1x").glob("*.png"))) == 3 * T
@@ -136,7 +162,9 @@ def test_known_points_project_where_the_renderer_put_them(scene, default_dir):
     gt = scene.ground_truth
     pts, inst = gt["points3d"].astype(np.float64), gt["points_instance"]
     H, W = scene.height, scene.width
-    half = np.array(json.loads((default_dir / "mogaf_gt/instances.json").read_text())["instances"][0]["shape"]["half_extents"])
+    half = np.array(
+        json.loads((default_dir / "mogaf_gt/instances.json").read_text())["instances"][0]["shape"]["half_extents"]
+    )
     box_pose = gt["object_poses"][list(gt["object_pose_ids"]).index(1)]
     checked = 0
     for cam, vis_all in ((0, gt["visible"]), (1, gt["camera1"]["visible"]), (2, gt["camera2"]["visible"])):
@@ -163,14 +191,29 @@ def test_known_points_project_where_the_renderer_put_them(scene, default_dir):
             a, b = (q - np.floor(q)).T
             inside = (c0 >= 0) & (r0 >= 0) & (c0 + 1 < W) & (r0 + 1 < H)
             c0, r0, a, b, ids_in, z_in = c0[inside], r0[inside], a[inside], b[inside], ids[inside], z[vis][inside]
-            quad = [(r0, c0, (1 - a) * (1 - b)), (r0, c0 + 1, a * (1 - b)), (r0 + 1, c0, (1 - a) * b), (r0 + 1, c0 + 1, a * b)]
+            quad = [
+                (r0, c0, (1 - a) * (1 - b)),
+                (r0, c0 + 1, a * (1 - b)),
+                (r0 + 1, c0, (1 - a) * b),
+                (r0 + 1, c0 + 1, a * b),
+            ]
             same = np.all([scene.instance_mask[f, r, c] == ids_in for r, c, _ in quad], axis=0)
             inv = sum(w / scene.depth[f, r, c].astype(np.float64) for r, c, w in quad)
             rel = np.abs(1.0 / inv - z_in) / z_in
             # box: where the 4 pixel centres lie on the point's face (a plane), exact
             box = same & (ids_in == 1)
             face = _box_face(pts[vis][inside][box, t], box_pose[t], half)
-            on_face = [_box_face(_unproject(scene.K[f], scene.w2c[f], c[box], r[box], scene.depth[f, r[box], c[box]].astype(np.float64)), box_pose[t], half) == face for r, c, _ in quad]
+            on_face = [
+                _box_face(
+                    _unproject(
+                        scene.K[f], scene.w2c[f], c[box], r[box], scene.depth[f, r[box], c[box]].astype(np.float64)
+                    ),
+                    box_pose[t],
+                    half,
+                )
+                == face
+                for r, c, _ in quad
+            ]
             one_face = np.all(on_face, axis=0)
             assert one_face.sum() > 10
             assert rel[box][one_face].max() < 1e-5, (cam, t, rel[box][one_face].max())
@@ -206,7 +249,9 @@ def test_depth_maps_lie_on_the_rigid_surfaces(scene, default_dir):
             if inst_id == 2:
                 err = np.abs(np.linalg.norm(local, axis=1) - shapes[inst_id]["radius"])
             else:
-                err = np.abs(np.abs(local / np.array(shapes[inst_id]["half_extents"])).max(axis=1) - 1.0) * min(shapes[inst_id]["half_extents"])
+                err = np.abs(np.abs(local / np.array(shapes[inst_id]["half_extents"])).max(axis=1) - 1.0) * min(
+                    shapes[inst_id]["half_extents"]
+                )
             assert err.max() < tol, (f, inst_id, err.max())
 
 

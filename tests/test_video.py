@@ -13,12 +13,12 @@ def test_labelled_row_puts_each_label_above_its_panel_and_the_caption_on_top():
     frame = labelled_row(panels, ["GT", "MoGaF (Ours)", "|error|"], "MoGaF (Ours), time step 7, view 1_00007")
     strip = text_strip(80, "x", 0.3).shape[0]
     assert frame.dtype == np.uint8 and frame.shape == (60 + 2 * strip, 240, 3)
-    body = frame[2 * strip:]
+    body = frame[2 * strip :]
     np.testing.assert_array_equal(body[:, :80], 0)
     np.testing.assert_array_equal(body[:, 80:160], 255)
     # text is drawn: every label strip and the caption strip hold dark pixels on white
     for x0 in (0, 80, 160):
-        label = frame[strip:2 * strip, x0:x0 + 80]
+        label = frame[strip : 2 * strip, x0 : x0 + 80]
         assert (label < 128).any() and (label == 255).mean() > 0.5
     assert (frame[:strip] < 128).any()
     # an empty label leaves its strip blank

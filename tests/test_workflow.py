@@ -6,7 +6,6 @@ Dry runs only (no stage runs here): each takes a few seconds.
 from __future__ import annotations
 
 import re
-import shutil
 import subprocess
 import sys
 import time
@@ -15,14 +14,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import REPO
+from support.paths import REPO
 
 SNAKEFILE = str(REPO / "Snakefile")
 CONFIG = str(REPO / "config" / "config.yaml")
 PAPER = str(REPO / "config" / "paper.yaml")
 
 
-def snakemake(args: list[str], cwd: Path, configfiles: tuple[str, ...] = (CONFIG,), timeout: int = 120) -> subprocess.CompletedProcess:
+def snakemake(
+    args: list[str], cwd: Path, configfiles: tuple[str, ...] = (CONFIG,), timeout: int = 120
+) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "-m", "snakemake", "-s", SNAKEFILE, *args, "--configfile", *configfiles]
     return subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=timeout)
 

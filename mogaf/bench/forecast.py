@@ -49,6 +49,7 @@ from mogaf.artefact import atomic_path
 from mogaf.errors import MogafError
 from mogaf.forecast import METHODS, fit_and_rollout, quat
 from mogaf.forecast.synthetic import TRAJECTORY_SETS
+from mogaf.paths import cache_dir
 
 # Shortened training of the baselines for a CPU run (--budget cpu).
 REDUCED: dict[str, dict[str, Any]] = {
@@ -154,7 +155,7 @@ def run_benchmark(
             fresh: dict[str, dict[str, Any]] = {}
             if todo:
 
-                def report(row: dict[str, Any], name: str = name) -> None:
+                def report(row: dict[str, Any], name: str = name, fresh: dict = fresh) -> None:
                     row = {"set": name, **row}
                     fresh[row["method"]] = row
                     if progress:
@@ -217,7 +218,9 @@ def comparison_table(paths: Sequence[str | Path]) -> str:
             col = method + ("*" if header.get("budget") == "cpu" and method in REDUCED else "")
             shape = (r.get("gaussians"), r.get("observed_frames"))
             if shapes.setdefault(key, shape) != shape:
-                raise MogafError(f"{path}: {key[0]} ratio {key[1]} was scored on other trajectories than in an earlier file")
+                raise MogafError(
+                    f"{path}: {key[0]} ratio {key[1]} was scored on other trajectories than in an earlier file"
+                )
             old = cells.setdefault(key, {}).get(col)
             if old is not None and not _same_number(old["epe"], r["epe"]):
                 raise MogafError(
@@ -270,14 +273,20 @@ def summary_table(paths: Sequence[str | Path], against: Sequence[str] = ("consta
     has, and on how many of its rows it beats each reference in `against`."""
     comparison_table(paths)  # the same checks (agreeing files)
     cells = _cells(paths)
-    columns = sorted({c for row in cells.values() for c in row}, key=lambda c: (METHODS.index(c.rstrip("*")) if c.rstrip("*") in METHODS else 99, c))
+    columns = sorted(
+        {c for row in cells.values() for c in row},
+        key=lambda c: (METHODS.index(c.rstrip("*")) if c.rstrip("*") in METHODS else 99, c),
+    )
     shared = [k for k, row in cells.items() if all(c in row for c in columns)]
     head = ["method", f"mean EPE ({len(shared)} rows with every method)"] + [f"beats {a}" for a in against]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     means = {c: float(np.mean([cells[k][c]["epe"] for k in shared])) if shared else math.nan for c in columns}
     best = min((v for v in means.values() if math.isfinite(v)), default=None)
     for c in columns:
-        out = [c, (f"**{means[c]:.4f}**" if means[c] == best else f"{means[c]:.4f}") if math.isfinite(means[c]) else "–"]
+        out = [
+            c,
+            (f"**{means[c]:.4f}**" if means[c] == best else f"{means[c]:.4f}") if math.isfinite(means[c]) else "–",
+        ]
         for a in against:
             both = [k for k, row in cells.items() if c in row and a in row]
             if c == a or not both:
@@ -293,8 +302,10 @@ def per_step_table(paths: Sequence[str | Path], fractions: Sequence[float] = (0.
     """Future EPE at the first, middle and last forecast step of every row and
     method that kept its per-step EPE: where a rollout goes wrong."""
     cells = _cells(paths)
-    columns = sorted({c for row in cells.values() for c, r in row.items() if r.get("epe_per_step")},
-                     key=lambda c: (METHODS.index(c.rstrip("*")) if c.rstrip("*") in METHODS else 99, c))
+    columns = sorted(
+        {c for row in cells.values() for c, r in row.items() if r.get("epe_per_step")},
+        key=lambda c: (METHODS.index(c.rstrip("*")) if c.rstrip("*") in METHODS else 99, c),
+    )
     head = ["set", "ratio", "steps"] + [f"{c} EPE at steps" for c in columns]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for (name, ratio), row in cells.items():
@@ -321,7 +332,7 @@ def _local_rotations(points: np.ndarray, k: int = 8) -> np.ndarray:
     frame 0) from frame 0 to every frame: the best rigid fit, det = +1."""
     from scipy.spatial import cKDTree
 
-    from mogaf.rigid import procrustes_numpy
+    from mogaf.rigid import procrustes_numpy  # local: mogaf.rigid imports torch, which only this path needs
 
     k = min(k + 1, points.shape[0])
     _, nn = cKDTree(points[:, 0]).query(points[:, 0], k=k)
@@ -334,7 +345,9 @@ def _local_rotations(points: np.ndarray, k: int = 8) -> np.ndarray:
 def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
     import torch
 
-    from mogaf.representation import matrix_to_quat
+    from mogaf.representation import (
+        matrix_to_quat,  # local: mogaf.representation imports torch, which only this path needs
+    )
 
     return matrix_to_quat(torch.from_numpy(np.ascontiguousarray(R, dtype=np.float64))).numpy()
 
@@ -347,8 +360,7 @@ def synthetic_scene_sets(preset: str = "default") -> dict[str, np.ndarray]:
     the cache once."""
     import json as _json
 
-    from mogaf.paths import cache_dir
-    from mogaf.synth import generate_scene
+    from mogaf.synth import generate_scene  # local: mogaf.synth imports cv2, which only this path needs
 
     root = cache_dir("bench_forecast", f"synthetic_{preset}")
     if not (root / "mogaf_gt" / "points3d.npy").exists():
@@ -406,7 +418,9 @@ def _load_source(spec: str) -> dict[str, Any]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m mogaf.bench forecast", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--sets", default=",".join(TRAJECTORY_SETS), help="built-in procedural sets (comma list, or 'none')")
+    ap.add_argument(
+        "--sets", default=",".join(TRAJECTORY_SETS), help="built-in procedural sets (comma list, or 'none')"
+    )
     ap.add_argument("--npz", action="append", default=[], help="file of (G, T_total, 7) arrays, one set each")
     ap.add_argument("--source", action="append", default=[], help="MODULE:FUNCTION returning an array or {name: array}")
     ap.add_argument("--gaussians", type=int, default=2000, help="Gaussians per procedural set")
@@ -414,17 +428,32 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--ratios", default="0.6,0.8")
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--budget", choices=("cpu", "paper"), default="cpu")
-    ap.add_argument("--params", default="{}", help='JSON {method: {param: value}} overrides')
-    ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads for every method (0 = torch default)")
+    ap.add_argument("--params", default="{}", help="JSON {method: {param: value}} overrides")
+    ap.add_argument(
+        "--threads", type=int, default=1, help="torch intra-op threads for every method (0 = torch default)"
+    )
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--only", default="", help="comma-separated glob patterns: keep only the sets whose name matches one")
+    ap.add_argument(
+        "--only", default="", help="comma-separated glob patterns: keep only the sets whose name matches one"
+    )
     ap.add_argument("--json", help="also write the rows here (rewritten after every row)")
-    ap.add_argument("--resume", action="store_true",
-                    help="keep the rows already in --json (same budget, parameters and seed) and compute only the missing ones")
-    ap.add_argument("--from-json", action="append", default=[], metavar="FILE",
-                    help="run nothing: print one Markdown table (set x ratio, a column per method) from these --json files")
-    ap.add_argument("--summary", action="store_true",
-                    help="with --from-json: also the mean EPE and win counts per method, and the EPE at the first, middle and last step")
+    ap.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the rows already in --json (same budget, parameters and seed) and compute only the missing ones",
+    )
+    ap.add_argument(
+        "--from-json",
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="run nothing: print one Markdown table (set x ratio, a column per method) from these --json files",
+    )
+    ap.add_argument(
+        "--summary",
+        action="store_true",
+        help="with --from-json: also the mean EPE and win counts per method, and the EPE at the first, middle and last step",
+    )
     args = ap.parse_args(list(argv) if argv is not None else None)
 
     try:
@@ -460,7 +489,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 if name not in TRAJECTORY_SETS:
                     raise MogafError(f"bench forecast: unknown set '{name}' (choose from {', '.join(TRAJECTORY_SETS)})")
                 fn = TRAJECTORY_SETS[name]
-                sources[name] = (lambda fn=fn: fn(args.gaussians, args.frames))
+                sources[name] = lambda fn=fn: fn(args.gaussians, args.frames)
         for path in args.npz:
             try:
                 with np.load(path) as data:
@@ -536,7 +565,9 @@ def _resumable_rows(path: Path, header: dict[str, Any]) -> list[dict[str, Any]]:
     old_params = old.get("params") or {}
     for method, p in want["params"].items():
         if method in old_params and old_params[method] != p:
-            raise MogafError(f"{path}: written with other {method} parameters ({old_params[method]!r}); remove it or drop --resume")
+            raise MogafError(
+                f"{path}: written with other {method} parameters ({old_params[method]!r}); remove it or drop --resume"
+            )
     # rows of methods no longer asked for stay in the file with their parameters
     header["params"] = {**old_params, **header["params"]}
     return rows

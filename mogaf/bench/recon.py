@@ -33,41 +33,43 @@ from typing import Any
 
 import numpy as np
 
+from mogaf.artefact import atomic_path, config_digest
+from mogaf.datasets import read_scene
+from mogaf.errors import MogafError
+from mogaf.metrics.image import mpsnr, psnr
+from mogaf.paths import cache_dir
+from mogaf.priors import run_priors_stage
+from mogaf.recon import render_model, run_recon_stage
+from mogaf.representation import load_model
+from mogaf.scene import save_scene
+from mogaf.split import load_frames, load_ground_truth, read_split, split_scene, write_split
+from mogaf.synth import generate_scene
+
 SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 MUJOCO = ("scene3_collision", "scene7_deformation")
 
 
 def _prepare_synthetic(work: Path, preset: str = "default") -> tuple[Path, Path, Path]:
-    from mogaf.artefact import config_digest
-    from mogaf.datasets import read_scene
-    from mogaf.priors import run_priors_stage
-    from mogaf.scene import save_scene
-    from mogaf.split import split_scene, write_split
-    from mogaf.synth import generate_scene
-
     root = work / f"synthetic_{preset}"
     src = root / "source"
     if not (src / "dataset.json").exists():
         generate_scene(src, {"preset": preset})
-    return _finish_inputs(root, lambda: read_scene("synthetic", src, dataset="synthetic", scene=preset, options={"scale": 1}), 0.6)
+    return _finish_inputs(
+        root, lambda: read_scene("synthetic", src, dataset="synthetic", scene=preset, options={"scale": 1}), 0.6
+    )
 
 
 def _prepare_mujoco(work: Path, scene: str) -> tuple[Path, Path, Path] | None:
-    from mogaf.datasets import read_scene
-
     folder = SHARED / "mujoco" / scene
     if not folder.is_dir():
         return None
     opts = {"downscale": 4, "background": [1.0, 1.0, 1.0]}
-    return _finish_inputs(work / f"mujoco_{scene}", lambda: read_scene("dnerf", folder, dataset="mujoco", scene=scene, options=opts), 0.8)
+    return _finish_inputs(
+        work / f"mujoco_{scene}", lambda: read_scene("dnerf", folder, dataset="mujoco", scene=scene, options=opts), 0.8
+    )
 
 
 def _finish_inputs(root: Path, reader, ratio: float) -> tuple[Path, Path, Path]:
-    from mogaf.artefact import config_digest
-    from mogaf.priors import run_priors_stage
-    from mogaf.scene import save_scene
-    from mogaf.split import split_scene, write_split
-
     root.mkdir(parents=True, exist_ok=True)
     scene_h5, split_h5, priors_h5 = root / "scene.h5", root / f"split{ratio}.h5", root / f"priors{ratio}.h5"
     if not scene_h5.exists():
@@ -82,11 +84,6 @@ def _finish_inputs(root: Path, reader, ratio: float) -> tuple[Path, Path, Path]:
 def heldout_psnr(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[float, float | None, float | None]:
     """Held-out PSNR, mPSNR (co-visible pixels) and the % of held-out pixels
     the training camera never sees (None without a co-visibility mask)."""
-    from mogaf.metrics.image import mpsnr, psnr
-    from mogaf.recon import render_model
-    from mogaf.representation import load_model
-    from mogaf.split import load_frames, read_split
-
     model = load_model(recon_h5)
     frames = load_frames(scene_h5, read_split(split_h5), "evaluation_observed")
     ps, mps, unseen = [], [], []
@@ -106,9 +103,6 @@ def trajectory_error(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[fl
     """Mean 3D distance (scene units, % of extent) between GT surface-point and matched Gaussian trajectories."""
     from scipy.spatial import cKDTree
 
-    from mogaf.representation import load_model
-    from mogaf.split import load_ground_truth, read_split
-
     split = read_split(split_h5)
     gt = load_ground_truth(scene_h5, split, "observed")
     if "points3d" not in gt:
@@ -127,12 +121,9 @@ def trajectory_error(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[fl
     return float(err), float(100.0 * err / extent)
 
 
-def run_case(name: str, inputs: tuple[Path, Path, Path], out_dir: Path, params: dict[str, Any], seed: int,
-             progress: bool) -> dict[str, Any]:
-    from mogaf.recon import run_recon_stage
-    from mogaf.representation import load_model
-    from mogaf.split import read_split
-
+def run_case(
+    name: str, inputs: tuple[Path, Path, Path], out_dir: Path, params: dict[str, Any], seed: int, progress: bool
+) -> dict[str, Any]:
     scene_h5, split_h5, priors_h5 = inputs
     out = out_dir / f"{name.replace('/', '_')}_recon.h5"
     load0 = os.getloadavg()[0]
@@ -145,9 +136,6 @@ def run_case(name: str, inputs: tuple[Path, Path, Path], out_dir: Path, params: 
 
 def score_model(name: str, scene_h5: Path, split_h5: Path, model_h5: Path) -> dict[str, Any]:
     """Every column but wall time and load, for a stored model (recon.h5 or refined.h5)."""
-    from mogaf.representation import load_model
-    from mogaf.split import read_split
-
     model = load_model(model_h5)
     ho, mho, unseen = heldout_psnr(scene_h5, split_h5, model_h5)
     traj = trajectory_error(scene_h5, split_h5, model_h5)
@@ -170,12 +158,12 @@ def score_model(name: str, scene_h5: Path, split_h5: Path, model_h5: Path) -> di
 def score_results(folder: Path) -> list[dict[str, Any]]:
     """Rows for the models a pipeline results folder holds: results/<dataset>/<scene>/ratio<r>,
     or one of its ablation/<variant> folders (the split and scene are found above it)."""
-    from mogaf.errors import MogafError
-
     ratio_dir = next((d for d in (folder, *folder.parents) if (d / "split.h5").is_file()), None)
     if ratio_dir is None or not (ratio_dir.parent / "scene.h5").is_file():
-        raise MogafError(f"{folder}: no split.h5 and scene.h5 above it (--score takes a results/<dataset>/<scene>/ratio<r> "
-                         "folder or an ablation folder in it)")
+        raise MogafError(
+            f"{folder}: no split.h5 and scene.h5 above it (--score takes a results/<dataset>/<scene>/ratio<r> "
+            "folder or an ablation folder in it)"
+        )
     scene_h5, split_h5 = ratio_dir.parent / "scene.h5", ratio_dir / "split.h5"
     models = [folder / n for n in ("recon.h5", "refined.h5") if (folder / n).is_file()]
     if not models:
@@ -188,36 +176,49 @@ def _fmt(v: Any, spec: str) -> str:
 
 
 def print_table(rows: list[dict[str, Any]]) -> None:
-    head = (f"{'scene':28s} {'ratio':>5s} {'iters':>6s} {'gauss':>7s} {'wall s':>7s} {'train':>6s} {'heldout':>7s} "
-            f"{'h-mPSNR':>7s} {'unseen%':>7s} {'traj err':>9s} {'traj %':>6s} {'load':>9s}")
+    head = (
+        f"{'scene':28s} {'ratio':>5s} {'iters':>6s} {'gauss':>7s} {'wall s':>7s} {'train':>6s} {'heldout':>7s} "
+        f"{'h-mPSNR':>7s} {'unseen%':>7s} {'traj err':>9s} {'traj %':>6s} {'load':>9s}"
+    )
     print(head)
     print("-" * len(head))
     for r in rows:
         load = "-" if r["load"] is None else f"{r['load'][0]:4.1f}/{r['load'][1]:<4.1f}"
-        print(f"{r['scene']:28s} {r['ratio']:5.2f} {r['iterations']:6d} {r['gaussians']:7d} {_fmt(r['wall_s'], '7.1f')} "
-              f"{r['train_psnr']:6.2f} {r['heldout_psnr']:7.2f} {_fmt(r['heldout_mpsnr'], '7.2f')} "
-              f"{_fmt(r['unseen_pct'], '7.1f')} {_fmt(r['traj_err'], '9.4f')} {_fmt(r['traj_err_pct'], '6.2f')} {load:>9s}")
-    print("PSNR in dB; held-out = evaluation_observed frames; h-mPSNR with the co-visibility mask; unseen% = held-out "
-          "pixels the training camera never sees (outside that mask); traj err in scene units (synthetic: metres) and % "
-          "of the GT points' bounding-box diagonal; load = 1-min load average at start/end.")
+        print(
+            f"{r['scene']:28s} {r['ratio']:5.2f} {r['iterations']:6d} {r['gaussians']:7d} {_fmt(r['wall_s'], '7.1f')} "
+            f"{r['train_psnr']:6.2f} {r['heldout_psnr']:7.2f} {_fmt(r['heldout_mpsnr'], '7.2f')} "
+            f"{_fmt(r['unseen_pct'], '7.1f')} {_fmt(r['traj_err'], '9.4f')} {_fmt(r['traj_err_pct'], '6.2f')} {load:>9s}"
+        )
+    print(
+        "PSNR in dB; held-out = evaluation_observed frames; h-mPSNR with the co-visibility mask; unseen% = held-out "
+        "pixels the training camera never sees (outside that mask); traj err in scene units (synthetic: metres) and % "
+        "of the GT points' bounding-box diagonal; load = 1-min load average at start/end."
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m mogaf.bench recon", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--cases", default="synthetic," + ",".join(f"mujoco/{s}" for s in MUJOCO),
-                    help="comma-separated: synthetic, synthetic:hard, mujoco/<scene>")
+    ap.add_argument(
+        "--cases",
+        default="synthetic," + ",".join(f"mujoco/{s}" for s in MUJOCO),
+        help="comma-separated: synthetic, synthetic:hard, mujoco/<scene>",
+    )
     ap.add_argument("--workdir", default=None, help="inputs and outputs (default: <cache>/bench_recon)")
-    ap.add_argument("--params", default="{}", help="JSON recon parameters for every case (e.g. '{\"iterations\": 500}')")
+    ap.add_argument(
+        "--params", default="{}", help="JSON recon parameters for every case (e.g. '{\"iterations\": 500}')"
+    )
     ap.add_argument("--mujoco-params", default="{}", help="extra JSON parameters for the MuJoCo cases")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--progress", action="store_true")
     ap.add_argument("--json", default=None, help="also write the rows to this JSON file")
-    ap.add_argument("--score", action="append", default=[], metavar="RESULTS_DIR",
-                    help="train nothing: score the recon.h5 / refined.h5 of a results/<dataset>/<scene>/ratio<r> folder")
+    ap.add_argument(
+        "--score",
+        action="append",
+        default=[],
+        metavar="RESULTS_DIR",
+        help="train nothing: score the recon.h5 / refined.h5 of a results/<dataset>/<scene>/ratio<r> folder",
+    )
     args = ap.parse_args(argv)
-    from mogaf.errors import MogafError
-    from mogaf.paths import cache_dir
-
     if args.score:
         try:
             rows = [row for folder in args.score for row in score_results(Path(folder))]
@@ -257,8 +258,6 @@ def main(argv: list[str] | None = None) -> int:
 
 def _write_rows(path: str | None, rows: list[dict[str, Any]]) -> None:
     if path:
-        from mogaf.artefact import atomic_path
-
         with atomic_path(path) as tmp:
             tmp.write_text(json.dumps(rows, indent=2) + "\n")
 

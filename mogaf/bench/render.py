@@ -34,7 +34,7 @@ import time
 
 import torch
 
-from mogaf.render import rasterize
+from mogaf.render import cpu, rasterize
 from mogaf.render.projection import project_gaussians
 
 LOG_T_MIN = math.log(1e-4)
@@ -247,10 +247,6 @@ def time_methods(methods, n, width, height, repeats, seed=0, reference_repeats=2
     return {m: r.result() for m, r in runners.items()}
 
 
-def time_method(method, n, width, height, repeats, seed=0):
-    return time_methods([method], n, width, height, repeats, seed)[method]
-
-
 def reference_fits(n: int, width: int, height: int, budget_gib: float) -> bool:
     # Measured: the dense forward + backward peaks at ~70 bytes per (Gaussian, pixel) in float32.
     return n * width * height * 72 <= budget_gib * 2**30
@@ -271,10 +267,10 @@ def main(argv: list[str] | None = None) -> int:
     sizes = [int(s) for s in args.sizes.split(",") if s]
     res = [int(s) for s in args.res.split(",") if s]
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    from mogaf.render import cpu
-
-    print(f"# mogaf.render benchmark: torch {torch.__version__}, {torch.get_num_threads()} threads, "
-          f"C++ kernel {'available' if cpu.available() else 'unavailable (' + str(cpu._state['error']) + ')'}")
+    print(
+        f"# mogaf.render benchmark: torch {torch.__version__}, {torch.get_num_threads()} threads, "
+        f"C++ kernel {'available' if cpu.available() else 'unavailable (' + str(cpu._state['error']) + ')'}"
+    )
     print("# times in ms: median (min) over repeats; fwd = forward only, f+b = forward + backward;")
     print("# f+b/baseline: ratio of the min f+b times; peak MiB: extra memory of one forward + backward")
     header = f"{'N':>6} {'res':>5} {'method':<10} {'fwd ms':>17} {'f+b ms':>17} {'peak MiB':>9} {'f+b/baseline':>13}"

@@ -57,8 +57,9 @@ def load_json(path: str | os.PathLike, *, what: str = "file", expect: type = dic
     try:
         obj = json.loads(raw, parse_constant=_reject_constant, object_pairs_hook=_unique_keys)
     except _DuplicateKey as exc:
-        raise input_error(p, f"key {exc.args[0]!r} appears twice in one JSON object; "
-                             "which value is meant is ambiguous, keep one") from None
+        raise input_error(
+            p, f"key {exc.args[0]!r} appears twice in one JSON object; which value is meant is ambiguous, keep one"
+        ) from None
     except json.JSONDecodeError as exc:
         raise input_error(p, f"malformed JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
     except (ValueError, UnicodeDecodeError) as exc:
@@ -95,14 +96,15 @@ def _short(value: Any, limit: int = 60) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def require(obj: Mapping, key: str, path: str | os.PathLike, where: str = "") -> Any:
-    if not isinstance(obj, Mapping) or key not in obj:
-        raise input_error(path, f"{where}missing key '{key}'")
-    return obj[key]
-
-
-def as_float(value: Any, path: str | os.PathLike, name: str, *, positive: bool = False,
-             lo: float | None = None, hi: float | None = None) -> float:
+def as_float(
+    value: Any,
+    path: str | os.PathLike,
+    name: str,
+    *,
+    positive: bool = False,
+    lo: float | None = None,
+    hi: float | None = None,
+) -> float:
     """A finite JSON number (not a boolean)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise input_error(path, f"{name} must be a number, got {_kind(value)} {_short(value)}")
@@ -143,6 +145,7 @@ def as_image_side(value: Any, path: str | os.PathLike, name: str) -> int:
 
 def as_array(value: Any, shape: tuple[int, ...], path: str | os.PathLike, name: str) -> np.ndarray:
     """A finite float64 array of exactly `shape` from nested JSON lists."""
+
     def check(v: Any, dims: tuple[int, ...]) -> None:
         if not dims:
             if isinstance(v, bool) or not isinstance(v, (int, float)):
@@ -180,7 +183,9 @@ def as_list(value: Any, path: str | os.PathLike, name: str) -> list:
 
 
 # ---------------------------------------------------------------- options
-def option_int(options: Mapping, key: str, default: int, *, lo: int = 1, hi: int = 1 << 20, where: str = "dataset options") -> int:
+def option_int(
+    options: Mapping, key: str, default: int, *, lo: int = 1, hi: int = 1 << 20, where: str = "dataset options"
+) -> int:
     value = options.get(key, default) if options else default
     if value is None:
         value = default
@@ -198,7 +203,9 @@ def option_bool(options: Mapping, key: str, default: bool, *, where: str = "data
     return bool(value)
 
 
-def option_background(options: Mapping, default: Sequence[float] = (1.0, 1.0, 1.0), *, where: str = "dataset options") -> np.ndarray:
+def option_background(
+    options: Mapping, default: Sequence[float] = (1.0, 1.0, 1.0), *, where: str = "dataset options"
+) -> np.ndarray:
     value = options.get("background", default) if options else default
     if value is None:
         value = default
@@ -261,8 +268,9 @@ def warn_dataset(path: str | os.PathLike, problem: str) -> None:
 
 
 # ---------------------------------------------------------------- time grid
-def time_grid(times: np.ndarray, path: str | os.PathLike, num_timesteps: int | None = None,
-              tol: float = 1e-3) -> tuple[np.ndarray, int, float]:
+def time_grid(
+    times: np.ndarray, path: str | os.PathLike, num_timesteps: int | None = None, tol: float = 1e-3
+) -> tuple[np.ndarray, int, float]:
     """Map normalised times in [0, 1] to indices of a uniform grid.
 
     Returns (time_index, num_timesteps, max_snap_error in grid steps).
@@ -299,15 +307,30 @@ def time_grid(times: np.ndarray, path: str | os.PathLike, num_timesteps: int | N
         idx, err = on_grid(T2)
         if err <= tol:
             return idx, T2, err
-    raise input_error(path, f"the {T} distinct frame times do not lie on a uniform grid; set the dataset option 'num_timesteps' to snap them to one")
+    raise input_error(
+        path,
+        f"the {T} distinct frame times do not lie on a uniform grid; set the dataset option 'num_timesteps' to snap them to one",
+    )
 
 
 # ---------------------------------------------------------------- PLY
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
 MAX_PLY_HEADER = 1 << 16
 
@@ -394,7 +417,7 @@ def read_ply_points(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
         if len(rows) < skip + n:
             raise input_error(p, f"PLY file is truncated: {len(rows) - skip} of {n} vertex lines")
         try:
-            data = np.array([ln.split() for ln in rows[skip:skip + n]], dtype=np.float64)
+            data = np.array([ln.split() for ln in rows[skip : skip + n]], dtype=np.float64)
         except ValueError:
             raise input_error(p, "PLY vertex lines are malformed (not numbers or wrong count)") from None
         if data.size == 0:

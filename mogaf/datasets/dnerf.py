@@ -131,9 +131,12 @@ def _warn_shared_times(frames: list[_Frame], time_index: dict[str, int]) -> None
             continue
         a, b = pair
         listed = ", ".join(str(int(t)) for t in empty[:5]) + (", ..." if empty.size > 5 else "")
-        warn_dataset(a.json_path, f"frames {a.index} ({a.file_path}) and {b.index} ({b.file_path}) share time "
-                                  f"{a.time:g}, and time step(s) {listed} of its frames' span have no frame: "
-                                  "a frame time is probably wrong")
+        warn_dataset(
+            a.json_path,
+            f"frames {a.index} ({a.file_path}) and {b.index} ({b.file_path}) share time "
+            f"{a.time:g}, and time step(s) {listed} of its frames' span have no frame: "
+            "a frame time is probably wrong",
+        )
 
 
 def _parse_split(scene_dir: Path, split: str) -> list[_Frame]:
@@ -156,8 +159,11 @@ def _parse_split(scene_dir: Path, split: str) -> list[_Frame]:
         if len(file_path) > 1024 or any(len(part) > 200 for part in file_path.split("/")):
             raise input_error(path, f"{where}: file_path is too long")
         if _leaves_folder(file_path):
-            raise input_error(path, f"{where}: file_path {file_path!r} leaves the scene folder; "
-                                    "image paths must be relative to it and stay inside it")
+            raise input_error(
+                path,
+                f"{where}: file_path {file_path!r} leaves the scene folder; "
+                "image paths must be relative to it and stay inside it",
+            )
         where = f"frame {i} ({file_path})"
         if "time" not in fr:
             raise input_error(path, f"{where}: missing key 'time'")
@@ -174,8 +180,20 @@ def _parse_split(scene_dir: Path, split: str) -> list[_Frame]:
         stem = image.stem
         rel = file_path[2:] if file_path.startswith("./") else file_path
         name = os.path.splitext(rel)[0] if Path(rel).suffix.lower() in (".png", ".jpg", ".jpeg") else rel
-        out.append(_Frame(name=name, file_path=file_path, split=split, json_path=path, index=i, image=image,
-                          mask=image.parent / "masks" / f"{stem}.png", time=t, c2w=c2w, intr=intr))
+        out.append(
+            _Frame(
+                name=name,
+                file_path=file_path,
+                split=split,
+                json_path=path,
+                index=i,
+                image=image,
+                mask=image.parent / "masks" / f"{stem}.png",
+                time=t,
+                c2w=c2w,
+                intr=intr,
+            )
+        )
     return out
 
 
@@ -238,7 +256,9 @@ def _class_mapping(scene_dir: Path, frames: list[_Frame]) -> tuple[dict[int, str
     return None, None
 
 
-def read_dnerf_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: str, options: Mapping | None = None) -> Scene:
+def read_dnerf_scene(
+    scene_dir: str | os.PathLike, *, dataset: str, scene: str, options: Mapping | None = None
+) -> Scene:
     scene_dir = Path(scene_dir)
     options = dict(options or {})
     where = f"dataset '{dataset}' options"
@@ -267,7 +287,9 @@ def read_dnerf_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: str, 
         seen[fr.name] = fr
 
     # Time grid over every frame of every split (before any stride).
-    idx_all, T, snap_err = time_grid(np.array([fr.time for fr in all_frames]), scene_dir / "transforms_train.json", T_opt)
+    idx_all, T, snap_err = time_grid(
+        np.array([fr.time for fr in all_frames]), scene_dir / "transforms_train.json", T_opt
+    )
     time_index_of = {fr.name: int(i) for fr, i in zip(all_frames, idx_all)}
     _warn_shared_times(all_frames, time_index_of)
 
@@ -283,7 +305,7 @@ def read_dnerf_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: str, 
         W0, H0 = probe.shape[1], probe.shape[0]
     else:
         W0, H0 = header[0], header[1]
-    if W0 < s or H0 < s:
+    if s > W0 or s > H0:
         raise input_error(first.image, f"image {W0}x{H0} is smaller than the downscale factor {s}")
     h, w = H0 // s, W0 // s
     K_all = np.stack([scale_intrinsics(_intrinsics(fr, W0, H0), 1.0 / s) for fr in frames])
@@ -320,14 +342,21 @@ def read_dnerf_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: str, 
                     unknown = np.setdiff1d(present, known_ids)
                     objects = unknown[unknown != 0]
                     if not mapping and objects.size:
-                        raise input_error(mapping_path, f"lists no class, but the mask {fr.mask} has object id "
-                                                        f"{int(objects[0])}; list every id of the masks (0 = background)")
+                        raise input_error(
+                            mapping_path,
+                            f"lists no class, but the mask {fr.mask} has object id "
+                            f"{int(objects[0])}; list every id of the masks (0 = background)",
+                        )
                     if mapping and unknown.size:
-                        raise input_error(fr.mask, f"mask has id {int(unknown[0])} that {mapping_path.name} does not list")
+                        raise input_error(
+                            fr.mask, f"mask has id {int(unknown[0])} that {mapping_path.name} does not list"
+                        )
                 ids_seen[present] = True
                 masks[f] = downscale_labels(m, s, present)
         except cv2.error as exc:
-            raise input_error(fr.image, f"image processing failed ({str(exc).splitlines()[0] if str(exc) else 'cv2 error'})") from None
+            raise input_error(
+                fr.image, f"image processing failed ({str(exc).splitlines()[0] if str(exc) else 'cv2 error'})"
+            ) from None
 
     if workers <= 1 or F <= 1:
         for f in range(F):
@@ -346,7 +375,9 @@ def read_dnerf_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: str, 
             mapping[0] = "background"
         inst_ids = np.array(sorted(k for k in mapping if k != 0), dtype=np.int64)
         names = [mapping[int(i)] for i in inst_ids]
-        instances = Instances(ids=inst_ids, names=names, rigid=np.array([rigidity_of(n, rules) for n in names], dtype=np.int8))
+        instances = Instances(
+            ids=inst_ids, names=names, rigid=np.array([rigidity_of(n, rules) for n in names], dtype=np.int8)
+        )
 
     point_cloud, pc_colour = None, None
     ply = scene_dir / "fused.ply"

@@ -52,12 +52,20 @@ def png_size(path: str | os.PathLike) -> tuple[int, int, int] | None:
     channels = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}.get(colour_type)
     if channels is None:
         raise input_error(p, f"corrupt PNG (unknown colour type {colour_type})")
-    if width == 0 or height == 0 or width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE or width * height > MAX_IMAGE_PIXELS:
+    if (
+        width == 0
+        or height == 0
+        or width > MAX_IMAGE_SIDE
+        or height > MAX_IMAGE_SIDE
+        or width * height > MAX_IMAGE_PIXELS
+    ):
         raise input_error(p, f"PNG header announces an implausible size {width}x{height}")
     return width, height, channels
 
 
-def read_image(path: str | os.PathLike, *, expect_size: tuple[int, int] | None = None, what: str = "image") -> np.ndarray:
+def read_image(
+    path: str | os.PathLike, *, expect_size: tuple[int, int] | None = None, what: str = "image"
+) -> np.ndarray:
     """Decode an image to (H, W) or (H, W, 3|4) uint8 in RGB(A) order.
 
     `expect_size` is (width, height); a mismatch (checked from the header
@@ -92,7 +100,9 @@ def read_image(path: str | os.PathLike, *, expect_size: tuple[int, int] | None =
     return img
 
 
-def read_label_image(path: str | os.PathLike, *, expect_size: tuple[int, int] | None = None, what: str = "mask") -> np.ndarray:
+def read_label_image(
+    path: str | os.PathLike, *, expect_size: tuple[int, int] | None = None, what: str = "mask"
+) -> np.ndarray:
     """Decode an id mask (8 or 16 bit, single channel or equal channels); dtype kept."""
     p = Path(path)
     header = png_size(p)
@@ -118,10 +128,6 @@ def read_label_image(path: str | os.PathLike, *, expect_size: tuple[int, int] | 
 def _crop(img: np.ndarray, s: int) -> np.ndarray:
     H, W = img.shape[:2]
     return img[: H - H % s, : W - W % s]
-
-
-def downscaled_size(width: int, height: int, s: int) -> tuple[int, int]:
-    return width // s, height // s
 
 
 def downscale_area(img: np.ndarray, s: int) -> np.ndarray:
@@ -153,9 +159,9 @@ def downscale_labels(mask: np.ndarray, s: int, ids: np.ndarray | None = None) ->
     # INTER_AREA of a 0/1 indicator is count / s^2 per block, computed the
     # same way for every id, so equal counts compare equal and argmax keeps
     # the first (smallest) id on ties.
-    shares = np.stack([
-        cv2.resize((mask == i).astype(np.float32), (W // s, H // s), interpolation=cv2.INTER_AREA) for i in ids
-    ])
+    shares = np.stack(
+        [cv2.resize((mask == i).astype(np.float32), (W // s, H // s), interpolation=cv2.INTER_AREA) for i in ids]
+    )
     return ids[np.argmax(shares, axis=0)].astype(mask.dtype)
 
 

@@ -134,12 +134,16 @@ def _read_split(path: Path) -> tuple[list[str], list[int], list[int]]:
     cams = as_list(data["camera_ids"], path, "'camera_ids'")
     times = as_list(data["time_ids"], path, "'time_ids'")
     if not (len(names) == len(cams) == len(times)):
-        raise input_error(path, f"frame_names, camera_ids and time_ids differ in length ({len(names)}, {len(cams)}, {len(times)})")
+        raise input_error(
+            path, f"frame_names, camera_ids and time_ids differ in length ({len(names)}, {len(cams)}, {len(times)})"
+        )
     out_names = []
     for i, n in enumerate(names):
         n = as_str(n, path, f"frame_names[{i}]")
         if "/" in n or "\\" in n or n in (".", "..") or len(n) > MAX_NAME:
-            raise input_error(path, f"frame_names[{i}] {n[:40]!r} is not a plain file name (at most {MAX_NAME} characters, no '/')")
+            raise input_error(
+                path, f"frame_names[{i}] {n[:40]!r} is not a plain file name (at most {MAX_NAME} characters, no '/')"
+            )
         out_names.append(n)
     out_cams = [as_int(c, path, f"camera_ids[{i}]", lo=0, hi=1 << 31) for i, c in enumerate(cams)]
     out_times = [as_int(t, path, f"time_ids[{i}]", lo=0, hi=MAX_TIME_ID) for i, t in enumerate(times)]
@@ -162,8 +166,16 @@ def _read_camera(path: Path) -> dict:
         raise input_error(path, f"image_size must be [width, height], got {len(size)} entries")
     W = as_image_side(size[0], path, "image_size width")
     H = as_image_side(size[1], path, "image_size height")
-    radial = as_array(d["radial_distortion"], (3,), path, "radial_distortion") if d.get("radial_distortion") is not None else np.zeros(3)
-    tangential = as_array(d["tangential_distortion"], (2,), path, "tangential_distortion") if d.get("tangential_distortion") is not None else np.zeros(2)
+    radial = (
+        as_array(d["radial_distortion"], (3,), path, "radial_distortion")
+        if d.get("radial_distortion") is not None
+        else np.zeros(3)
+    )
+    tangential = (
+        as_array(d["tangential_distortion"], (2,), path, "tangential_distortion")
+        if d.get("tangential_distortion") is not None
+        else np.zeros(2)
+    )
     w2c = w2c_from_orientation_position(R, c)
     problem = pose_problem(w2c)
     if problem:
@@ -186,7 +198,10 @@ def _load_npy(path: Path, shape2d: tuple[int, int], what: str) -> np.ndarray:
     except FileNotFoundError:
         raise input_error(path, f"missing {what}") from None
     except (ValueError, OSError, EOFError, TypeError) as exc:
-        raise input_error(path, f"unreadable or corrupt .npy {what} ({str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__})") from None
+        raise input_error(
+            path,
+            f"unreadable or corrupt .npy {what} ({str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__})",
+        ) from None
     if not isinstance(arr, np.ndarray):
         raise input_error(path, f"{what} is not a plain array")
     if arr.ndim == 3 and arr.shape[2] == 1:
@@ -241,7 +256,9 @@ def read_iphone_layout(scene_dir: str | os.PathLike, dataset: str, scene: str, o
     workers = option_int(options, "workers", min(8, os.cpu_count() or 1), hi=64, where=where)
     som_depth = options.get("som_depth", "depth_anything_colmap")
     if not isinstance(som_depth, str) or not som_depth or "/" in som_depth:
-        raise MogafError(f"{where}: 'som_depth' must be a folder suffix such as depth_anything_colmap, got {som_depth!r}")
+        raise MogafError(
+            f"{where}: 'som_depth' must be a folder suffix such as depth_anything_colmap, got {som_depth!r}"
+        )
     rules = rigidity_rules(options, where=where)
 
     # Splits.
@@ -293,9 +310,14 @@ def read_iphone_layout(scene_dir: str | os.PathLike, dataset: str, scene: str, o
             if not isinstance(entry, dict):
                 raise input_error(mpath, f"entry {name} must be an object")
             if "camera_id" in entry and as_int(entry["camera_id"], mpath, f"{name} camera_id") != cam:
-                raise input_error(mpath, f"frame {name}: camera_id {entry['camera_id']} differs from {listed_in[name].name} ({cam})")
+                raise input_error(
+                    mpath, f"frame {name}: camera_id {entry['camera_id']} differs from {listed_in[name].name} ({cam})"
+                )
             if "warp_id" in entry and as_int(entry["warp_id"], mpath, f"{name} warp_id") != t:
-                raise input_error(mpath, f"frame {name}: warp_id {entry['warp_id']} differs from the time_id in {listed_in[name].name} ({t})")
+                raise input_error(
+                    mpath,
+                    f"frame {name}: warp_id {entry['warp_id']} differs from the time_id in {listed_in[name].name} ({t})",
+                )
 
     # Cameras: one per listed frame, none left over.
     cam_dir = scene_dir / "camera"
@@ -308,17 +330,24 @@ def read_iphone_layout(scene_dir: str | os.PathLike, dataset: str, scene: str, o
         raise input_error(cam_dir, f"cannot be listed ({exc.strerror or exc.__class__.__name__})") from None
     for entry in entries:
         if entry.endswith(".json") and entry[:-5] not in known:
-            raise input_error(cam_dir / entry, f"camera without a frame: {entry[:-5]} is in no split (more cameras than frames)")
+            raise input_error(
+                cam_dir / entry, f"camera without a frame: {entry[:-5]} is in no split (more cameras than frames)"
+            )
     cameras = []
     for name in names:
         path = cam_dir / f"{name}.json"
         if not path.exists():
-            raise input_error(path, f"missing camera of frame {name} listed in {listed_in[name].relative_to(scene_dir)}")
+            raise input_error(
+                path, f"missing camera of frame {name} listed in {listed_in[name].relative_to(scene_dir)}"
+            )
         cameras.append(_read_camera(path))
     W0, H0 = cameras[0]["size"]
     for name, cam in zip(names, cameras):
         if cam["size"] != (W0, H0):
-            raise input_error(cam_dir / f"{name}.json", f"image_size {list(cam['size'])} differs from frame {names[0]} ({[W0, H0]}); mixed sizes are not supported")
+            raise input_error(
+                cam_dir / f"{name}.json",
+                f"image_size {list(cam['size'])} differs from frame {names[0]} ({[W0, H0]}); mixed sizes are not supported",
+            )
     w, h = int(round(W0 / S)), int(round(H0 / S))
     if w < 1 or h < 1:
         raise input_error(cam_dir / f"{names[0]}.json", f"image_size {[W0, H0]} is smaller than the scale factor {S}")
@@ -333,7 +362,9 @@ def read_iphone_layout(scene_dir: str | os.PathLike, dataset: str, scene: str, o
     # Images.
     rgb_dir = scene_dir / "rgb" / f"{S}x"
     if not rgb_dir.is_dir():
-        raise input_error(rgb_dir, f"missing image folder for scale {S} (set the dataset option 'scale' to a scale that exists)")
+        raise input_error(
+            rgb_dir, f"missing image folder for scale {S} (set the dataset option 'scale' to a scale that exists)"
+        )
     images = np.empty((F, h, w, 3), np.uint8)
     alpha = np.full((F, h, w), 255, np.uint8)
     has_alpha = np.zeros(F, bool)
@@ -341,7 +372,9 @@ def read_iphone_layout(scene_dir: str | os.PathLike, dataset: str, scene: str, o
     def load_rgb(f: int) -> None:
         path = rgb_dir / f"{names[f]}.png"
         if not path.exists():
-            raise input_error(path, f"missing image of frame {names[f]} listed in {listed_in[names[f]].relative_to(scene_dir)}")
+            raise input_error(
+                path, f"missing image of frame {names[f]} listed in {listed_in[names[f]].relative_to(scene_dir)}"
+            )
         try:
             img = read_image(path, expect_size=(w, h), what=f"image (camera image_size {W0}x{H0} / scale {S})")
         except cv2.error:
@@ -380,7 +413,7 @@ def read_iphone_layout(scene_dir: str | os.PathLike, dataset: str, scene: str, o
         if cdir.is_dir() and "val" in splits:
             covisible = np.ones((F, h, w), np.uint8)
 
-            def load_cov(f: int, cdir: Path = cdir) -> None:
+            def load_cov(f: int, cdir: Path = cdir, covisible: np.ndarray = covisible) -> None:
                 if splits[f] != "val":
                     return
                 path = cdir / f"{names[f]}.png"
@@ -406,8 +439,14 @@ def read_iphone_layout(scene_dir: str | os.PathLike, dataset: str, scene: str, o
     tangential = np.stack([c["tangential"] for c in cameras])
     distorted = np.flatnonzero(np.any(radial != 0, axis=1) | np.any(tangential != 0, axis=1))
     if distorted.size:
-        shipped["distortion"] = {"frame": distorted.astype(np.int64), "radial": radial[distorted], "tangential": tangential[distorted]}
-        meta["distortion"] = f"ignored: {distorted.size} of {F} cameras have non-zero distortion; images are used as if undistorted"
+        shipped["distortion"] = {
+            "frame": distorted.astype(np.int64),
+            "radial": radial[distorted],
+            "tangential": tangential[distorted],
+        }
+        meta["distortion"] = (
+            f"ignored: {distorted.size} of {F} cameras have non-zero distortion; images are used as if undistorted"
+        )
         meta["max_abs_distortion"] = float(max(np.abs(radial).max(), np.abs(tangential).max()))
         warnings.warn(
             f"{cam_dir}: {distorted.size} of {F} cameras have non-zero lens distortion (max |k| {meta['max_abs_distortion']:.3g}); "
@@ -437,11 +476,15 @@ def read_iphone_layout(scene_dir: str | os.PathLike, dataset: str, scene: str, o
             def load_mask(f: int) -> None:
                 path = mdir / f"{names[f]}.png"
                 if not path.exists():
-                    raise input_error(path, f"missing Shape-of-Motion foreground mask of frame {names[f]} (other frames have one)")
+                    raise input_error(
+                        path, f"missing Shape-of-Motion foreground mask of frame {names[f]} (other frames have one)"
+                    )
                 instance_mask[f] = _binary_mask(path, (w, h), "foreground mask")
 
             _run(load_mask, F, workers)
-            instances = Instances(ids=np.array([1]), names=["foreground"], rigid=np.array([rigidity_of("foreground", rules)]))
+            instances = Instances(
+                ids=np.array([1]), names=["foreground"], rigid=np.array([rigidity_of("foreground", rules)])
+            )
             meta["instance_mask"] = "Shape-of-Motion track_anything foreground (id 1), thresholded at 0.5"
         ddir = scene_dir / SOM / f"aligned_{som_depth}" / f"{S}x"
         if ddir.is_dir():
@@ -459,7 +502,9 @@ def read_iphone_layout(scene_dir: str | os.PathLike, dataset: str, scene: str, o
         tdir = scene_dir / SOM / "2d_tracks" / f"{S}x"
         if use_tracks and tdir.is_dir():
             shipped["tracks_2d"] = _tracks(tdir, names, splits, time_index, q_stride, max_points, workers)
-            meta["tracks_2d"] = f"{SOM}/2d_tracks/{S}x, query stride {q_stride}, at most {max_points or 'all'} points per query"
+            meta["tracks_2d"] = (
+                f"{SOM}/2d_tracks/{S}x, query stride {q_stride}, at most {max_points or 'all'} points per query"
+            )
 
     out = Scene(
         dataset=dataset,
@@ -577,7 +622,11 @@ def _tracks(tdir: Path, names, splits, time_index, q_stride: int, max_points: in
         q = queries[qi]
         first = _load_tracks(tdir / f"{names[q]}_{names[q]}.npy")
         P = first.shape[0]
-        keep = np.arange(P) if not max_points or P <= max_points else np.unique(np.linspace(0, P - 1, max_points).round().astype(np.int64))
+        keep = (
+            np.arange(P)
+            if not max_points or max_points >= P
+            else np.unique(np.linspace(0, P - 1, max_points).round().astype(np.int64))
+        )
         block = np.empty((keep.size, M, 4), np.float32)
         for j, t in enumerate(train):
             path = tdir / f"{names[q]}_{names[t]}.npy"

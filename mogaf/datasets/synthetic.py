@@ -36,6 +36,7 @@ from ..errors import MogafError, input_error
 from ..scene import Instances, Scene
 from .common import as_int, as_list, as_str, load_json
 from .images import read_label_image
+from .iphone import read_iphone_layout
 
 GT = "mogaf_gt"
 
@@ -55,7 +56,10 @@ def _load_array(path: Path, *, dtype_kind: str, ndim: int, what: str) -> np.ndar
     except (ValueError, OSError, EOFError) as exc:
         raise input_error(path, f"unreadable or corrupt .npy {what} ({exc.__class__.__name__})") from None
     if not isinstance(arr, np.ndarray) or arr.ndim != ndim or arr.dtype.kind not in dtype_kind:
-        raise input_error(path, f"{what} must be a {ndim}-d array of kind {dtype_kind!r}, got {getattr(arr, 'shape', '?')} {getattr(arr, 'dtype', '?')}")
+        raise input_error(
+            path,
+            f"{what} must be a {ndim}-d array of kind {dtype_kind!r}, got {getattr(arr, 'shape', '?')} {getattr(arr, 'dtype', '?')}",
+        )
     if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
         raise input_error(path, f"{what} has NaN or infinite values")
     return arr
@@ -80,17 +84,19 @@ def _read_instances(path: Path) -> tuple[Instances, dict[int, int]]:
     return Instances(ids=np.array(ids), names=names, rigid=np.array(rigid)), pose_index
 
 
-def read_synthetic_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: str, options: Mapping[str, Any] | None = None) -> Scene:
+def read_synthetic_scene(
+    scene_dir: str | os.PathLike, *, dataset: str, scene: str, options: Mapping[str, Any] | None = None
+) -> Scene:
     """Read a generated synthetic scene (iPhone layout + mogaf_gt/) into a Scene."""
-    from .iphone import read_iphone_layout
-
     d = Path(scene_dir)
     if not d.is_dir():
         raise MogafError(describe_missing(d, dataset=dataset, scene=scene))
     options = dict(options or {})
     options.setdefault("scale", 1)
     if int(options["scale"]) != 1:
-        raise MogafError(f"dataset '{dataset}' options: synthetic scenes are written at scale 1 only (rgb/1x), got scale {options['scale']}")
+        raise MogafError(
+            f"dataset '{dataset}' options: synthetic scenes are written at scale 1 only (rgb/1x), got scale {options['scale']}"
+        )
     out = read_iphone_layout(d, dataset=dataset, scene=scene, options=options)
     gt = d / GT
 
@@ -100,7 +106,7 @@ def read_synthetic_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: s
     if not isinstance(ship_masks, bool):
         raise input_error(gt / "params.json", f"params.ship_instance_masks must be true or false, got {ship_masks!r}")
     instances, pose_index = _read_instances(gt / "instances.json")
-    known = set(int(i) for i in instances.ids) | {0}
+    known = {int(i) for i in instances.ids} | {0}
     masks = np.zeros((out.num_frames if ship_masks else 0, out.height, out.width), np.int32)
     for f, name in enumerate(out.frame_names if ship_masks else []):
         path = gt / "instance" / "1x" / f"{name}.png"
@@ -139,7 +145,9 @@ def read_synthetic_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: s
         raise input_error(gt / "points_instance.npy", "refers to instances not listed in instances.json")
     for row, inst in enumerate(pose_ids.tolist()):
         if pose_index.get(int(inst)) != row:
-            raise input_error(gt / "object_pose_ids.npy", f"row {row} (instance {inst}) disagrees with pose_index in instances.json")
+            raise input_error(
+                gt / "object_pose_ids.npy", f"row {row} (instance {inst}) disagrees with pose_index in instances.json"
+            )
 
     ground_truth: dict[str, Any] = {
         "points3d": points3d.astype(np.float32),
@@ -150,7 +158,10 @@ def read_synthetic_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: s
         "object_pose_ids": pose_ids.astype(np.int64),
     }
     for c in range(1, C):
-        ground_truth[f"camera{c}"] = {"tracks2d": tracks_all[c].astype(np.float32), "visible": visible_all[c].astype(bool)}
+        ground_truth[f"camera{c}"] = {
+            "tracks2d": tracks_all[c].astype(np.float32),
+            "visible": visible_all[c].astype(bool),
+        }
     out.ground_truth = ground_truth
 
     out.meta["synthetic"] = True
@@ -158,6 +169,8 @@ def read_synthetic_scene(scene_dir: str | os.PathLike, *, dataset: str, scene: s
     out.meta["sphere_bounce_times_s"] = params.get("sphere_bounce_times_s", [])
     if ship_masks:
         out.meta["instance_mask"] = f"ground-truth instance ids ({GT}/instance/1x, pixel centres)"
-    out.meta["ground_truth"] = f"{GT}/: surface point trajectories, 2D tracks + visibility per camera, rigid object poses"
+    out.meta["ground_truth"] = (
+        f"{GT}/: surface point trajectories, 2D tracks + visibility per camera, rigid object poses"
+    )
     out.validate(d)
     return out

@@ -13,6 +13,8 @@ import numpy as np
 
 from mogaf.errors import MogafError, refuse_unknown_params
 from mogaf.forecast import quat
+from mogaf.forecast.params import METHOD_SETTINGS
+from mogaf.settings import check
 
 POSE_DIM = 7  # [mu (3), q (4, wxyz)]
 
@@ -32,25 +34,15 @@ class ForecastResult:
 
 
 def merge_params(method: str, defaults: Mapping[str, Any], params: Mapping[str, Any] | None) -> dict[str, Any]:
-    """defaults updated with params; unknown keys are a one-line MogafError."""
-    merged = dict(defaults)
-    if params is None:
-        return merged
-    if not isinstance(params, Mapping):
-        raise MogafError(f"forecast.{method}: params must be a mapping, got {type(params).__name__}")
-    refuse_unknown_params(f"forecast.{method}", params, defaults)
-    for key, value in params.items():
-        default = defaults[key]
-        if isinstance(default, bool) and not isinstance(value, bool):
-            raise MogafError(f"forecast.{method}: parameter '{key}' must be true or false, got {value!r}")
-        if isinstance(default, (int, float)) and not isinstance(default, bool) and value is not None:
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise MogafError(f"forecast.{method}: parameter '{key}' must be a number, got {value!r}")
-            if isinstance(default, int) and not isinstance(default, bool) and float(value) != int(value):
-                raise MogafError(f"forecast.{method}: parameter '{key}' must be an integer, got {value!r}")
-            value = type(default)(value)
-        merged[key] = value
-    return merged
+    """`defaults` updated with params, each checked against the method's
+    settings (mogaf.forecast.params.METHOD_SETTINGS); unknown keys are a one-line MogafError."""
+    cls = METHOD_SETTINGS.get(method)
+    if cls is None:  # a method without settings
+        if params is not None and not isinstance(params, Mapping):
+            raise MogafError(f"forecast.{method}: params must be a mapping, got {type(params).__name__}")
+        refuse_unknown_params(f"forecast.{method}", params or {}, defaults)
+        return {**defaults, **dict(params or {})}
+    return check(cls, f"forecast.{method}", params, base=defaults)
 
 
 def check_observed(observed: Any, method: str, min_frames: int) -> np.ndarray:
@@ -132,7 +124,7 @@ class Forecaster:
         self.info: dict[str, Any] = {"method": self.NAME}
         self._obs: np.ndarray | None = None
 
-    def fit(self, observed: np.ndarray, rigid: bool | None = None) -> "Forecaster":
+    def fit(self, observed: np.ndarray, rigid: bool | None = None) -> Forecaster:
         """`rigid`: whether the group moves rigidly (the grouping's flag), None
         when unknown; methods without a notion of groups ignore it."""
         obs = check_observed(observed, self.NAME, self.MIN_FRAMES)

@@ -42,8 +42,13 @@ def rigid_distance_change(last: np.ndarray, future: np.ndarray, rng: np.random.G
     return change, (change / radius if radius > 0 else 0.0)
 
 
-def coherence(observed_means: np.ndarray, forecast_means: np.ndarray, group_id: np.ndarray,
-              group_static: np.ndarray, group_rigid: np.ndarray) -> dict[str, Any]:
+def coherence(
+    observed_means: np.ndarray,
+    forecast_means: np.ndarray,
+    group_id: np.ndarray,
+    group_static: np.ndarray,
+    group_rigid: np.ndarray,
+) -> dict[str, Any]:
     """observed_means (N, T, 3), forecast_means (N, n, 3), per-Gaussian
     group ids and per-group flags -> the figures (see the module doc)."""
     obs = np.asarray(observed_means, np.float64)

@@ -36,29 +36,9 @@ import numpy as np
 from mogaf.errors import MogafError
 from mogaf.forecast import quat
 from mogaf.forecast.base import Forecaster, torch_determinism
+from mogaf.forecast.params import GCN_DEFAULTS
 
-DEFAULTS: dict[str, Any] = {
-    # graph nodes / skinning -- scripts/predict/d-nerf/*.sh
-    "n_nodes": 100,  # max_keypoints=100 (options: --max_points 100)
-    "nearest_num": 6,  # nearest_num=6
-    # network -- options/gaussian_option.py gcn_training + scripts/predict/d-nerf/*.sh
-    "input_size": 10,  # input_size=10 (frames in, "window 10 -> 1")
-    "output_size": 1,  # --output_size 1
-    "num_stage": 6,  # num_stage=6 residual GC blocks (option default 4, every predict script sets 6)
-    "linear_size": 128,  # --linear_size 128 (hidden features)
-    "dropout": 0.0,  # --dropout 0.
-    "no_mapping": False,  # --no_mapping off: output through Linear-ReLU-Linear
-    # optimisation -- train_GCN.py + scripts/predict/d-nerf/*.sh
-    "epochs": 2001,  # epoch=2001
-    "batch_size": 32,  # --batch_size 32 (drop_last=True)
-    "lr": 0.01,  # Adam(lr=0.01, eps=1e-15)
-    "adam_eps": 1e-15,
-    "lr_min": 1e-4,  # CosineAnnealingLR(T_max=epoch, eta_min=1e-4)
-    "noise_init": 0.0,  # noise_init=0 in every predict script (option default 0.1)
-    "noise_step": 100,  # noise_step=100
-    # runtime
-    "num_threads": 0,  # 0 = leave torch's intra-op thread count alone
-}
+DEFAULTS: dict[str, Any] = GCN_DEFAULTS  # forecast.params.GCNSettings
 
 
 def farthest_point_sampling(points: np.ndarray, k: int) -> np.ndarray:
@@ -180,7 +160,16 @@ class GCNForecaster(Forecaster):
         import torch
 
         p = self.params
-        for key in ("n_nodes", "nearest_num", "input_size", "output_size", "num_stage", "linear_size", "epochs", "batch_size"):
+        for key in (
+            "n_nodes",
+            "nearest_num",
+            "input_size",
+            "output_size",
+            "num_stage",
+            "linear_size",
+            "epochs",
+            "batch_size",
+        ):
             if p[key] < 1:
                 raise MogafError(f"forecast.gcn: parameter '{key}' must be >= 1, got {p[key]}")
         g, t, _ = obs.shape

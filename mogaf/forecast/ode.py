@@ -40,45 +40,9 @@ from mogaf.errors import MogafError
 from mogaf.forecast import quat
 from mogaf.forecast.base import Forecaster, torch_determinism
 from mogaf.forecast.classical import constant_twist_rollout
+from mogaf.forecast.params import ODE_DEFAULTS
 
-DEFAULTS: dict[str, Any] = {
-    # model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)
-    "latent_dim": 64,
-    "d_model": 128,
-    "nhead": 8,
-    "num_encoder_layers": 4,
-    "num_decoder_layers": 4,
-    "ode_nhidden": 64,
-    "decoder_nhidden": 128,
-    "ode_layers": 4,
-    "use_tanh": True,
-    "encoder_dropout": 0.1,  # extrapolation_ode_model.py: TransformerEncoderLayer(dropout=0.1, dim_feedforward=4*d_model)
-    "rtol": 1e-3,
-    "atol": 1e-4,
-    "max_num_steps": 1000,  # ours: dopri5 step cap per output interval (torchdiffeq option); hitting it is flagged
-    # data -- config_DNerf_default.yaml `data:`
-    "time_split": 0.8,  # observed part of the normalised [0, 1] sequence time
-    "obs_time_span": 0.6,
-    "max_extrap_time_span": 0.2,
-    "extrap_points": 10,
-    "num_time_windows": 50,
-    "max_gaussians_per_epoch": 50000,
-    "batch_size": 1024,
-    # train -- config_DNerf_default.yaml `train:` / `scheduler:`
-    "epochs": 40,
-    "lr": 1e-3,  # Adam (train_extrapolation.py passes no weight decay)
-    "lr_min": 1e-5,  # CosineAnnealingLR eta_min, T_max = 40 = epochs
-    "reg_weight": 1e-5,  # latent second-derivative regulariser
-    "xyz_reg_weight": 1e-3,  # xyz acceleration regulariser
-    "reg_temperature": 0.05,
-    "expected_traj_loss_init": 0.05,
-    "expected_traj_loss_end": 0.0,
-    "reg_use_ema": True,
-    "reg_ema_decay": 0.9,
-    # runtime
-    "num_threads": 0,  # 0 = leave torch's intra-op thread count alone
-    "rollout_chunk": 4096,  # Gaussians per solve at inference
-}
+DEFAULTS: dict[str, Any] = ODE_DEFAULTS  # forecast.params.ODESettings
 
 
 class _StepCapHit(Exception):
@@ -90,7 +54,9 @@ def _sinusoid(length: int, dim: int):
 
     pos = torch.arange(length, dtype=torch.float64)[:, None]
     j = torch.arange(dim, dtype=torch.float64)[None, :]
-    angle = pos / torch.pow(torch.tensor(10000.0, dtype=torch.float64), 2 * torch.div(j, 2, rounding_mode="floor") / dim)
+    angle = pos / torch.pow(
+        torch.tensor(10000.0, dtype=torch.float64), 2 * torch.div(j, 2, rounding_mode="floor") / dim
+    )
     half = (dim + 1) // 2
     pe = torch.zeros(length, dim, dtype=torch.float64)
     pe[:, :half] = torch.sin(angle[:, 0::2])
@@ -99,7 +65,6 @@ def _sinusoid(length: int, dim: int):
 
 
 def _build_model(p: dict[str, Any], obs_len: int):
-    import torch
     from torch import nn
 
     act = nn.Tanh if p["use_tanh"] else nn.ReLU
@@ -196,7 +161,7 @@ class LatentODEForecaster(Forecaster):
 
     def _layout(self, t: int) -> tuple[float, int, int]:
         p = self.params
-        if not (0 < p["time_split"] and 0 < p["obs_time_span"] and 0 < p["max_extrap_time_span"]):
+        if not (p["time_split"] > 0 and p["obs_time_span"] > 0 and p["max_extrap_time_span"] > 0):
             raise MogafError("forecast.ode: time_split, obs_time_span and max_extrap_time_span must be > 0")
         dt = p["time_split"] / (t - 1)
         obs_len = int(round(p["obs_time_span"] / dt)) + 1
@@ -208,9 +173,21 @@ class LatentODEForecaster(Forecaster):
         import torch
 
         p = self.params
-        for key in ("latent_dim", "d_model", "nhead", "num_encoder_layers", "num_decoder_layers", "ode_nhidden",
-                    "decoder_nhidden", "extrap_points", "num_time_windows", "max_gaussians_per_epoch", "batch_size",
-                    "max_num_steps", "rollout_chunk"):
+        for key in (
+            "latent_dim",
+            "d_model",
+            "nhead",
+            "num_encoder_layers",
+            "num_decoder_layers",
+            "ode_nhidden",
+            "decoder_nhidden",
+            "extrap_points",
+            "num_time_windows",
+            "max_gaussians_per_epoch",
+            "batch_size",
+            "max_num_steps",
+            "rollout_chunk",
+        ):
             if p[key] < 1:
                 raise MogafError(f"forecast.ode: parameter '{key}' must be >= 1, got {p[key]}")
         if p["ode_layers"] < 2:
@@ -248,7 +225,7 @@ class LatentODEForecaster(Forecaster):
             reg_w, xyz_w = p["reg_weight"], p["xyz_reg_weight"]
             ema = None
             model.train()
-            for epoch in range(p["epochs"]):
+            for _epoch in range(p["epochs"]):
                 gsel = torch.randperm(g, generator=gen)[: min(g, p["max_gaussians_per_epoch"])]
                 pairs = torch.cartesian_prod(torch.arange(n_win), gsel)  # (window, Gaussian) samples
                 pairs = pairs[torch.randperm(len(pairs), generator=gen)]
@@ -286,7 +263,11 @@ class LatentODEForecaster(Forecaster):
                     nb += 1
                     # Adaptive regulariser scale (train_extrapolation.py), from the EMA of the L1 loss.
                     lv = l_pred.item()
-                    ema = lv if (ema is None or not p["reg_use_ema"]) else p["reg_ema_decay"] * ema + (1 - p["reg_ema_decay"]) * lv
+                    ema = (
+                        lv
+                        if (ema is None or not p["reg_use_ema"])
+                        else p["reg_ema_decay"] * ema + (1 - p["reg_ema_decay"]) * lv
+                    )
                     scale = self._reg_scale(ema)
                     reg_w, xyz_w = p["reg_weight"] * scale, p["xyz_reg_weight"] * scale
                 if nb:

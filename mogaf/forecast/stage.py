@@ -33,6 +33,9 @@ from ..artefact import config_digest, read_artefact, write_artefact
 from ..errors import MogafError, input_error
 from ..representation import Model4D, load_model, quat_sign_continuity
 from ..split import read_split
+from .coherence import coherence
+from .params import param_section, section_params
+from .registry import fit_and_rollout
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +54,9 @@ def group_rigid_flags(groups_h5: str | os.PathLike) -> np.ndarray:
     art = read_artefact(groups_h5, "group", required=["group_rigid", "group_static"])
     flags = np.asarray(art["group_rigid"], bool)
     if flags.shape != np.asarray(art["group_static"]).shape:
-        raise input_error(groups_h5, f"group_rigid has {flags.size} groups, group_static {np.asarray(art['group_static']).size}")
+        raise input_error(
+            groups_h5, f"group_rigid has {flags.size} groups, group_static {np.asarray(art['group_static']).size}"
+        )
     return flags
 
 
@@ -117,8 +122,6 @@ def observed_states(model: Model4D, members: np.ndarray) -> np.ndarray:
 
 
 def method_params(params: Mapping[str, Any], method: str) -> dict[str, Any]:
-    from . import param_section, section_params
-
     return {**dict(params.get("common") or {}), **section_params(method, params.get(param_section(method)))}
 
 
@@ -134,20 +137,31 @@ def _load_inputs(model_h5, groups_h5, split_h5):
         raise input_error(groups_h5, f"groups {group_id.size} Gaussians, the model {model_h5} has {len(model.fg)}")
     split = read_split(split_h5)
     if model.trajectory_means.shape[1] != split.num_observed_timesteps:
-        raise input_error(model_h5, f"trajectories have {model.trajectory_means.shape[1]} steps, "
-                                    f"the split observes {split.num_observed_timesteps}")
+        raise input_error(
+            model_h5,
+            f"trajectories have {model.trajectory_means.shape[1]} steps, "
+            f"the split observes {split.num_observed_timesteps}",
+        )
     return model, group_id, group_static, split
 
 
-def forecast_job(model: Model4D, members: np.ndarray, horizon: int, params: Mapping[str, Any], method: str, job: str,
-                 seed: int, rigid: bool | None = None) -> tuple[np.ndarray, dict[str, Any], float]:
+def forecast_job(
+    model: Model4D,
+    members: np.ndarray,
+    horizon: int,
+    params: Mapping[str, Any],
+    method: str,
+    job: str,
+    seed: int,
+    rigid: bool | None = None,
+) -> tuple[np.ndarray, dict[str, Any], float]:
     """Fit `method` on the members' observed trajectories; (poses (G, horizon, 7), info, wall seconds).
     `rigid`: the grouping's rigid flag of the job's group (None for the job of every dynamic Gaussian)."""
-    from . import fit_and_rollout
-
     observed = observed_states(model, members)
     start = time.perf_counter()
-    result = fit_and_rollout(method, observed, horizon, method_params(params, method), _job_seed(seed, job), rigid=rigid)
+    result = fit_and_rollout(
+        method, observed, horizon, method_params(params, method), _job_seed(seed, job), rigid=rigid
+    )
     wall = time.perf_counter() - start
     poses = np.asarray(result.poses, np.float64)
     if not np.all(np.isfinite(poses)):
@@ -157,21 +171,57 @@ def forecast_job(model: Model4D, members: np.ndarray, horizon: int, params: Mapp
     return poses, info, wall
 
 
-def run_forecast_group(model_h5: str, groups_h5: str, split_h5: str, out: str, params: Mapping[str, Any], *, method: str, job: str, seed: int) -> Path:
+def run_forecast_group(
+    model_h5: str,
+    groups_h5: str,
+    split_h5: str,
+    out: str,
+    params: Mapping[str, Any],
+    *,
+    method: str,
+    job: str,
+    seed: int,
+) -> Path:
     model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
     members = job_members(job, group_id, group_static, groups_h5)
-    poses, info, wall = forecast_job(model, members, int(split.forecast_timesteps.size), params, method, job, seed,
-                                     job_rigid_hint(job, group_rigid_flags(groups_h5)))
+    poses, info, wall = forecast_job(
+        model,
+        members,
+        int(split.forecast_timesteps.size),
+        params,
+        method,
+        job,
+        seed,
+        job_rigid_hint(job, group_rigid_flags(groups_h5)),
+    )
     return write_artefact(
-        out, GROUP_STAGE,
+        out,
+        GROUP_STAGE,
         {"members": members, "means": poses[..., :3].astype(np.float32), "quats": poses[..., 3:].astype(np.float32)},
-        config_digest=config_digest({"method": method, "params": method_params(params, method), "job": job, "seed": seed}),
-        attrs={"method": method, "job": job, "num_gaussians": int(members.size), "fit_wall_s": round(wall, 3), "info": info},
+        config_digest=config_digest(
+            {"method": method, "params": method_params(params, method), "job": job, "seed": seed}
+        ),
+        attrs={
+            "method": method,
+            "job": job,
+            "num_gaussians": int(members.size),
+            "fit_wall_s": round(wall, 3),
+            "info": info,
+        },
     )
 
 
-def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, parts: list[str], out: str,
-                       params: Mapping[str, Any], *, method: str, seed: int = 0) -> Path:
+def run_forecast_merge(
+    model_h5: str,
+    groups_h5: str,
+    split_h5: str,
+    parts: list[str],
+    out: str,
+    params: Mapping[str, Any],
+    *,
+    method: str,
+    seed: int = 0,
+) -> Path:
     """Merge the group jobs' poses into forecast/{method}.h5 (INLINE_METHODS: computed here, group by group)."""
     model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
     group_rigid = group_rigid_flags(groups_h5)
@@ -200,7 +250,9 @@ def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, parts: list
             raise MogafError(f"forecast {method}: computed in the merge job, it takes no group files")
         for job in _job_names(group_id, group_static, bool(params.get("groupwise", True))):
             members = job_members(job, group_id, group_static, groups_h5)
-            poses, info, _ = forecast_job(model, members, T, params, method, job, seed, job_rigid_hint(job, group_rigid))
+            poses, info, _ = forecast_job(
+                model, members, T, params, method, job, seed, job_rigid_hint(job, group_rigid)
+            )
             means[members] = poses[..., :3]
             quats[members] = poses[..., 3:]
             covered[members] = True
@@ -210,16 +262,21 @@ def run_forecast_merge(model_h5: str, groups_h5: str, split_h5: str, parts: list
     if missing.size:
         raise MogafError(f"forecast {method}: {missing.size} dynamic Gaussians are covered by no forecast job")
     mparams = method_params(params, method)
-    from .coherence import coherence
-
     structure = coherence(model.trajectory_means, means, group_id, group_static, group_rigid)
-    attrs: dict[str, Any] = {"method": method, "groupwise": bool(params.get("groupwise", True)),
-                             "num_groups_trained": len(parts), "flags": flags, "params": mparams,
-                             "coherence": structure}
+    attrs: dict[str, Any] = {
+        "method": method,
+        "groupwise": bool(params.get("groupwise", True)),
+        "num_groups_trained": len(parts),
+        "flags": flags,
+        "params": mparams,
+        "coherence": structure,
+    }
     return write_artefact(
-        out, MERGE_STAGE,
+        out,
+        MERGE_STAGE,
         {"timesteps": split.forecast_timesteps, "means": means, "quats": quats, "group_id": group_id},
-        config_digest=config_digest({"method": method, "params": mparams, "seed": int(seed),
-                                     "parts": sorted(Path(p).name for p in parts)}),
+        config_digest=config_digest(
+            {"method": method, "params": mparams, "seed": int(seed), "parts": sorted(Path(p).name for p in parts)}
+        ),
         attrs=attrs,
     )

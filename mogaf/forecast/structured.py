@@ -53,64 +53,37 @@ members' orientations about it.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 
 from mogaf.errors import MogafError
 from mogaf.forecast import quat
+from mogaf.forecast.base import torch_determinism
 from mogaf.forecast.classical import constant_twist_rollout
+from mogaf.forecast.params import STRUCTURED_DEFAULTS as _STRUCTURED_DEFAULTS
+from mogaf.forecast.params import StructuredSettings
+from mogaf.forecast.transformer_net import _build_model, mask_ratio, minibatches, optimiser_step
+from mogaf.settings import check
 
 # forecast.mogaf.mode picks the forecaster; forecast.mogaf.structured holds the
 # structured mode's own settings (the paper mode ignores them). Everything else
 # (architecture, masking, lambda_acc, optimiser, runtime) is the paper mode's.
 # None of these is in the paper: ours, each measured in `python -m mogaf.bench
-# forecast` (README, "Forecasting on ground-truth trajectories").
+# forecast` (docs/forecasting.md).
 MODES = ("structured", "paper")
-STRUCTURED_DEFAULTS: dict[str, Any] = {
-    "context": 16,  # past values the network reads per channel (shorter when fewer frames are observed)
-    "horizon": 8,  # values predicted per forward pass (multi-step head and loss)
-    "weight_decay": 0.0,  # replaces the paper mode's 0.03: decay shrinks the residual over the prior,
-    # so a thrown sphere's fall is not learned (GT benchmark, default/sphere at 0.8: 0.102 m with 0.03, 0.021 m without)
-    "rigid_residual": 0.05,  # rigid-fit RMS residual / group RMS radius under which a group without a hint is rigid
-    "still_factor": 3.0,  # non-rigid groups: a Gaussian moving less than this x the noise level stays still
-    "gate": True,  # backtest the learned forecaster against constant velocity and frozen per group
-    "backtest_frac": 0.5,  # the backtest holds back this share of the observed frames, at most the forecast horizon
-    "max_train_windows": 65536,  # training windows kept per fit (random, seeded): bounds memory for big groups
-}
+STRUCTURED_DEFAULTS: dict[str, Any] = _STRUCTURED_DEFAULTS  # from forecast.params.StructuredSettings
 
 
 def structured_params(p: Mapping[str, Any]) -> dict[str, Any]:
     """The settings the structured mode runs with: the paper mode's, with
-    forecast.mogaf.structured (over its defaults) on top."""
-    from mogaf.errors import refuse_unknown_params
-
+    forecast.mogaf.structured (over its defaults, StructuredSettings) on top."""
     own = p.get("structured") or {}
-    if not isinstance(own, Mapping):
-        raise MogafError(f"forecast.mogaf: parameter 'structured' must be a mapping, got {own!r}")
-    refuse_unknown_params("forecast.mogaf.structured", own, STRUCTURED_DEFAULTS)
-    out = {**p, **STRUCTURED_DEFAULTS, **own}
-    check_params(out)
-    return out
+    return {**p, **check(StructuredSettings, "forecast.mogaf.structured", own)}
 
 
 CANDIDATES = ("frozen", "constant_velocity", "learned")  # tie order: the simpler wins
-
-
-def check_params(p: Mapping[str, Any]) -> None:
-    """Checks of the structured settings (after structured_params)."""
-    for key, least in (("context", 2), ("horizon", 1), ("max_train_windows", 1)):
-        value = p[key]
-        if isinstance(value, bool) or not isinstance(value, int) or value < least:
-            raise MogafError(f"forecast.mogaf.structured: '{key}' must be an integer >= {least}, got {value!r}")
-    for key in ("rigid_residual", "still_factor", "weight_decay", "backtest_frac"):
-        if isinstance(p[key], bool) or not isinstance(p[key], (int, float)) or p[key] < 0:
-            raise MogafError(f"forecast.mogaf.structured: '{key}' must be a number >= 0, got {p[key]!r}")
-    if not 0.0 < p["backtest_frac"] < 1.0:
-        raise MogafError(f"forecast.mogaf.structured: backtest_frac must be in (0, 1), got {p['backtest_frac']}")
-    if not isinstance(p["gate"], bool):
-        raise MogafError(f"forecast.mogaf.structured: 'gate' must be true or false, got {p['gate']!r}")
 
 
 # ---------------------------------------------------------------- geometry
@@ -144,7 +117,7 @@ def rigid_decomposition(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     Returns centroids (T, 3), rotations (T, 4) wxyz with the identity at the
     last frame, and the relative residual: the largest per-frame RMS distance
     of the members from the rigid fit, over the group's RMS radius."""
-    from mogaf.rigid import procrustes_numpy
+    from mogaf.rigid import procrustes_numpy  # local: mogaf.rigid imports torch at module level
 
     pos = np.asarray(positions, dtype=np.float64)
     ref = pos[:, -1]
@@ -162,7 +135,7 @@ def rigid_decomposition(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
 def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
     import torch
 
-    from mogaf.representation import matrix_to_quat
+    from mogaf.representation import matrix_to_quat  # local: mogaf.representation imports torch at module level
 
     return matrix_to_quat(torch.from_numpy(np.ascontiguousarray(R, dtype=np.float64))).numpy()
 
@@ -213,11 +186,8 @@ class ChannelForecaster:
         scale = np.sqrt(ctx.var(axis=1, keepdims=True) + floor[:, None] ** 2)
         return (ctx - anchor) / scale, anchor, scale
 
-    def fit(self, series: np.ndarray, floor: np.ndarray) -> "ChannelForecaster":
+    def fit(self, series: np.ndarray, floor: np.ndarray) -> ChannelForecaster:
         import torch
-
-        from mogaf.forecast.base import torch_determinism
-        from mogaf.forecast.transformer import _build_model, mask_ratio, minibatches, optimiser_step
 
         p = self.p
         S, T = series.shape
@@ -229,7 +199,11 @@ class ChannelForecaster:
         rng = np.random.default_rng([self.seed, 7])
         total = S * n_win
         # (channel, window) pairs drawn by flat index: a big group never builds all of them
-        flat = np.sort(rng.choice(total, int(p["max_train_windows"]), replace=False)) if total > p["max_train_windows"] else np.arange(total)
+        flat = (
+            np.sort(rng.choice(total, int(p["max_train_windows"]), replace=False))
+            if total > p["max_train_windows"]
+            else np.arange(total)
+        )
         pairs = np.stack(np.divmod(flat, n_win), axis=-1)
         idx = pairs[:, 1:2] + np.arange(L + H)[None, :]
         win = series[pairs[:, :1], idx]
@@ -275,8 +249,6 @@ class ChannelForecaster:
         """(S, n_steps) values after the end of `series` (S, >= context)."""
         import torch
 
-        from mogaf.forecast.base import torch_determinism
-
         L, H = self.context, self.horizon
         hist = np.array(series[:, -L:], dtype=np.float64)
         out = np.empty((hist.shape[0], n_steps))
@@ -288,7 +260,9 @@ class ChannelForecaster:
                 xn, anchor, scale = self.normalise(hist[:, -L:], floor)
                 res = np.empty((hist.shape[0], H))
                 for s in range(0, hist.shape[0], chunk):
-                    res[s : s + chunk] = self.model(torch.from_numpy(xn[s : s + chunk]).float()[..., None]).double().numpy()
+                    res[s : s + chunk] = (
+                        self.model(torch.from_numpy(xn[s : s + chunk]).float()[..., None]).double().numpy()
+                    )
                 pred = steps_ahead[None, :] * (xn[:, -1:] - xn[:, -2:-1]) + res
                 values = pred * scale + anchor
                 take = min(H, n_steps - done)
@@ -307,8 +281,13 @@ class GroupMotion:
     Gaussian's position (3) and accumulated rotation vector (3); still
     Gaussians keep their last pose in every candidate."""
 
-    def __init__(self, obs: np.ndarray, rigid: bool, still_factor: float,
-                 decomposition: tuple[np.ndarray, np.ndarray, float] | None = None) -> None:
+    def __init__(
+        self,
+        obs: np.ndarray,
+        rigid: bool,
+        still_factor: float,
+        decomposition: tuple[np.ndarray, np.ndarray, float] | None = None,
+    ) -> None:
         """`decomposition`: rigid_decomposition(obs[..., :3]) when already computed."""
         self.obs = obs
         self.rigid = rigid
@@ -326,7 +305,11 @@ class GroupMotion:
             moving = ~self.still
             self.moving = np.flatnonzero(moving)
             m = obs[moving]
-            extent = float(np.sqrt(np.mean(np.sum((pos[:, -1] - pos[:, -1].mean(0)) ** 2, axis=-1)))) if obs.shape[0] > 1 else 1.0
+            extent = (
+                float(np.sqrt(np.mean(np.sum((pos[:, -1] - pos[:, -1].mean(0)) ** 2, axis=-1))))
+                if obs.shape[0] > 1
+                else 1.0
+            )
             rv = accumulated_rotvec(m[..., 3:])
             # (6 * G_moving, T): for each moving Gaussian x, y, z, then its rotation vector
             self.series = np.concatenate([m[..., :3], rv], axis=-1).transpose(0, 2, 1).reshape(-1, obs.shape[1])
@@ -379,8 +362,12 @@ class FittedCandidate:
         self.model: ChannelForecaster | None = None
         if name == "learned" and motion.series.shape[0]:  # (no series: every Gaussian still)
             self.model = ChannelForecaster(p, seed).fit(motion.series, motion.floor)
-            self.info = {"final_loss": self.model.final_loss, "context": self.model.context,
-                         "horizon": self.model.horizon, "train_windows": self.model.num_windows}
+            self.info = {
+                "final_loss": self.model.final_loss,
+                "context": self.model.context,
+                "horizon": self.model.horizon,
+                "train_windows": self.model.num_windows,
+            }
 
     def rollout(self, n: int) -> np.ndarray:
         m = self.motion
@@ -395,8 +382,9 @@ def _score(pred: np.ndarray, truth: np.ndarray) -> float:
     return float(np.linalg.norm(pred[..., :3] - truth[..., :3], axis=-1).mean())
 
 
-def fit_structured(obs: np.ndarray, p: Mapping[str, Any], seed: int, rigid_hint: bool | None,
-                   n_steps: int) -> tuple[FittedCandidate, dict[str, Any]]:
+def fit_structured(
+    obs: np.ndarray, p: Mapping[str, Any], seed: int, rigid_hint: bool | None, n_steps: int
+) -> tuple[FittedCandidate, dict[str, Any]]:
     """The structured mode's fit of one group (G, T, 7) for a forecast of
     n_steps: the chosen candidate, fitted on every observed frame, and what
     was decided (info). `p`: the MoGaF settings (forecast.mogaf)."""
@@ -406,8 +394,12 @@ def fit_structured(obs: np.ndarray, p: Mapping[str, Any], seed: int, rigid_hint:
     decomposition = rigid_decomposition(obs[..., :3]) if G >= 3 else None
     rel = decomposition[2] if decomposition is not None else None
     rigid = rel is not None and (bool(rigid_hint) if rigid_hint is not None else rel <= p["rigid_residual"])
-    info: dict[str, Any] = {"mode": "structured", "rigid": rigid, "rigid_residual_rel": rel,
-                            "rigid_source": "groups" if rigid_hint is not None and rel is not None else "residual"}
+    info: dict[str, Any] = {
+        "mode": "structured",
+        "rigid": rigid,
+        "rigid_residual_rel": rel,
+        "rigid_source": "groups" if rigid_hint is not None and rel is not None else "residual",
+    }
     context, horizon = int(p["context"]), int(p["horizon"])
     h = max(1, min(int(n_steps), int(round(p["backtest_frac"] * T))))
     backtest_sizes = window_sizes(T - h, context, horizon)

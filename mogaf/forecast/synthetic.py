@@ -19,7 +19,9 @@ def _random_quats(rng: np.random.Generator, n: int) -> np.ndarray:
     return quat.canonical_sign(quat.normalize(rng.normal(size=(n, 4))))
 
 
-def rigid_motion(points: np.ndarray, q0: np.ndarray, centre: np.ndarray, rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
+def rigid_motion(
+    points: np.ndarray, q0: np.ndarray, centre: np.ndarray, rot: np.ndarray, trans: np.ndarray
+) -> np.ndarray:
     """Apply per-frame rigid transforms (rotation rot[t] (T,4) about `centre`,
     then translation trans[t] (T,3)) to points (G,3) with orientations q0 (G,4)."""
     g, t = points.shape[0], rot.shape[0]
@@ -129,7 +131,9 @@ def high_freq_oscillation(n_gaussians: int = 64, n_frames: int = 24, seed: int =
     s = np.sin(2.0 * np.pi * t / period)
     out = np.empty((n_gaussians, n_frames, 7))
     out[..., :3] = base[:, None] + 0.3 * s[None, :, None] * dirs[:, None]
-    wob = quat.from_axis_angle(np.broadcast_to(dirs[:, None], (n_gaussians, n_frames, 3)), 0.8 * s[None, :] * np.ones((n_gaussians, 1)))
+    wob = quat.from_axis_angle(
+        np.broadcast_to(dirs[:, None], (n_gaussians, n_frames, 3)), 0.8 * s[None, :] * np.ones((n_gaussians, 1))
+    )
     out[..., 3:] = quat.mul(wob, q0[:, None])
     return out
 

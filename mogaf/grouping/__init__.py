@@ -1,8 +1,9 @@
 """Motion-aware Gaussian grouping (paper Sec. 4.1) and the Gaga-4D baseline.
 
 Modules
-- core:      DEFAULT_PARAMS (paper values, Gaga defaults, own choices), MaskFrames,
-             Groups, front-Gaussian seeding (mask_gaussians).
+- params:    DEFAULT_PARAMS (paper values, Gaga defaults, own choices), resolve_params,
+             RIGID_INIT_DEFAULTS.
+- core:      MaskFrames, Groups, front-Gaussian seeding (mask_gaussians).
 - ours:      supplementary Algorithm 3 (seeding, feature-space region growing).
 - gaga4d:    supplementary Algorithm 2 (projection-overlap memory bank, theta_ov).
 - voting:    KNN voting for unassigned Gaussians.
@@ -15,11 +16,11 @@ Modules
 """
 
 from .api import group_gaussians, instance_table
-from .core import DEFAULT_PARAMS, METHODS, Groups, InstanceTable, MaskFrames, mask_gaussians, resolve_params
+from .core import Groups, InstanceTable, MaskFrames, mask_gaussians
 from .metrics import adjusted_rand_index, grouping_quality, render_group_labels
+from .params import DEFAULT_PARAMS, METHODS, RIGID_INIT_DEFAULTS, resolve_params
 from .stage import (
     GROUP_STAGE,
-    RIGID_INIT_DEFAULTS,
     RIGID_STAGE,
     has_rigid_groups,
     load_groups,

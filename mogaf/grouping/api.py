@@ -1,6 +1,6 @@
 """group_gaussians: one entry for both methods, plus flags and compaction.
 
-Decisions (see also core.DEFAULT_PARAMS):
+Decisions (see also params.DEFAULT_PARAMS):
 - Groups are dropped when they end up empty (an identity never seen, or a
   Gaga-4D group opened with Gaussians all owned elsewhere); ids are
   compacted in creation order (identity order for ours). A group of one
@@ -23,17 +23,24 @@ from typing import Any
 import numpy as np
 
 from ..scene import Instances
-from .core import Groups, InstanceTable, MaskFrames, resolve_params
+from .core import Groups, InstanceTable, MaskFrames
+from .gaga4d import group_gaga4d
+from .ours import group_ours
+from .params import resolve_params
 from .rigidity import decide_rigidity, displacement, group_displacement, is_static_scene, scene_extent
 
 
-def instance_table(instances: Instances | None, masks: np.ndarray, rigid_source: list[str] | None = None) -> InstanceTable:
+def instance_table(
+    instances: Instances | None, masks: np.ndarray, rigid_source: list[str] | None = None
+) -> InstanceTable:
     ids: list[int] = []
     names: list[str] = []
     rigid: list[int] = []
     sources: list[str] = []
     if instances is not None:
-        for i, (iid, name, r) in enumerate(zip(np.asarray(instances.ids), instances.names, np.asarray(instances.rigid))):
+        for i, (iid, name, r) in enumerate(
+            zip(np.asarray(instances.ids), instances.names, np.asarray(instances.rigid))
+        ):
             if int(iid) == 0:
                 continue
             ids.append(int(iid))
@@ -51,31 +58,55 @@ def instance_table(instances: Instances | None, masks: np.ndarray, rigid_source:
     return InstanceTable(np.asarray(ids, dtype=np.int64), names, np.asarray(rigid, dtype=np.int8), sources)
 
 
-def _single_group(N: int, name: str, static: bool | None, rigid: int | None, p: dict, model, table, disp,
-                  extent) -> Groups:
+def _single_group(
+    N: int, name: str, static: bool | None, rigid: int | None, p: dict, model, table, disp, extent
+) -> Groups:
     """Every Gaussian in one group; static/rigid computed when None."""
     group_id = np.zeros(N, dtype=np.int64)
     gi = np.array([-1], dtype=np.int64)
     if rigid is None:
-        flags, sources, residual = decide_rigidity(gi, table, np.asarray(model.fg.means, np.float64),
-                                                   np.asarray(model.trajectory_means, np.float64), group_id, p)
+        flags, sources, residual = decide_rigidity(
+            gi,
+            table,
+            np.asarray(model.fg.means, np.float64),
+            np.asarray(model.trajectory_means, np.float64),
+            group_id,
+            p,
+        )
     else:
         flags, sources, residual = np.array([rigid], np.int8), ["estimated"], np.array([0.0])
     gdisp = group_displacement(disp, group_id, 1, float(p["static_quantile"]))
     if static is None:
         static = bool(gdisp[0] <= float(p["static_threshold"]) * extent)
     return Groups(
-        group_id=group_id, rigid=flags, static=np.array([int(static)], np.int8), instance_id=gi, names=[name],
-        rigid_source=sources, method=p["method"], params=p,
-        diagnostics={"group_size": np.array([N], np.int64), "group_displacement": gdisp,
-                     "group_rigid_residual": residual, "assignment": np.full(N, 3, np.int8)},
+        group_id=group_id,
+        rigid=flags,
+        static=np.array([int(static)], np.int8),
+        instance_id=gi,
+        names=[name],
+        rigid_source=sources,
+        method=p["method"],
+        params=p,
+        diagnostics={
+            "group_size": np.array([N], np.int64),
+            "group_displacement": gdisp,
+            "group_rigid_residual": residual,
+            "assignment": np.full(N, 3, np.int8),
+        },
         attrs={"scene_extent": extent, "static_scene": name == "static"},
     )
 
 
-def group_gaussians(model, masks: np.ndarray, mask_frames: MaskFrames | dict, instances: Instances | None,
-                    params: dict[str, Any] | None = None, *, rigid_source: list[str] | None = None,
-                    frame_order: np.ndarray | None = None) -> Groups:
+def group_gaussians(
+    model,
+    masks: np.ndarray,
+    mask_frames: MaskFrames | dict,
+    instances: Instances | None,
+    params: dict[str, Any] | None = None,
+    *,
+    rigid_source: list[str] | None = None,
+    frame_order: np.ndarray | None = None,
+) -> Groups:
     """Group the foreground Gaussians of `model`.
 
     masks (F,H,W) int instance ids (0 background) at the observed frames
@@ -84,9 +115,6 @@ def group_gaussians(model, masks: np.ndarray, mask_frames: MaskFrames | dict, in
     known flag came from. frame_order overrides the frames visited (already
     in order; keyframes for ours, every frame for Gaga-4D).
     """
-    from .gaga4d import group_gaga4d
-    from .ours import group_ours
-
     p = resolve_params(params)
     frames = mask_frames if isinstance(mask_frames, MaskFrames) else MaskFrames(**mask_frames)
     masks = np.asarray(masks)
@@ -99,11 +127,23 @@ def group_gaussians(model, masks: np.ndarray, mask_frames: MaskFrames | dict, in
     table = instance_table(instances, masks, rigid_source)
     if N == 0:
         e = np.zeros(0, np.int64)
-        return Groups(group_id=e, rigid=np.zeros(0, np.int8), static=np.zeros(0, np.int8), instance_id=e, names=[],
-                      rigid_source=[], method=p["method"], params=p,
-                      diagnostics={"group_size": e, "group_displacement": np.zeros(0), "group_rigid_residual": np.zeros(0),
-                                   "assignment": np.zeros(0, np.int8)},
-                      attrs={"scene_extent": extent, "static_scene": True})
+        return Groups(
+            group_id=e,
+            rigid=np.zeros(0, np.int8),
+            static=np.zeros(0, np.int8),
+            instance_id=e,
+            names=[],
+            rigid_source=[],
+            method=p["method"],
+            params=p,
+            diagnostics={
+                "group_size": e,
+                "group_displacement": np.zeros(0),
+                "group_rigid_residual": np.zeros(0),
+                "assignment": np.zeros(0, np.int8),
+            },
+            attrs={"scene_extent": extent, "static_scene": True},
+        )
     if is_static_scene(disp, extent, p):
         return _single_group(N, "static", True, 1, p, model, table, disp, extent)
 
@@ -131,7 +171,9 @@ def group_gaussians(model, masks: np.ndarray, mask_frames: MaskFrames | dict, in
         n = seen.get(int(j), 0)
         seen[int(j)] = n + 1
         names.append(table.names[j] if n == 0 else f"{table.names[j]}#{n + 1}")
-    rigid, sources, residual = decide_rigidity(group_inst, table, np.asarray(model.fg.means, np.float64), traj, group_id, p)
+    rigid, sources, residual = decide_rigidity(
+        group_inst, table, np.asarray(model.fg.means, np.float64), traj, group_id, p
+    )
     gdisp = group_displacement(disp, group_id, Kg, float(p["static_quantile"]))
     static = (gdisp <= float(p["static_threshold"]) * extent).astype(np.int8)
     return Groups(
@@ -143,7 +185,11 @@ def group_gaussians(model, masks: np.ndarray, mask_frames: MaskFrames | dict, in
         rigid_source=sources,
         method=p["method"],
         params=p,
-        diagnostics={"group_size": np.bincount(group_id, minlength=Kg).astype(np.int64), "group_displacement": gdisp,
-                     "group_rigid_residual": residual, "assignment": stage.astype(np.int8)},
+        diagnostics={
+            "group_size": np.bincount(group_id, minlength=Kg).astype(np.int64),
+            "group_displacement": gdisp,
+            "group_rigid_residual": residual,
+            "assignment": stage.astype(np.int8),
+        },
         attrs={"scene_extent": extent, "static_scene": False, "method_diagnostics": diag},
     )

@@ -1,4 +1,4 @@
-"""Shared pieces of the grouping stage: parameters, containers, seeding.
+"""Shared pieces of the grouping stage: containers and seeding (parameters: mogaf.grouping.params).
 
 Paper references: main paper Sec. "Motion-aware Gaussian Grouping"
 (Algorithm 1), supplementary "Details of Gaussian Grouping" (Algorithm 2:
@@ -14,66 +14,7 @@ from typing import Any
 import numpy as np
 
 from ..camera import project
-from ..errors import MogafError, refuse_unknown_params
-
-METHODS = ("ours", "gaga4d")
-
-# Values the paper gives are marked "paper"; values taken from Gaga's public
-# implementation (weijielyu/Gaga, associate.py / mask/projector.py) are
-# marked "Gaga"; the rest are this implementation's choices (documented in
-# the docstrings of ours.py, gaga4d.py, voting.py, rigidity.py, metrics.py
-# and api.py).
-DEFAULT_PARAMS: dict[str, Any] = {
-    "method": "ours",  # "ours" (supp. Algorithm 3) or "gaga4d" (supp. Algorithm 2 baseline)
-    # --- ours: supp. "Motion-aware Gaussian Grouping" / "Iterative Region Growing"
-    "keyframe_stride": 5,  # keyframes = every 5th observed frame in time order (the paper samples T_key keyframes, no value given)
-    "front_fraction": 0.4,  # paper: "we extract the closest 40% front Gaussians with respect to the camera view"
-    "front_patches": 32,  # Gaga (num_patch=32): the front fraction is taken per cell of a 32x32 image grid
-    "pca_scale": 0.3,  # paper: "scale the resulting PCA components by 0.3, and concatenate them with the Gaussian means"
-    "pca_components": None,  # None: the fewest components whose explained variance reaches pca_explained_variance
-    "pca_explained_variance": 0.95,
-    "grow_alpha": 1.0,  # eps_k = alpha * mean KNN distance in the group (paper: "the average neighbor distance")
-    "grow_knn": 8,  # K of KNN_K in eps_k (Algorithm 3, line "eps_k <- alpha * mean KNN_K(f_g)")
-    "grow_radius_sample": 4096,  # eps_k is averaged over at most this many members (distances are to all members)
-    "grow_max_iters": 100000,  # safety bound on "repeat until no group changes"
-    "reseed_grown": False,  # ours: True = at each keyframe the masks' front Gaussians win over earlier feature-space
-    # growth. Algorithm 3's "seed & merge" is a union, which leaves a Gaussian grown into one group and seeded into
-    # another undecided; False keeps the first assignment. True repairs growth leaking across object contacts
-    # (MuJoCo scene7 ARI 0.10 -> 0.48) but costs 0.01 ARI on the synthetic scene, so it is off by default
-    "vote_knn": 8,  # paper: "voting among the 8 nearest group-assigned neighbors"
-    "vote_fraction": 0.5,  # paper: "reassign only the closest 50% of unassigned Gaussians" (repeated rounds, see voting.py)
-    # --- gaga4d: supp. "Naive Extension of Static Gaussian Grouping"
-    "overlap_threshold": 0.1,  # Gaga: associate.py --overlap_threshold default 0.1 (theta_ov)
-    "gaga_front_fraction": 0.2,  # Gaga: associate.py --front_percentage default 0.2
-    "gaga_frame_stride": 1,  # Algorithm 2 visits every observed frame (t = 1..T)
-    # --- rigidity (tau_k) and static groups
-    "rigid_override": {},  # {instance name or id: 0/1}; source "config"; wins over labels and estimates
-    "rigidity_threshold": 0.05,  # rigid iff RMS residual of the best per-time rigid fit / RMS group extent < this
-    "rigidity_max_points": 4096,  # members used for the rigidity estimate (deterministic subsample)
-    "static_threshold": 0.01,  # a group is static if its members move less than this fraction of the scene extent
-    "static_quantile": 0.95,  # ... measured at this quantile of per-Gaussian displacement in the group
-    "seed": 0,
-}
-
-
-def resolve_params(params: dict[str, Any] | None) -> dict[str, Any]:
-    p = dict(DEFAULT_PARAMS)
-    if params:
-        refuse_unknown_params("grouping", params, DEFAULT_PARAMS)
-        p.update(params)
-    if p["method"] not in METHODS:
-        raise MogafError(f"grouping: method must be one of {METHODS}, got {p['method']!r}")
-    for key in ("front_fraction", "gaga_front_fraction", "vote_fraction"):
-        if not (0.0 < float(p[key]) <= 1.0):
-            raise MogafError(f"grouping: {key} must lie in (0, 1], got {p[key]!r}")
-    if not (0.0 < float(p["overlap_threshold"]) <= 1.0):
-        raise MogafError(f"grouping: overlap_threshold must lie in (0, 1], got {p['overlap_threshold']!r}")
-    for key in ("keyframe_stride", "gaga_frame_stride", "front_patches", "grow_knn", "vote_knn"):
-        if int(p[key]) < 1:
-            raise MogafError(f"grouping: {key} must be >= 1, got {p[key]!r}")
-    if not isinstance(p["reseed_grown"], bool):
-        raise MogafError(f"grouping: reseed_grown must be true or false, got {p['reseed_grown']!r}")
-    return p
+from ..errors import MogafError
 
 
 @dataclass

@@ -34,8 +34,14 @@ from .voting import knn_vote
 SEED, VOTE = 0, 2
 
 
-def group_gaga4d(model, masks: np.ndarray, frames: MaskFrames, instance_ids: np.ndarray, params: dict,
-                 frame_order: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+def group_gaga4d(
+    model,
+    masks: np.ndarray,
+    frames: MaskFrames,
+    instance_ids: np.ndarray,
+    params: dict,
+    frame_order: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Returns labels (N,) indexing groups, group_instance (G,) indexing
     instance_ids, assignment stage per Gaussian and diagnostics."""
     N = len(model.fg)
@@ -50,8 +56,13 @@ def group_gaga4d(model, masks: np.ndarray, frames: MaskFrames, instance_ids: np.
     merges = new_groups = 0
     for f in np.asarray(frame_order, dtype=np.int64):
         idx, inst = mask_gaussians(
-            np.asarray(traj[:, frames.time_index[f]], dtype=np.float64), masks[f], frames.K[f], frames.w2c[f],
-            instance_ids, float(params["gaga_front_fraction"]), int(params["front_patches"]),
+            np.asarray(traj[:, frames.time_index[f]], dtype=np.float64),
+            masks[f],
+            frames.K[f],
+            frames.w2c[f],
+            instance_ids,
+            float(params["gaga_front_fraction"]),
+            int(params["front_patches"]),
         )
         if idx.size == 0:
             continue

@@ -28,14 +28,23 @@ import numpy as np
 from sklearn.metrics import adjusted_rand_score
 
 from ..errors import MogafError
+from ..rendering import render_model
 from .core import Groups
 
 
-def render_group_labels(model, group_id: np.ndarray, num_groups: int, timestep: int, K: np.ndarray, w2c: np.ndarray,
-                        width: int, height: int, alpha_threshold: float = 0.5, backend: str = "auto") -> np.ndarray:
+def render_group_labels(
+    model,
+    group_id: np.ndarray,
+    num_groups: int,
+    timestep: int,
+    K: np.ndarray,
+    w2c: np.ndarray,
+    width: int,
+    height: int,
+    alpha_threshold: float = 0.5,
+    backend: str = "auto",
+) -> np.ndarray:
     """(H,W) int64 label image at an observed time step: 0 background, k+1 for group k."""
-    from ..rendering import render_model
-
     n_fg = len(model.fg)
     n_bg = 0 if model.bg is None else len(model.bg)
     if n_fg + n_bg == 0:
@@ -74,8 +83,9 @@ def adjusted_rand_index(gt: np.ndarray, pred: np.ndarray) -> float:
     return float(adjusted_rand_score(gt, pred))
 
 
-def grouping_quality(model, groups: Groups, frames, *, alpha: float = 0.5, pixels: str = "foreground",
-                     backend: str = "auto") -> dict[str, Any]:
+def grouping_quality(
+    model, groups: Groups, frames, *, alpha: float = 0.5, pixels: str = "foreground", backend: str = "auto"
+) -> dict[str, Any]:
     """Per-object IoU and ARI of rendered group labels against GT masks.
 
     frames: a mogaf.scene.Scene (e.g. split role "evaluation_observed") with
@@ -106,8 +116,9 @@ def grouping_quality(model, groups: Groups, frames, *, alpha: float = 0.5, pixel
             continue
         gt = np.asarray(frames.instance_mask[f], dtype=np.int64)
         H, W = gt.shape
-        label = render_group_labels(model, groups.group_id, groups.num_groups, step, frames.K[f], frames.w2c[f], W, H,
-                                    float(alpha), backend)
+        label = render_group_labels(
+            model, groups.group_id, groups.num_groups, step, frames.K[f], frames.w2c[f], W, H, float(alpha), backend
+        )
         pred_inst = inst_of_group[label]
         pred_inst[label == 0] = 0
         i, u = per_object_iou(gt, pred_inst, object_ids)

@@ -110,8 +110,16 @@ class _Radius:
         return self._radius(members)
 
 
-def region_grow(features: np.ndarray, tree: cKDTree, labels: np.ndarray, n_groups: int, radius: _Radius,
-                queried: np.ndarray, stage: np.ndarray, max_iters: int) -> int:
+def region_grow(
+    features: np.ndarray,
+    tree: cKDTree,
+    labels: np.ndarray,
+    n_groups: int,
+    radius: _Radius,
+    queried: np.ndarray,
+    stage: np.ndarray,
+    max_iters: int,
+) -> int:
     """Grow every group until no group changes; labels modified in place.
 
     Returns the number of iterations.
@@ -155,8 +163,9 @@ def _nearest_distance(features: np.ndarray, sources: np.ndarray, targets: np.nda
     return np.asarray(d)
 
 
-def seed(labels: np.ndarray, stage: np.ndarray, idx: np.ndarray, inst: np.ndarray,
-         queried: np.ndarray | None = None) -> int:
+def seed(
+    labels: np.ndarray, stage: np.ndarray, idx: np.ndarray, inst: np.ndarray, queried: np.ndarray | None = None
+) -> int:
     """Front Gaussians join their mask's group. Unassigned ones always; with
     `queried` given (reseed_grown), also those that only region growing had
     put in another group, and their growth radius cache is reset so they grow
@@ -175,8 +184,14 @@ def keyframe_order(time_index: np.ndarray, stride: int) -> np.ndarray:
     return frames_in_time_order(time_index)[:: max(int(stride), 1)]
 
 
-def group_ours(model, masks: np.ndarray, frames: MaskFrames, instance_ids: np.ndarray, params: dict,
-               frame_order: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+def group_ours(
+    model,
+    masks: np.ndarray,
+    frames: MaskFrames,
+    instance_ids: np.ndarray,
+    params: dict,
+    frame_order: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, dict]:
     """Labels (N,) indexing instance_ids (one group per identity), assignment
     stage per Gaussian (0 seed, 1 grow, 2 vote, -1 none) and diagnostics."""
     N = len(model.fg)
@@ -184,7 +199,9 @@ def group_ours(model, masks: np.ndarray, frames: MaskFrames, instance_ids: np.nd
     labels = np.full(N, -1, dtype=np.int64)
     stage = np.full(N, -1, dtype=np.int8)
     feats, info = motion_features(model, params)
-    order = keyframe_order(frames.time_index, params["keyframe_stride"]) if frame_order is None else np.asarray(frame_order)
+    order = (
+        keyframe_order(frames.time_index, params["keyframe_stride"]) if frame_order is None else np.asarray(frame_order)
+    )
     traj = model.trajectory_means
     diag: dict = {**info, "keyframes": [int(f) for f in order], "grow_iterations": [], "seeded": []}
     if N == 0 or J == 0 or order.size == 0:
@@ -196,8 +213,13 @@ def group_ours(model, masks: np.ndarray, frames: MaskFrames, instance_ids: np.nd
 
     def seed_at(f: int) -> None:
         idx, inst = mask_gaussians(
-            np.asarray(traj[:, frames.time_index[f]], dtype=np.float64), masks[f], frames.K[f], frames.w2c[f],
-            instance_ids, float(params["front_fraction"]), int(params["front_patches"]),
+            np.asarray(traj[:, frames.time_index[f]], dtype=np.float64),
+            masks[f],
+            frames.K[f],
+            frames.w2c[f],
+            instance_ids,
+            float(params["front_fraction"]),
+            int(params["front_patches"]),
         )
         diag["seeded"].append(seed(labels, stage, idx, inst, queried if params["reseed_grown"] else None))
 

@@ -20,35 +20,51 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
 from ..artefact import config_digest, open_artefact, read_artefact, write_artefact
-from ..errors import input_error, refuse_unknown_params
+from ..errors import input_error
 from ..representation import load_model
 from ..scene import SCENE_STAGE
+from ..settings import check, defaults, setting
 from ..split import Split, load_evenly_spaced_frames, read_split
 from .metrics import grouping_quality
 from .stage import load_groups
 
 GROUPING_QUALITY_STAGE = "grouping_quality"
-DEFAULT_PARAMS: dict[str, Any] = {
-    "alpha": 0.5,             # a pixel is labelled where the rendered alpha exceeds this
-    "pixels": "foreground",   # ARI over GT-foreground U predicted-foreground pixels ("all": every pixel)
-    "max_frames": 0,          # held-out frames rendered (evenly spaced); 0 = all
-}
+
+
+@dataclass(frozen=True)
+class GroupingQualitySettings:
+    """Settings of the grouping_quality stage (config section `grouping_quality`)."""
+
+    alpha: float = setting(
+        0.5, "a pixel is labelled where the rendered alpha exceeds this", exclusive_minimum=0, exclusive_maximum=1
+    )
+    pixels: Literal["foreground", "all"] = setting(
+        "foreground", 'ARI over GT-foreground U predicted-foreground pixels ("all": every pixel)'
+    )
+    max_frames: int = setting(0, "held-out frames rendered (evenly spaced); 0 = all", minimum=0)
+
+
+DEFAULT_PARAMS: dict[str, Any] = defaults(GroupingQualitySettings)
 
 
 def _resolve(params: Mapping[str, Any] | None) -> dict[str, Any]:
-    refuse_unknown_params("grouping_quality", params, DEFAULT_PARAMS)
-    return {**DEFAULT_PARAMS, **dict(params or {})}
+    return check(GroupingQualitySettings, "grouping_quality", params)
 
 
-def measure_grouping_quality(grouped_model_h5: str | os.PathLike, groups_h5: str | os.PathLike,
-                             scene_h5: str | os.PathLike, split: Split,
-                             params: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def measure_grouping_quality(
+    grouped_model_h5: str | os.PathLike,
+    groups_h5: str | os.PathLike,
+    scene_h5: str | os.PathLike,
+    split: Split,
+    params: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
     """The grouping's method and size, and where the scene has GT instance
     masks and held-out views at observed times, its per-object IoU and ARI,
     rendered with the model that was grouped."""
@@ -61,13 +77,20 @@ def measure_grouping_quality(grouped_model_h5: str | os.PathLike, groups_h5: str
     if ids.size == 0 or groups.num_groups == 0 or not has_masks:
         return out
     frames = load_evenly_spaced_frames(scene_h5, split, "evaluation_observed", int(p["max_frames"]))
-    quality = grouping_quality(load_model(grouped_model_h5), groups, frames, alpha=float(p["alpha"]), pixels=str(p["pixels"]))
+    quality = grouping_quality(
+        load_model(grouped_model_h5), groups, frames, alpha=float(p["alpha"]), pixels=str(p["pixels"])
+    )
     return {**out, **quality}
 
 
-def run_grouping_quality_stage(grouped_model_h5: str | os.PathLike, groups_h5: str | os.PathLike,
-                               scene_h5: str | os.PathLike, split_h5: str | os.PathLike, out: str | os.PathLike,
-                               params: Mapping[str, Any] | None = None) -> Path:
+def run_grouping_quality_stage(
+    grouped_model_h5: str | os.PathLike,
+    groups_h5: str | os.PathLike,
+    scene_h5: str | os.PathLike,
+    split_h5: str | os.PathLike,
+    out: str | os.PathLike,
+    params: Mapping[str, Any] | None = None,
+) -> Path:
     p = _resolve(params)
     quality = measure_grouping_quality(grouped_model_h5, groups_h5, scene_h5, read_split(split_h5), p)
     # The per-object arrays are entries; the section's other keys an attribute.
@@ -89,8 +112,11 @@ def read_grouping_quality(path: str | os.PathLike) -> dict[str, Any]:
     for key, dtype in (("per_object_iou", np.float64), ("object_ids", np.int64)):
         values = np.asarray(art[key], dtype)
         if values.shape != (len(names),):
-            raise input_error(path, f"entry '{key}' has shape {values.shape}, but 'quality' names {len(names)} "
-                                    "object(s) (corrupted artefact)")
+            raise input_error(
+                path,
+                f"entry '{key}' has shape {values.shape}, but 'quality' names {len(names)} "
+                "object(s) (corrupted artefact)",
+            )
         if "object_names" in quality:
             quality[key] = values.tolist()
     return quality

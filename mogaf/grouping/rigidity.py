@@ -71,8 +71,9 @@ def group_displacement(disp: np.ndarray, group_id: np.ndarray, num_groups: int, 
     return out
 
 
-def relative_rigid_residual(canonical: np.ndarray, trajectories: np.ndarray, max_points: int = 4096,
-                            seed: int = 0) -> float:
+def relative_rigid_residual(
+    canonical: np.ndarray, trajectories: np.ndarray, max_points: int = 4096, seed: int = 0
+) -> float:
     """Relative RMS residual of the best per-time rigid fit.
 
     canonical (P,3), trajectories (P,T,3). 0 when the set is rigid.
@@ -82,7 +83,7 @@ def relative_rigid_residual(canonical: np.ndarray, trajectories: np.ndarray, max
     P = x.shape[0]
     if P < 3 or y.shape[1] == 0:
         return 0.0
-    if P > max_points:
+    if max_points < P:
         rng = np.random.default_rng(seed)
         idx = np.sort(rng.choice(P, max_points, replace=False))
         x, y = x[idx], y[idx]
@@ -96,8 +97,9 @@ def relative_rigid_residual(canonical: np.ndarray, trajectories: np.ndarray, max
     return rms / spread
 
 
-def estimate_rigid(canonical: np.ndarray, trajectories: np.ndarray, threshold: float, max_points: int = 4096,
-                   seed: int = 0) -> tuple[bool, float]:
+def estimate_rigid(
+    canonical: np.ndarray, trajectories: np.ndarray, threshold: float, max_points: int = 4096, seed: int = 0
+) -> tuple[bool, float]:
     """(is_rigid, relative residual) for one group's observed trajectories."""
     r = relative_rigid_residual(canonical, trajectories, max_points, seed)
     return bool(r < threshold), r
@@ -112,8 +114,14 @@ def _override_for(override: dict, instance_id: int, name: str):
     return None
 
 
-def decide_rigidity(group_instance: np.ndarray, table, canonical: np.ndarray, trajectories: np.ndarray,
-                    group_id: np.ndarray, params: dict) -> tuple[np.ndarray, list[str], np.ndarray]:
+def decide_rigidity(
+    group_instance: np.ndarray,
+    table,
+    canonical: np.ndarray,
+    trajectories: np.ndarray,
+    group_id: np.ndarray,
+    params: dict,
+) -> tuple[np.ndarray, list[str], np.ndarray]:
     """Rigid flag, its source and the estimated relative residual per group.
 
     group_instance (K,) indexes the InstanceTable (-1: no identity). The
@@ -139,8 +147,13 @@ def decide_rigidity(group_instance: np.ndarray, table, canonical: np.ndarray, tr
             source.append(src if src in ("label", "config") else "label")
             continue
         members = np.flatnonzero(group_id == k)
-        ok, r = estimate_rigid(canonical[members], trajectories[members], float(params["rigidity_threshold"]),
-                               int(params["rigidity_max_points"]), int(params["seed"]))
+        ok, r = estimate_rigid(
+            canonical[members],
+            trajectories[members],
+            float(params["rigidity_threshold"]),
+            int(params["rigidity_max_points"]),
+            int(params["seed"]),
+        )
         rigid[k] = int(ok)
         residual[k] = r
         source.append("estimated")

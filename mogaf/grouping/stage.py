@@ -38,26 +38,20 @@ import numpy as np
 import torch
 
 from ..artefact import config_digest, open_artefact, read_artefact, read_rows, write_artefact
-from ..errors import MogafError, input_error, refuse_unknown_params
+from ..errors import MogafError, input_error
 from ..representation import load_model
 from ..rigid import rigid_fit_residual, weighted_procrustes
 from ..scene import SCENE_STAGE, Instances
 from .api import group_gaussians
-from .core import DEFAULT_PARAMS, Groups, MaskFrames, frames_in_time_order, resolve_params
+from .core import Groups, MaskFrames, frames_in_time_order
 from .ours import keyframe_order
+from .params import _typed_params, resolve_params, resolve_rigid_init_params
 
 log = logging.getLogger("mogaf.grouping")
 
 GROUP_STAGE = "group"
 RIGID_STAGE = "rigid_init"
 PRIORS_STAGE = "priors"
-
-RIGID_INIT_DEFAULTS: dict[str, Any] = {
-    # The paper's alignment (supp. "Rigid Motion Initialization") is unweighted;
-    # "opacity" weights every Gaussian by its opacity.
-    "weights": "uniform",
-    "time_chunk": 64,  # observed steps solved at once (bounds memory for big groups)
-}
 
 
 # ---------------------------------------------------------------- groups.h5
@@ -80,7 +74,7 @@ def write_groups(path: str | os.PathLike, groups: Groups, *, digest: str | None 
         "method": groups.method,
         "params": groups.params,
         "num_groups": groups.num_groups,
-        **{k: v for k, v in groups.attrs.items()},
+        **dict(groups.attrs),
     }
     digest = digest or config_digest(groups.params)
     return write_artefact(path, GROUP_STAGE, data, config_digest=digest, attrs=attrs)
@@ -92,23 +86,6 @@ def _str_list(x: Any) -> list[str]:
     if isinstance(x, (list, tuple)):
         return [str(v) for v in x]
     return [str(x)]
-
-
-def _typed_params(raw: dict[str, Any]) -> dict[str, Any]:
-    """Params read back from JSON attrs (floats are stored as text)."""
-    out: dict[str, Any] = {}
-    for key, value in raw.items():
-        default = DEFAULT_PARAMS.get(key, RIGID_INIT_DEFAULTS.get(key))
-        if isinstance(value, str) and not isinstance(default, str):
-            try:
-                number = float(value)
-            except ValueError:
-                out[key] = value
-                continue
-            out[key] = int(number) if isinstance(default, (int, np.integer)) and not isinstance(default, bool) else number
-        else:
-            out[key] = value
-    return out
 
 
 def load_groups(path: str | os.PathLike) -> Groups:
@@ -157,8 +134,12 @@ def read_priors_for_grouping(priors_h5: str | os.PathLike) -> dict[str, Any]:
         if "instances/ids" in fh:
             out["instances"] = Instances(
                 ids=np.asarray(fh["instances/ids"][()]),
-                names=_decode(fh["instances/names"][()]) if "instances/names" in fh else [f"instance{int(i)}" for i in fh["instances/ids"][()]],
-                rigid=np.asarray(fh["instances/rigid"][()]) if "instances/rigid" in fh else np.full(fh["instances/ids"].shape[0], -1),
+                names=_decode(fh["instances/names"][()])
+                if "instances/names" in fh
+                else [f"instance{int(i)}" for i in fh["instances/ids"][()]],
+                rigid=np.asarray(fh["instances/rigid"][()])
+                if "instances/rigid" in fh
+                else np.full(fh["instances/ids"].shape[0], -1),
             )
             src = _decode(fh["instances/rigid_source"][()]) if "instances/rigid_source" in fh else []
             out["rigid_source"] = ["config" if s == "config" else "label" for s in src]
@@ -197,20 +178,25 @@ def run_group_stage(recon_h5, priors_h5, scene_h5, out_h5, params: dict[str, Any
         K = read_rows(fh, "frames/K", pri["frame_ids"][rows])
         w2c = read_rows(fh, "frames/w2c", pri["frame_ids"][rows])
     frames = MaskFrames(K=K, w2c=w2c, time_index=np.array([col_of[int(t)] for t in pri["timesteps"][rows]]))
-    groups = group_gaussians(model, masks, frames, instances, p, rigid_source=rigid_source,
-                             frame_order=np.asarray(inverse).reshape(-1))
+    groups = group_gaussians(
+        model, masks, frames, instances, p, rigid_source=rigid_source, frame_order=np.asarray(inverse).reshape(-1)
+    )
     del masks
-    log.info("grouping (%s): %d groups, sizes %s, rigid %s, static %s", p["method"], groups.num_groups,
-             groups.sizes().tolist(), groups.rigid.tolist(), groups.static.tolist())
+    log.info(
+        "grouping (%s): %d groups, sizes %s, rigid %s, static %s",
+        p["method"],
+        groups.num_groups,
+        groups.sizes().tolist(),
+        groups.rigid.tolist(),
+        groups.static.tolist(),
+    )
     return write_groups(out_h5, groups, digest=config_digest(p))
 
 
 # ---------------------------------------------------------------- rigid_init stage
 def rigid_init(model, groups: Groups, params: dict[str, Any] | None = None) -> dict[str, np.ndarray]:
     """Per rigid group and observed step: (R, t) canonical -> deformed means."""
-    p = {**RIGID_INIT_DEFAULTS, **(params or {})}
-    if p["weights"] not in ("uniform", "opacity"):
-        raise MogafError(f"rigid_init: weights must be 'uniform' or 'opacity', got {p['weights']!r}")
+    p = resolve_rigid_init_params(params)
     N, T = model.trajectory_means.shape[:2]
     if groups.group_id.size != N:
         raise MogafError(f"rigid_init: groups cover {groups.group_id.size} Gaussians, the model has {N}")
@@ -230,32 +216,50 @@ def rigid_init(model, groups: Groups, params: dict[str, Any] | None = None) -> d
         if p["weights"] == "opacity":
             w = torch.from_numpy(1.0 / (1.0 + np.exp(-np.asarray(model.fg.opacity_logits, np.float64)[members])))
         for t0 in range(0, T, chunk):
-            dst = torch.from_numpy(np.ascontiguousarray(
-                np.transpose(np.asarray(model.trajectory_means[members, t0:t0 + chunk], dtype=np.float64), (1, 0, 2))))
+            dst = torch.from_numpy(
+                np.ascontiguousarray(
+                    np.transpose(
+                        np.asarray(model.trajectory_means[members, t0 : t0 + chunk], dtype=np.float64), (1, 0, 2)
+                    )
+                )
+            )
             with torch.no_grad():
                 R, t = weighted_procrustes(src, dst, w)
                 r = rigid_fit_residual(src, dst, w, R, t)
-            rot[i, t0:t0 + chunk] = R.numpy()
-            trans[i, t0:t0 + chunk] = t.numpy()
-            res[i, t0:t0 + chunk] = r.numpy()
-    return {"group_ids": rigid_ids, "rotations": rot, "translations": trans, "residual_rms": res,
-            "timesteps": np.asarray(model.timesteps, dtype=np.int64)}
+            rot[i, t0 : t0 + chunk] = R.numpy()
+            trans[i, t0 : t0 + chunk] = t.numpy()
+            res[i, t0 : t0 + chunk] = r.numpy()
+    return {
+        "group_ids": rigid_ids,
+        "rotations": rot,
+        "translations": trans,
+        "residual_rms": res,
+        "timesteps": np.asarray(model.timesteps, dtype=np.int64),
+    }
 
 
 def run_rigid_init_stage(model_h5, groups_h5, out_h5, params: dict[str, Any] | None = None) -> Path:
-    refuse_unknown_params("rigid_init", params, RIGID_INIT_DEFAULTS)
-    p = {**RIGID_INIT_DEFAULTS, **(params or {})}
+    p = resolve_rigid_init_params(params)
     model = load_model(model_h5)
     groups = load_groups(groups_h5)
     data = rigid_init(model, groups, p)
     if data["group_ids"].size == 0:
         log.warning("rigid_init: %s has no rigid group; writing an empty rigid.h5", groups_h5)
     else:
-        log.info("rigid_init: %d rigid groups, mean residual %.4g", data["group_ids"].size, float(data["residual_rms"].mean()))
-    return write_artefact(out_h5, RIGID_STAGE, data, config_digest=config_digest(p),
-                          attrs={"params": p, "weights": p["weights"]})
+        log.info(
+            "rigid_init: %d rigid groups, mean residual %.4g",
+            data["group_ids"].size,
+            float(data["residual_rms"].mean()),
+        )
+    return write_artefact(
+        out_h5, RIGID_STAGE, data, config_digest=config_digest(p), attrs={"params": p, "weights": p["weights"]}
+    )
 
 
 def read_rigid_init(path: str | os.PathLike) -> dict[str, np.ndarray]:
     art = read_artefact(path, RIGID_STAGE, required=["group_ids", "rotations", "translations", "residual_rms"])
-    return {k: np.asarray(art[k]) for k in ("group_ids", "rotations", "translations", "residual_rms", "timesteps") if k in art}
+    return {
+        k: np.asarray(art[k])
+        for k in ("group_ids", "rotations", "translations", "residual_rms", "timesteps")
+        if k in art
+    }

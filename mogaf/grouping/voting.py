@@ -49,8 +49,9 @@ def vote_round(features: np.ndarray, labels: np.ndarray, k: int = 8, fraction: f
     return unassigned[take]
 
 
-def knn_vote(features: np.ndarray, labels: np.ndarray, k: int = 8, fraction: float = 0.5,
-             max_rounds: int | None = None) -> tuple[np.ndarray, int]:
+def knn_vote(
+    features: np.ndarray, labels: np.ndarray, k: int = 8, fraction: float = 0.5, max_rounds: int | None = None
+) -> tuple[np.ndarray, int]:
     """Repeat vote_round until every Gaussian is labelled (or max_rounds).
 
     Returns (labels, number of rounds). If nothing is labelled, nothing

@@ -17,7 +17,6 @@ from mogaf.metrics.lpips import (
     lpips_map,
     mlpips,
 )
-from mogaf.metrics.views import image_metrics, mean_metrics
 from mogaf.metrics.tracking import (
     average_jaccard,
     delta_3d,
@@ -26,6 +25,7 @@ from mogaf.metrics.tracking import (
     occlusion_accuracy,
     tracking_metrics,
 )
+from mogaf.metrics.views import image_metrics, mean_metrics
 
 __all__ = [
     "masked_mean",

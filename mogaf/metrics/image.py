@@ -76,7 +76,9 @@ def _mask(mask, hw: tuple[int, int]) -> np.ndarray:
     if m.ndim == 3 and m.shape[-1] == 1:
         m = m[..., 0]
     if m.shape != tuple(hw):
-        raise MogafError(f"mask: expected shape {tuple(hw)} or {tuple(hw) + (1,)}, got {tuple(_as_numpy(mask, 'mask').shape)}")
+        raise MogafError(
+            f"mask: expected shape {tuple(hw)} or {tuple(hw) + (1,)}, got {tuple(_as_numpy(mask, 'mask').shape)}"
+        )
     m = m.astype(np.float64)
     if not np.isfinite(m).all() or m.min() < 0.0 or m.max() > 1.0:
         raise MogafError("mask: values must lie in [0, 1]")

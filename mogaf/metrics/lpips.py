@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from mogaf.errors import MogafError, input_error
+from mogaf.metrics.image import _as_numpy, _mask
 from mogaf.paths import cache_dir
 
 __all__ = [
@@ -116,9 +117,7 @@ class _NumpyOnlyUnpickler(pickle.Unpickler):
     def find_class(self, module: str, name: str):
         make = _ALLOWED_GLOBALS.get((module, name))
         if make is None:
-            raise MogafError(
-                f"refusing to unpickle global {module}.{name}: only numpy array reconstruction is allowed"
-            )
+            raise MogafError(f"refusing to unpickle global {module}.{name}: only numpy array reconstruction is allowed")
         return make()
 
     def persistent_load(self, pid):
@@ -275,10 +274,14 @@ def _load_weights_cached(path: str) -> dict[str, np.ndarray]:
         with np.load(p, allow_pickle=False) as npz:
             data = {k: npz[k] for k in npz.files}
     except Exception as exc:
-        raise input_error(p, f"unreadable LPIPS weights ({type(exc).__name__}); delete it and run `make setup`") from None
+        raise input_error(
+            p, f"unreadable LPIPS weights ({type(exc).__name__}); delete it and run `make setup`"
+        ) from None
     version = data.get("format_version")
     if version is None or int(version) != FORMAT_VERSION:
-        raise input_error(p, f"LPIPS weights have format {version}, expected {FORMAT_VERSION}; delete it and run `make setup`")
+        raise input_error(
+            p, f"LPIPS weights have format {version}, expected {FORMAT_VERSION}; delete it and run `make setup`"
+        )
     return _validate_weights(data, str(p))
 
 
@@ -385,7 +388,9 @@ def _to_batch(img, what: str):
     if single:
         t = t[None]
     if t.shape[1] < MIN_SIZE or t.shape[2] < MIN_SIZE:
-        raise MogafError(f"{what}: LPIPS (AlexNet) needs images of at least {MIN_SIZE}x{MIN_SIZE} px, got {t.shape[1]}x{t.shape[2]}")
+        raise MogafError(
+            f"{what}: LPIPS (AlexNet) needs images of at least {MIN_SIZE}x{MIN_SIZE} px, got {t.shape[1]}x{t.shape[2]}"
+        )
     return (t.to(torch.float32) * 2.0 - 1.0).permute(0, 3, 1, 2).contiguous(), single
 
 
@@ -427,8 +432,6 @@ def mlpips(img0, img1, mask, *, mask_inputs: bool = True, weights_path=None, dev
     multiplied by the mask; the result is ``sum(map * m) / sum(m)`` over the
     spatial LPIPS map. An empty mask raises `MogafError`.
     """
-    from mogaf.metrics.image import _as_numpy, _mask
-
     a = _as_numpy(img0, "img0")
     b = _as_numpy(img1, "img1")
     if a.ndim != 3 or b.ndim != 3:

@@ -35,7 +35,7 @@ reports such metrics as None instead.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -189,9 +189,7 @@ def delta_avg(pred_2d, gt_2d, gt_vis, *, thresholds=DEFAULT_PCK_THRESHOLDS, eval
     return float(np.mean([np.sum((sq < d * d) & vis & ev) / denom for d in ths]))
 
 
-def average_jaccard(
-    pred_2d, gt_2d, gt_vis, pred_vis, *, thresholds=DEFAULT_AJ_THRESHOLDS, eval_mask=None
-) -> float:
+def average_jaccard(pred_2d, gt_2d, gt_vis, pred_vis, *, thresholds=DEFAULT_AJ_THRESHOLDS, eval_mask=None) -> float:
     """Average Jaccard (TAP-Vid), pooled over the evaluated (point, frame) pairs.
 
     For each threshold d, with ``within = ||pred - gt||^2 < d^2``:
@@ -276,9 +274,7 @@ def tracking_metrics(
         out["epe_3d"] = run(epe_3d, pred_3d, gt_3d, gt_vis, eval_mask=eval_mask, scale=scale)
         for t in thresholds_3d:
             key = f"{float(t):.2f}" if round(float(t), 2) == float(t) else f"{float(t):g}"
-            out[f"delta_3d@{key}"] = run(
-                delta_3d, pred_3d, gt_3d, gt_vis, t, eval_mask=eval_mask, scale=scale
-            )
+            out[f"delta_3d@{key}"] = run(delta_3d, pred_3d, gt_3d, gt_vis, t, eval_mask=eval_mask, scale=scale)
     if pred_2d is not None:
         if pred_vis is not None:
             out["aj"] = run(

@@ -7,15 +7,16 @@ import math
 import numpy as np
 
 from .image import mpsnr, mssim, psnr, ssim
+from .lpips import lpips, mlpips
 
 
-def image_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None, masked: bool, use_lpips: bool) -> dict[str, float]:
+def image_metrics(
+    pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None, masked: bool, use_lpips: bool
+) -> dict[str, float]:
     """PSNR, SSIM (and LPIPS); with `masked` (DyCheck's iPhone protocol) also
     their co-visible versions, over `mask` or, without one, every pixel."""
     out = {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt)}
     if use_lpips:
-        from .lpips import lpips
-
         out["lpips"] = lpips(pred, gt)
     if masked:
         m = np.ones(gt.shape[:2], np.float32) if mask is None else mask
@@ -23,8 +24,6 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None, mas
             out["mpsnr"] = mpsnr(pred, gt, m)
             out["mssim"] = mssim(pred, gt, m)
             if use_lpips:
-                from .lpips import mlpips
-
                 out["mlpips"] = mlpips(pred, gt, m)
     return {k: float(v) for k, v in out.items()}
 

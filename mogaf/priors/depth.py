@@ -42,13 +42,16 @@ def _shipped_depth(shipped: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray |
 def missing_depth_message(scene_h5: str | os.PathLike, meta: Mapping[str, Any], name: str) -> str:
     where = meta.get("scene_dir") or meta.get("source_dir") or meta.get("data_dir") or "<scene_dir>"
     factor = meta.get("scale") or meta.get("downscale") or meta.get("factor") or "<S>"
-    return (f"monocular scene '{name}' has no depth prior: provide {where}/depth/{factor}x/<frame>.npy (metric depth) "
-            f"or {where}/flow3d_preprocessed/aligned_depth_anything_colmap/{factor}x/<frame>.npy "
-            f"(Shape-of-Motion's aligned disparity), then re-run ingest")
+    return (
+        f"monocular scene '{name}' has no depth prior: provide {where}/depth/{factor}x/<frame>.npy (metric depth) "
+        f"or {where}/flow3d_preprocessed/aligned_depth_anything_colmap/{factor}x/<frame>.npy "
+        f"(Shape-of-Motion's aligned disparity), then re-run ingest"
+    )
 
 
-def select_depth(scene_h5: str | os.PathLike, scene, shipped: Mapping[str, Any],
-                 order: Sequence[str]) -> tuple[np.ndarray, np.ndarray, str, str]:
+def select_depth(
+    scene_h5: str | os.PathLike, scene, shipped: Mapping[str, Any], order: Sequence[str]
+) -> tuple[np.ndarray, np.ndarray, str, str]:
     """(values (F,H,W) float32, valid (F,H,W) uint8, depth_kind, source)."""
     F, H, W = scene.num_frames, scene.height, scene.width
     for src in order:

@@ -79,8 +79,11 @@ def sample(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
     # cv2.remap handles at most 4 channels and rows of at most 32767 columns.
     chunks = []
     for s in range(0, n, 32000):
-        chunks.append(cv2.remap(image, mx[:, s : s + 32000], my[:, s : s + 32000], cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_REPLICATE))
+        chunks.append(
+            cv2.remap(
+                image, mx[:, s : s + 32000], my[:, s : s + 32000], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+            )
+        )
     out = np.concatenate(chunks, axis=1)[0]
     return out.reshape((n,) + image.shape[2:]).astype(np.float32, copy=False)
 

@@ -33,7 +33,6 @@ from scipy.spatial import cKDTree
 
 from .tracks import Tracks
 
-
 MAX_TIME_SAMPLES = 64  # the stride grows on long videos to bound the pairwise cost
 
 
@@ -73,7 +72,9 @@ def _distances(rows: np.ndarray, cols: np.ndarray, feats, chunk: int = 16) -> tu
     return dm_out, ds_out
 
 
-def _agglomerate(dm: np.ndarray, ds: np.ndarray, knn: int, radius: float, threshold: float, n_clusters: int) -> np.ndarray:
+def _agglomerate(
+    dm: np.ndarray, ds: np.ndarray, knn: int, radius: float, threshold: float, n_clusters: int
+) -> np.ndarray:
     from scipy.sparse import csr_matrix
     from sklearn.cluster import AgglomerativeClustering
 
@@ -99,8 +100,9 @@ def _agglomerate(dm: np.ndarray, ds: np.ndarray, knn: int, radius: float, thresh
         with warnings.catch_warnings():
             # sklearn links disconnected components itself (with a warning).
             warnings.simplefilter("ignore")
-            model = AgglomerativeClustering(n_clusters=int(n_clusters), metric="precomputed", linkage="average",
-                                            connectivity=conn)
+            model = AgglomerativeClustering(
+                n_clusters=int(n_clusters), metric="precomputed", linkage="average", connectivity=conn
+            )
             return model.fit_predict(dist).astype(np.int64)
     # Spatially separate components never merge: cluster each on its own.
     from scipy.sparse.csgraph import connected_components
@@ -113,8 +115,13 @@ def _agglomerate(dm: np.ndarray, ds: np.ndarray, knn: int, radius: float, thresh
         if idx.size == 1:
             sub = np.zeros(1, np.int64)
         else:
-            model = AgglomerativeClustering(n_clusters=None, distance_threshold=float(threshold), metric="precomputed",
-                                            linkage="average", connectivity=conn[idx][:, idx])
+            model = AgglomerativeClustering(
+                n_clusters=None,
+                distance_threshold=float(threshold),
+                metric="precomputed",
+                linkage="average",
+                connectivity=conn[idx][:, idx],
+            )
             sub = model.fit_predict(dist[np.ix_(idx, idx)]).astype(np.int64)
         labels[idx] = sub + next_id
         next_id += int(sub.max()) + 1
@@ -164,12 +171,15 @@ def cluster_tracks(tracks: Tracks, image_hw: tuple[int, int], params: Mapping[st
     feats = _features(tracks, int(params["cluster_time_stride"]))
     rng = np.random.default_rng(int(params["seed"]))
     cap = max(2, int(params["cluster_max_tracks"]))
-    core = np.sort(rng.choice(P, cap, replace=False)) if P > cap else np.arange(P)
+    core = np.sort(rng.choice(P, cap, replace=False)) if cap < P else np.arange(P)
     dm, ds = _distances(core, core, feats)
-    core_lab = _agglomerate(dm, ds, int(params["cluster_knn"]), float(params["cluster_link_radius_px"]), thr,
-                            int(params["num_instances"]))
+    core_lab = _agglomerate(
+        dm, ds, int(params["cluster_knn"]), float(params["cluster_link_radius_px"]), thr, int(params["num_instances"])
+    )
     min_size = max(1, int(np.ceil(float(params["cluster_min_fraction"]) * len(core))))
-    max_groups = int(params["num_instances"]) if int(params["num_instances"]) > 0 else max(1, int(params["max_instances"]))
+    max_groups = (
+        int(params["num_instances"]) if int(params["num_instances"]) > 0 else max(1, int(params["max_instances"]))
+    )
     core_lab = _merge_small(core_lab, dm, min_size, max_groups)
     labels = np.zeros(P, np.int64)
     labels[core] = core_lab

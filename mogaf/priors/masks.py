@@ -104,7 +104,9 @@ def clean_mask(mask: np.ndarray, min_area: float, dilate_px: int) -> np.ndarray:
     return m.astype(bool)
 
 
-def motion_segmentation(fwd: np.ndarray, bwd: np.ndarray, params: Mapping[str, Any]) -> tuple[np.ndarray, list[CameraMotion]]:
+def motion_segmentation(
+    fwd: np.ndarray, bwd: np.ndarray, params: Mapping[str, Any]
+) -> tuple[np.ndarray, list[CameraMotion]]:
     """(T, H, W) bool moving-pixel masks from consecutive flows (T-1, H, W, 2),
     and the camera motion fitted to each forward flow t -> t+1."""
     model = str(params["motion_camera_model"]).lower()

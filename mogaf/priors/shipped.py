@@ -52,7 +52,9 @@ def _read(ds: h5py.Dataset, sel: tuple, path) -> np.ndarray:
     try:
         return ds[sel]
     except (OSError, RuntimeError) as exc:
-        raise input_error(path, f"entry '{ds.name}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})") from None
+        raise input_error(
+            path, f"entry '{ds.name}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})"
+        ) from None
 
 
 def _frame_indexed(g: h5py.Group, rows: np.ndarray, path) -> dict[str, Any]:
@@ -99,10 +101,18 @@ def _tracks_2d(g: h5py.Group, rows: np.ndarray, path) -> dict[str, Any]:
         qidx.append(np.full(block.shape[0], pos[int(qf)], np.int64))
     if not xy:
         F = rows.size
-        return {"xy": np.zeros((0, F, 2), np.float32), "occlusion": np.zeros((0, F), np.float32),
-                "expected_dist": np.zeros((0, F), np.float32), "query_index": np.zeros(0, np.int64)}
-    return {"xy": np.concatenate(xy), "occlusion": np.concatenate(occ), "expected_dist": np.concatenate(dist),
-            "query_index": np.concatenate(qidx)}
+        return {
+            "xy": np.zeros((0, F, 2), np.float32),
+            "occlusion": np.zeros((0, F), np.float32),
+            "expected_dist": np.zeros((0, F), np.float32),
+            "query_index": np.zeros(0, np.int64),
+        }
+    return {
+        "xy": np.concatenate(xy),
+        "occlusion": np.concatenate(occ),
+        "expected_dist": np.concatenate(dist),
+        "query_index": np.concatenate(qidx),
+    }
 
 
 def load_observed_shipped(scene_h5: str | os.PathLike, split: Split) -> Observed:

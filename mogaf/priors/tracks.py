@@ -42,6 +42,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .flow import consecutive_flows, sample, sample_patches
+from .params import DEFAULT_PARAMS  # the single documented source of defaults
 
 
 @dataclass
@@ -57,7 +58,7 @@ class Tracks:
     def num_tracks(self) -> int:
         return int(self.xy.shape[0])
 
-    def subset(self, keep: np.ndarray) -> "Tracks":
+    def subset(self, keep: np.ndarray) -> Tracks:
         return Tracks(
             query_index=self.query_index[keep],
             xy=self.xy[keep],
@@ -99,9 +100,18 @@ def grid_points(H: int, W: int, stride: int, mask: np.ndarray | None, border: fl
     return np.stack([gx[keep], gy[keep]], axis=-1).astype(np.float32)
 
 
-def _chain(pos0: np.ndarray, q: int, step: int, flows_to: np.ndarray, flows_back: np.ndarray,
-           blurred: np.ndarray, out_xy: np.ndarray, out_vis: np.ndarray, out_err: np.ndarray,
-           p: Mapping[str, Any]) -> None:
+def _chain(
+    pos0: np.ndarray,
+    q: int,
+    step: int,
+    flows_to: np.ndarray,
+    flows_back: np.ndarray,
+    blurred: np.ndarray,
+    out_xy: np.ndarray,
+    out_vis: np.ndarray,
+    out_err: np.ndarray,
+    p: Mapping[str, Any],
+) -> None:
     """Chain points from frame q in direction `step` (+1 or -1), writing in place."""
     T, H, W = blurred.shape[:3]
     border = float(p["border_px"])
@@ -144,16 +154,19 @@ def _chain(pos0: np.ndarray, q: int, step: int, flows_to: np.ndarray, flows_back
         out_xy[:, :t] = pos[:, None]
 
 
-def compute_flow_tracks(frames: np.ndarray, fg_masks: np.ndarray | None, params: Mapping[str, Any] | None = None,
-                        *, flows: tuple[np.ndarray, np.ndarray] | None = None) -> Tracks:
+def compute_flow_tracks(
+    frames: np.ndarray,
+    fg_masks: np.ndarray | None,
+    params: Mapping[str, Any] | None = None,
+    *,
+    flows: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Tracks:
     """Track grid points through a video by chained optical flow (see module doc).
 
     frames: (T, H, W, 3) uint8 in temporal order; fg_masks: (T, H, W) bool
     (query points only inside them) or None (whole frame). `flows` lets a
     caller reuse (forward, backward) flows from `consecutive_flows`.
     """
-    from . import DEFAULT_PARAMS  # the single documented source of defaults
-
     p = {**DEFAULT_PARAMS, **dict(params or {})}
     frames = np.asarray(frames)
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
@@ -210,8 +223,11 @@ def compute_flow_tracks(frames: np.ndarray, fg_masks: np.ndarray | None, params:
         rng = np.random.default_rng(int(p["seed"]))
         tracks = tracks.subset(np.sort(rng.choice(tracks.num_tracks, cap, replace=False)))
     tracks.stats = track_statistics(tracks)
-    tracks.stats.update(flow_seconds=round(t_flow, 3), seconds=round(time.perf_counter() - t0, 3),
-                        num_query_frames=int(len(query_frames(T, int(p["num_query_frames"])))))
+    tracks.stats.update(
+        flow_seconds=round(t_flow, 3),
+        seconds=round(time.perf_counter() - t0, 3),
+        num_query_frames=int(len(query_frames(T, int(p["num_query_frames"])))),
+    )
     return tracks
 
 
@@ -237,8 +253,9 @@ def track_statistics(tracks: Tracks) -> dict[str, Any]:
     P, T = tracks.visible.shape
     stats: dict[str, Any] = {"count": int(P), "num_frames": int(T)}
     if P == 0:
-        stats.update(mean_length=0.0, visible_fraction=0.0, fb_error_median_px=0.0, fb_error_p95_px=0.0,
-                     fb_error_steps=0)
+        stats.update(
+            mean_length=0.0, visible_fraction=0.0, fb_error_median_px=0.0, fb_error_p95_px=0.0, fb_error_steps=0
+        )
         return stats
     lengths = tracks.visible.sum(axis=1)
     stats["mean_length"] = round(float(lengths.mean()), 3)

@@ -11,8 +11,8 @@ Entry points:
   render_poses(model, means, quats, K, w2c, width, height, features="rgb")
 """
 
-from .params import DEFAULT_PARAMS, resolve_params
 from ..rendering import render_model, render_poses
+from .params import DEFAULT_PARAMS, resolve_params
 from .stage import run_recon_stage, stage_digest
 
 __all__ = ["DEFAULT_PARAMS", "resolve_params", "render_model", "render_poses", "run_recon_stage", "stage_digest"]

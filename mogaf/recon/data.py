@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from ..artefact import read_artefact
+from ..artefact import ATTR_DIGEST, ATTR_LINEAGE, read_artefact, read_attrs
 from ..camera import scale_intrinsics
 from ..errors import input_error
 from ..split import Split, load_frames, read_split
@@ -90,8 +90,13 @@ def downscale_depth(depth: np.ndarray, valid: np.ndarray, s: int) -> tuple[np.nd
     return out.astype(np.float32), out_valid
 
 
-def load_train_data(scene_h5: str | os.PathLike, split: Split | str | os.PathLike, priors_h5: str | os.PathLike | None,
-                    *, downscale: int = 1) -> TrainData:
+def load_train_data(
+    scene_h5: str | os.PathLike,
+    split: Split | str | os.PathLike,
+    priors_h5: str | os.PathLike | None,
+    *,
+    downscale: int = 1,
+) -> TrainData:
     sp = split if isinstance(split, Split) else read_split(split)
     scene = load_frames(scene_h5, sp, "observed")
     ids = np.asarray(sp.frame_ids["observed"], dtype=np.int64)
@@ -130,7 +135,7 @@ def load_train_data(scene_h5: str | os.PathLike, split: Split | str | os.PathLik
         fg = _area_down((masks > 0).astype(np.float32), s)
         if "masks/instance" in pr:
             im = np.asarray(pr["masks/instance"], dtype=np.int32)[order]
-            inst = im[:, s // 2:: s, s // 2:: s][:, : H // s, : W // s] if s > 1 else im
+            inst = im[:, s // 2 :: s, s // 2 :: s][:, : H // s, : W // s] if s > 1 else im
         if "depth/values" in pr:
             d = np.asarray(pr["depth/values"], dtype=np.float64)[order]
             v = np.asarray(pr["depth/valid"]).astype(bool)[order] if "depth/valid" in pr else np.ones_like(d, bool)
@@ -183,8 +188,6 @@ def input_digests(paths: dict[str, Any]) -> dict[str, str]:
     """Lineage digests of the input artefacts (settings and contents), for the
     checkpoint digest: a checkpoint made from inputs since rewritten with
     other values is not resumed. Config digests for files without lineage."""
-    from ..artefact import ATTR_DIGEST, ATTR_LINEAGE, read_attrs
-
     out = {}
     for name, p in paths.items():
         if p is None:
@@ -242,7 +245,7 @@ def coarser(data: TrainData, factor: int) -> TrainData:
         depth, valid = downscale_depth(data.depth, data.depth_valid, s)
     inst = None
     if data.instance_mask is not None:
-        inst = data.instance_mask[:, s // 2:: s, s // 2:: s][:, :H, :W]
+        inst = data.instance_mask[:, s // 2 :: s, s // 2 :: s][:, :H, :W]
     return dataclasses.replace(
         data,
         images=_area_down(data.images, s).astype(np.float32),

@@ -59,7 +59,9 @@ class DensityStats:
         self.__init__(len(self) if n is None else n)
 
     @torch.no_grad()
-    def accumulate(self, grad2d: torch.Tensor, radii: torch.Tensor, width: int, height: int, batch_size: int = 1) -> None:
+    def accumulate(
+        self, grad2d: torch.Tensor, radii: torch.Tensor, width: int, height: int, batch_size: int = 1
+    ) -> None:
         """Add one view: grad2d (N,2) gradient of the loss w.r.t. means2d (pixels), radii (N,)."""
         sel = radii > 0
         if grad2d is None or not bool(sel.any()):
@@ -86,8 +88,9 @@ class DensityStats:
         self.max_radii = state["max_radii"].clone()
 
 
-def select_densify(grad_avg: torch.Tensor, max_scale: torch.Tensor, max_radii: torch.Tensor, rules: DensifyRules,
-                   n_current: int) -> tuple[torch.Tensor, torch.Tensor]:
+def select_densify(
+    grad_avg: torch.Tensor, max_scale: torch.Tensor, max_radii: torch.Tensor, rules: DensifyRules, n_current: int
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Boolean (split, clone) masks, trimmed to the Gaussian budget (highest gradient first)."""
     high = grad_avg > rules.grad_threshold
     big = max_scale > rules.scale_threshold * rules.extent
@@ -110,8 +113,13 @@ def select_densify(grad_avg: torch.Tensor, max_scale: torch.Tensor, max_radii: t
     return split, clone
 
 
-def select_cull(opacity: torch.Tensor, max_scale: torch.Tensor, max_radii: torch.Tensor, rules: DensifyRules,
-                extent_factor: torch.Tensor | None = None) -> torch.Tensor:
+def select_cull(
+    opacity: torch.Tensor,
+    max_scale: torch.Tensor,
+    max_radii: torch.Tensor,
+    rules: DensifyRules,
+    extent_factor: torch.Tensor | None = None,
+) -> torch.Tensor:
     cull = opacity < rules.cull_opacity
     if not rules.cull_by_size:
         return cull
@@ -141,8 +149,14 @@ def _swap_param(opt: torch.optim.Optimizer, old: torch.nn.Parameter, new: torch.
 
 
 @torch.no_grad()
-def apply_densify(model: ReconModel, optimizers: dict[str, torch.optim.Optimizer], part: str, split: torch.Tensor,
-                  clone: torch.Tensor, gen: torch.Generator) -> tuple[int, int]:
+def apply_densify(
+    model: ReconModel,
+    optimizers: dict[str, torch.optim.Optimizer],
+    part: str,
+    split: torch.Tensor,
+    clone: torch.Tensor,
+    gen: torch.Generator,
+) -> tuple[int, int]:
     """Rows become [kept (not split), clones, split copy 1, split copy 2]."""
     g = getattr(model, part)
     n_split, n_clone = int(split.sum()), int(clone.sum())
@@ -196,8 +210,16 @@ def reorder_stats_after_densify(stats: torch.Tensor, split: torch.Tensor, clone:
 
 
 @torch.no_grad()
-def control_step(model: ReconModel, optimizers: dict[str, torch.optim.Optimizer], stats: DensityStats,
-                 rules: DensifyRules, gen: torch.Generator, *, densify: bool = True, cull: bool = True) -> dict[str, int]:
+def control_step(
+    model: ReconModel,
+    optimizers: dict[str, torch.optim.Optimizer],
+    stats: DensityStats,
+    rules: DensifyRules,
+    gen: torch.Generator,
+    *,
+    densify: bool = True,
+    cull: bool = True,
+) -> dict[str, int]:
     """One densify + cull pass over fg and bg; resets the statistics. Returns counts."""
     out = {"split": 0, "clone": 0, "culled": 0}
     nf = model.num_fg

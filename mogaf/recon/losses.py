@@ -51,7 +51,9 @@ def rgb_loss(pred: torch.Tensor, gt: torch.Tensor, ssim_weight: float = 0.2) -> 
     return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim(pred, gt))
 
 
-def masked_l1(pred: torch.Tensor, gt: torch.Tensor, weight: torch.Tensor | None = None, quantile: float = 1.0) -> torch.Tensor:
+def masked_l1(
+    pred: torch.Tensor, gt: torch.Tensor, weight: torch.Tensor | None = None, quantile: float = 1.0
+) -> torch.Tensor:
     """Weighted mean of |pred - gt| (averaged over the last axis), ignoring residuals above `quantile`.
 
     pred, gt: (..., D); weight broadcastable to (..., 1).

@@ -12,7 +12,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..sh import gaussian_colors, num_sh_rest  # noqa: F401  (re-exported for the recon package)
 from ..representation import (
     GaussianSet,
     Model4D,
@@ -21,6 +20,7 @@ from ..representation import (
     normalize_quat,
     quat_to_matrix,
 )
+from ..sh import gaussian_colors, num_sh_rest  # noqa: F401  (re-exported for the recon package)
 
 GAUSS_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "color_logits")
 
@@ -30,8 +30,9 @@ AUX_FIELDS = ("labels",)  # per-Gaussian tensors that are carried along but not 
 class GaussianParams(nn.Module):
     def __init__(self, tensors: dict[str, torch.Tensor]):
         super().__init__()
-        self.params = nn.ParameterDict({k: nn.Parameter(v.detach().clone().float()) for k, v in tensors.items()
-                                        if k not in AUX_FIELDS})
+        self.params = nn.ParameterDict(
+            {k: nn.Parameter(v.detach().clone().float()) for k, v in tensors.items() if k not in AUX_FIELDS}
+        )
         # aux: e.g. "labels" (N,) int64 instance id the Gaussian was initialised on (0 = unknown)
         self.aux: dict[str, torch.Tensor] = {k: v.detach().clone() for k, v in tensors.items() if k in AUX_FIELDS}
 
@@ -40,9 +41,6 @@ class GaussianParams(nn.Module):
 
     def get(self, name: str) -> torch.Tensor:
         return self.params[name]
-
-    def has(self, name: str) -> bool:
-        return name in self.params
 
     def scales(self) -> torch.Tensor:
         return torch.exp(self.params["log_scales"])
@@ -57,7 +55,7 @@ class GaussianParams(nn.Module):
         return torch.softmax(self.params["motion_coef_logits"], dim=-1)
 
     def sh_rest(self) -> torch.Tensor | None:
-        return self.params["sh_rest"] if "sh_rest" in self.params else None
+        return self.params.get("sh_rest")
 
     def rows_aux(self, fn) -> None:
         """Apply a row operation (densify / cull) to the aux tensors."""
@@ -84,15 +82,25 @@ class GaussianParams(nn.Module):
 class ReconModel(nn.Module):
     """Dynamic fg Gaussians + B motion bases at T steps + optional static bg."""
 
-    def __init__(self, fg: dict[str, torch.Tensor], rot6d: torch.Tensor, transl: torch.Tensor,
-                 bg: dict[str, torch.Tensor] | None = None, *, sh_degree: int = 0, scene_scale: float = 1.0):
+    def __init__(
+        self,
+        fg: dict[str, torch.Tensor],
+        rot6d: torch.Tensor,
+        transl: torch.Tensor,
+        bg: dict[str, torch.Tensor] | None = None,
+        *,
+        sh_degree: int = 0,
+        scene_scale: float = 1.0,
+    ):
         super().__init__()
         self.fg = GaussianParams(fg)
         self.bg = GaussianParams(bg) if bg is not None else None
-        self.motion = nn.ParameterDict({
-            "rot6d": nn.Parameter(rot6d.detach().clone().float()),
-            "transl": nn.Parameter(transl.detach().clone().float()),
-        })
+        self.motion = nn.ParameterDict(
+            {
+                "rot6d": nn.Parameter(rot6d.detach().clone().float()),
+                "transl": nn.Parameter(transl.detach().clone().float()),
+            }
+        )
         self.sh_degree = int(sh_degree)
         self.scene_scale = float(scene_scale)
 
@@ -136,7 +144,9 @@ class ReconModel(nn.Module):
     # -------------------------------------------------------------- motion
     def fg_transforms(self, t: torch.Tensor, members: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """R (N,K,3,3), translation (N,K,3) of the fg Gaussians (all, or `members`) at step indices t (K,)."""
-        coefs = self.fg.coefs() if members is None else torch.softmax(self.fg.get("motion_coef_logits")[members], dim=-1)
+        coefs = (
+            self.fg.coefs() if members is None else torch.softmax(self.fg.get("motion_coef_logits")[members], dim=-1)
+        )
         return blend_bases(coefs, self.motion["rot6d"][:, t], self.motion["transl"][:, t])
 
     def fg_means_at(self, t: torch.Tensor, members: torch.Tensor | None = None) -> torch.Tensor:
@@ -163,8 +173,8 @@ class ReconModel(nn.Module):
         for s in range(0, T, chunk):
             t = torch.arange(s, min(T, s + chunk), device=qc.device)
             R, tr = self.fg_transforms(t)
-            means[:, s:s + len(t)] = (torch.einsum("nkij,nj->nki", R, self.fg.get("means")) + tr).cpu().numpy()
-            quats[:, s:s + len(t)] = matrix_to_quat(R @ qc[:, None]).cpu().numpy()
+            means[:, s : s + len(t)] = (torch.einsum("nkij,nj->nki", R, self.fg.get("means")) + tr).cpu().numpy()
+            quats[:, s : s + len(t)] = matrix_to_quat(R @ qc[:, None]).cpu().numpy()
         return means, quats
 
     def to_model4d(self, timesteps: np.ndarray, background: np.ndarray, training: dict | None = None) -> Model4D:
@@ -193,7 +203,7 @@ class ReconModel(nn.Module):
         return out
 
     @classmethod
-    def from_state(cls, state: dict[str, torch.Tensor], *, sh_degree: int, scene_scale: float) -> "ReconModel":
+    def from_state(cls, state: dict[str, torch.Tensor], *, sh_degree: int, scene_scale: float) -> ReconModel:
         fg = {k.split(".", 1)[1]: v for k, v in state.items() if k.startswith("fg.")}
         bg = {k.split(".", 1)[1]: v for k, v in state.items() if k.startswith("bg.")} or None
         return cls(fg, state["motion.rot6d"], state["motion.transl"], bg, sh_degree=sh_degree, scene_scale=scene_scale)

@@ -1,6 +1,7 @@
 """Parameters of the reconstruction stage (Shape-of-Motion style 4D Gaussians).
 
-Every key has a default in DEFAULT_PARAMS. Values come from the official
+Every setting is a field of ReconSettings with its default and source
+(DEFAULT_PARAMS is the same as a plain dict). Values come from the official
 Shape-of-Motion (SoM) implementation (vye16/shape-of-motion, flow3d/configs.py,
 run_training.py, trainer.py, init_utils.py) where it has one; the comments
 mark "SoM" for those and "CPU" where this package uses a smaller value so a
@@ -15,150 +16,165 @@ num_bg_init, downscale, num_bases, batch_size, track_targets.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Literal
 
-from ..errors import MogafError, refuse_unknown_params
+from ..settings import check, defaults, setting
 
-DEFAULT_PARAMS: dict[str, Any] = {
+
+@dataclass(frozen=True)
+class ReconSettings:
+    """Settings of the reconstruction stage (config section `recon`)."""
+
     # ---- budget (quality vs time)
-    "iterations": 1500,  # CPU (SoM: 500 epochs, ~25k steps of 8 frames)
-    "iterations_scale": 1.0,  # multiplies `iterations` (error-against-run-time sweeps)
-    "batch_size": 1,  # frames per step; CPU (SoM: 8)
-    "downscale": 1,  # integer image downscale applied at training time
-    "coarse_downscale": 2,  # coarse-to-fine: initialise and run the first part of training at 1/this resolution
-    "coarse_fraction": 0.5,  # ... for this share of the iterations (0 = off)
-    "max_gaussians": 30000,  # cap on fg + bg after densification; CPU (SoM: uncapped)
-    "num_fg_init": 6000,  # CPU (SoM: num_fg 40000)
-    "num_bg_init": 6000,  # CPU (SoM: num_bg 100000)
-    "num_bases": 10,  # SoM num_motion_bases
-    "sh_degree": 0,  # SoM uses plain RGB colours (degree 0)
-    "background_gaussians": "auto",  # "auto" (monocular/iphone: yes, dnerf: no), "yes", "no"
-    "content_threshold": 0.03,  # no background model: pixels this far from the background colour count as
-    # foreground too (shadows, anti-aliased edges); 0 = use the priors' masks as they are
+    iterations: int = setting(1500, "CPU (SoM: 500 epochs, ~25k steps of 8 frames)", minimum=1)
+    iterations_scale: float = setting(
+        1.0, "multiplies `iterations` (error-against-run-time sweeps)", exclusive_minimum=0
+    )
+    batch_size: int = setting(1, "frames per step; CPU (SoM: 8)", minimum=1)
+    downscale: int = setting(1, "integer image downscale applied at training time", minimum=1)
+    coarse_downscale: int = setting(
+        2, "coarse-to-fine: initialise and run the first part of training at 1/this resolution", minimum=1
+    )
+    coarse_fraction: float = setting(0.5, "... for this share of the iterations (0 = off)")
+    max_gaussians: int = setting(30000, "cap on fg + bg after densification; CPU (SoM: uncapped)", minimum=1)
+    num_fg_init: int = setting(6000, "CPU (SoM: num_fg 40000)", minimum=1)
+    num_bg_init: int = setting(6000, "CPU (SoM: num_bg 100000)", minimum=0)
+    num_bases: int = setting(10, "SoM num_motion_bases", minimum=1)
+    sh_degree: int = setting(0, "SoM uses plain RGB colours (degree 0)", minimum=0, maximum=3)
+    background_gaussians: Literal["auto", "yes", "no"] = setting(
+        "auto", '"auto" (monocular/iphone: yes, dnerf: no), "yes", "no"'
+    )
+    content_threshold: float = setting(
+        0.03,
+        "no background model: pixels this far from the background colour count as foreground too (shadows, anti-aliased edges); 0 = use the priors' masks as they are",
+    )
     # ---- initialisation
-    "canonical_frame": -1,  # index among the observed frames; -1 = automatic (see mogaf.recon.init)
-    "canonical_candidates": 3,  # no tracks/depth: best-scored frames tried with a short silhouette fit
-    "init_min_cluster_fraction": 0.01,  # drop k-means clusters smaller than this share of tracks (SoM: 100 tracks)
-    "init_coef_scale": 10.0,  # SoM: logits = 10 * exp(-d); d here in units of init_coef_length * fg extent
-    "init_coef_length": 0.1,  # CPU/units: SoM uses metres directly
-    "init_opacity": 0.7,  # SoM
-    "init_optim_iters": 300,  # SoM run_initial_optim: 1000 (track-only fit, no rendering)
-    "init_fg_dense_fraction": 0.5,  # share of fg Gaussians lifted from canonical-frame fg pixels (rest: tracks)
-    "carve_window": 6,  # multi-view without depth: frames either side of the canonical time used to carve
-    "carve_min_fraction": 0.75,  # a candidate point must fall in the (dilated) fg mask in this share of them
-    "carve_dilate": 3,  # pixels of mask dilation for carving
-    "carve_candidates": 400000,  # uniform candidates sampled in the volume
+    canonical_frame: int = setting(
+        -1, "index among the observed frames; -1 = automatic (see mogaf.recon.init)", minimum=-1
+    )
+    canonical_candidates: int = setting(
+        3, "no tracks/depth: best-scored frames tried with a short silhouette fit", minimum=0
+    )
+    init_min_cluster_fraction: float = setting(
+        0.01, "drop k-means clusters smaller than this share of tracks (SoM: 100 tracks)"
+    )
+    init_coef_scale: float = setting(
+        10.0, "SoM: logits = 10 * exp(-d); d here in units of init_coef_length * fg extent"
+    )
+    init_coef_length: float = setting(0.1, "CPU/units: SoM uses metres directly")
+    init_opacity: float = setting(0.7, "SoM")
+    init_optim_iters: int = setting(300, "SoM run_initial_optim: 1000 (track-only fit, no rendering)", minimum=0)
+    init_fg_dense_fraction: float = setting(
+        0.5, "share of fg Gaussians lifted from canonical-frame fg pixels (rest: tracks)"
+    )
+    carve_window: int = setting(
+        6, "multi-view without depth: frames either side of the canonical time used to carve", minimum=0
+    )
+    carve_min_fraction: float = setting(
+        0.75, "a candidate point must fall in the (dilated) fg mask in this share of them"
+    )
+    carve_dilate: int = setting(3, "pixels of mask dilation for carving", minimum=0)
+    carve_candidates: int = setting(400000, "uniform candidates sampled in the volume", minimum=0)
     # ---- learning rates (SoM configs.py)
-    "lr_means": 1.6e-4,
-    "lr_opacities_fg": 1e-2,
-    "lr_opacities_bg": 5e-2,
-    "lr_scales": 5e-3,  # decays x0.1 exponentially over training (SoM)
-    "lr_quats": 1e-3,
-    "lr_colors": 1e-2,
-    "lr_motion_coefs": 1e-2,
-    "lr_rots": 1.6e-4,
-    "lr_transls": 1.6e-4,
-    "lr_scene_scaled": True,  # means / translation LRs multiplied by scene extent (SoM scenes are ~unit scale)
-    "lr_boost": 4.0,  # CPU: all LRs x this (far fewer steps than SoM); scales get it too
+    lr_means: float = setting(1.6e-4, "learning rates (SoM configs.py)")
+    lr_opacities_fg: float = setting(1e-2, "learning rates (SoM configs.py)")
+    lr_opacities_bg: float = setting(5e-2, "learning rates (SoM configs.py)")
+    lr_scales: float = setting(5e-3, "decays x0.1 exponentially over training (SoM)")
+    lr_quats: float = setting(1e-3, "learning rates (SoM configs.py)")
+    lr_colors: float = setting(1e-2, "learning rates (SoM configs.py)")
+    lr_motion_coefs: float = setting(1e-2, "learning rates (SoM configs.py)")
+    lr_rots: float = setting(1.6e-4, "learning rates (SoM configs.py)")
+    lr_transls: float = setting(1.6e-4, "learning rates (SoM configs.py)")
+    lr_scene_scaled: bool = setting(
+        True, "means / translation LRs multiplied by scene extent (SoM scenes are ~unit scale)"
+    )
+    lr_boost: float = setting(4.0, "CPU: all LRs x this (far fewer steps than SoM); scales get it too")
     # ---- losses (SoM LossesConfig)
-    "w_rgb": 1.0,
-    "ssim_weight": 0.2,  # rgb = 0.8 L1 + 0.2 (1 - SSIM)
-    "w_mask": 1.0,
-    "w_depth": 0.5,  # SoM w_depth_reg (disparity L1, 0.98 quantile)
-    "w_depth_grad": 1.0,  # SoM w_depth_grad
-    "w_track": 2.0,  # SoM w_track
-    "w_smooth_bases": 10.0,  # SoM: 0.1. CPU: ~1.5k single-frame steps instead of ~25k x 8 frames; measured
-    # (MuJoCo scene7 held-out 21.4 -> 24.2 dB, synthetic trajectory error 6.3 -> 4.5 cm, scene3 unchanged)
-    "w_smooth_tracks": 2.0,  # SoM w_smooth_tracks
-    "w_z_accel": 1.0,  # SoM w_z_accel
-    "w_scale_var": 0.01,  # SoM w_scale_var
-    "silhouette": "auto",  # "auto" (on when bases start at identity: no tracks + depth), "on", "off"
-    "w_silhouette": 1.0,  # not in SoM: 2D distance-transform / coverage pull of projected fg centres (see trainer)
-    "silhouette_pixels": 256,  # mask pixels per instance and frame for the coverage term
-    "silhouette_decay": 0.9,  # the weight falls linearly by this fraction over training
-    "lr_motion_identity_boost": 10.0,  # motion LRs x this when the bases start at identity (no track / silhouette fit)
-    "silhouette_fit_iters": 400,  # no tracks/depth: fit bases to the masks before photometric training (0 = off)
-    "silhouette_fit_points": 1500,  # fg centres used by that fit
-    "silhouette_fit_frames": 16,  # frames per iteration of that fit
-    "silhouette_fit_smooth": 0.05,  # weight of the basis smoothness (acceleration) in that fit
-    "silhouette_fit_still": 0.05,  # weight of a velocity penalty in that fit (objects stay put unless the masks move)
-    "hull_min_fraction": 0.8,  # after that fit: keep points inside the (dilated) masks of this share of frames
-    "track_targets": 2,  # target frames per source frame for the 2D track loss; CPU (SoM: 4)
-    "loss_quantile": 0.98,  # SoM: robust trimming of mask / depth / track losses
-    "gap_interpolation": False,  # True: steps without a training frame = cubic spline through those with one
-    # (False: left to the smoothness prior; measured better on MuJoCo scene7, noisy knots make splines overshoot)
+    w_rgb: float = setting(1.0, "losses (SoM LossesConfig)")
+    ssim_weight: float = setting(0.2, "rgb = 0.8 L1 + 0.2 (1 - SSIM)")
+    w_mask: float = setting(1.0, "losses (SoM LossesConfig)")
+    w_depth: float = setting(0.5, "SoM w_depth_reg (disparity L1, 0.98 quantile)")
+    w_depth_grad: float = setting(1.0, "SoM w_depth_grad")
+    w_track: float = setting(2.0, "SoM w_track")
+    w_smooth_bases: float = setting(
+        10.0,
+        "SoM: 0.1. CPU: ~1.5k single-frame steps instead of ~25k x 8 frames; measured (MuJoCo scene7 held-out 21.4 -> 24.2 dB, synthetic trajectory error 6.3 -> 4.5 cm, scene3 unchanged)",
+    )
+    w_smooth_tracks: float = setting(2.0, "SoM w_smooth_tracks")
+    w_z_accel: float = setting(1.0, "SoM w_z_accel")
+    w_scale_var: float = setting(0.01, "SoM w_scale_var")
+    silhouette: Literal["auto", "on", "off"] = setting(
+        "auto", '"auto" (on when bases start at identity: no tracks + depth), "on", "off"'
+    )
+    w_silhouette: float = setting(
+        1.0, "not in SoM: 2D distance-transform / coverage pull of projected fg centres (see trainer)"
+    )
+    silhouette_pixels: int = setting(256, "mask pixels per instance and frame for the coverage term", minimum=0)
+    silhouette_decay: float = setting(0.9, "the weight falls linearly by this fraction over training")
+    lr_motion_identity_boost: float = setting(
+        10.0, "motion LRs x this when the bases start at identity (no track / silhouette fit)"
+    )
+    silhouette_fit_iters: int = setting(
+        400, "no tracks/depth: fit bases to the masks before photometric training (0 = off)", minimum=0
+    )
+    silhouette_fit_points: int = setting(1500, "fg centres used by that fit", minimum=0)
+    silhouette_fit_frames: int = setting(16, "frames per iteration of that fit", minimum=0)
+    silhouette_fit_smooth: float = setting(0.05, "weight of the basis smoothness (acceleration) in that fit")
+    silhouette_fit_still: float = setting(
+        0.05, "weight of a velocity penalty in that fit (objects stay put unless the masks move)"
+    )
+    hull_min_fraction: float = setting(
+        0.8, "after that fit: keep points inside the (dilated) masks of this share of frames"
+    )
+    track_targets: int = setting(2, "target frames per source frame for the 2D track loss; CPU (SoM: 4)", minimum=0)
+    loss_quantile: float = setting(0.98, "SoM: robust trimming of mask / depth / track losses")
+    gap_interpolation: bool = setting(
+        False,
+        "True: steps without a training frame = cubic spline through those with one (False: left to the smoothness prior; measured better on MuJoCo scene7, noisy knots make splines overshoot)",
+    )
     # ---- temporal curriculum (multi-view scenes without depth / tracks)
-    "curriculum": "auto",  # "auto" (on when bases start at identity), "on", "off"
-    "curriculum_fraction": 0.5,  # share of iterations over which the time window grows to all frames
-    "curriculum_start": 3,  # initial half-window, in observed time steps
+    curriculum: Literal["auto", "on", "off"] = setting("auto", '"auto" (on when bases start at identity), "on", "off"')
+    curriculum_fraction: float = setting(0.5, "share of iterations over which the time window grows to all frames")
+    curriculum_start: int = setting(3, "initial half-window, in observed time steps", minimum=0)
     # ---- adaptive density control (SoM OptimizerConfig), in iterations
-    "warmup_steps": 100,  # SoM 200
-    "control_every": 100,  # SoM
-    "reset_opacity_every": 0,  # 0 = never; CPU (SoM: every 30 controls = 3000 steps, after our run ends)
-    "stop_control_fraction": 0.8,  # SoM stops at 4000 / 5000 steps
-    "densify_grad_threshold": 0.0002,  # SoM densify_xys_grad_threshold (NDC units)
-    "densify_scale_threshold": 0.01,  # SoM, x scene extent
-    "densify_screen_threshold": 0.05,  # SoM
-    "cull_opacity_threshold": 0.1,  # SoM
-    "cull_scale_threshold": 0.5,  # SoM, x scene extent
-    "cull_screen_threshold": 0.15,  # SoM
+    warmup_steps: int = setting(100, "SoM 200", minimum=0)
+    control_every: int = setting(100, "SoM", minimum=1)
+    reset_opacity_every: int = setting(
+        0, "0 = never; CPU (SoM: every 30 controls = 3000 steps, after our run ends)", minimum=0
+    )
+    stop_control_fraction: float = setting(0.8, "SoM stops at 4000 / 5000 steps")
+    densify_grad_threshold: float = setting(0.0002, "SoM densify_xys_grad_threshold (NDC units)")
+    densify_scale_threshold: float = setting(0.01, "SoM, x scene extent")
+    densify_screen_threshold: float = setting(0.05, "SoM")
+    cull_opacity_threshold: float = setting(0.1, "SoM")
+    cull_scale_threshold: float = setting(0.5, "SoM, x scene extent")
+    cull_screen_threshold: float = setting(0.15, "SoM")
     # ---- bookkeeping
-    "log_every": 25,
-    "checkpoint_every": 200,
-    "eval_every": 100,  # training-curve PSNR on one fixed observed frame
-    "backend": "auto",  # rasterizer backend (mogaf.render)
-    "device": "auto",  # "auto" (cuda if available), "cpu", "cuda" (gsplat backend)
-    "threads": 1,  # torch (and CPU rasterizer) threads during the stage; 0 = leave as set by the caller.
-    # 1 keeps float reductions in one order (bitwise-reproducible artefacts) and avoids OpenMP
-    # spin-waiting when the cores are shared; the per-step work is small, so little is lost.
-}
+    log_every: int = setting(25, "bookkeeping", minimum=1)
+    checkpoint_every: int = setting(200, "bookkeeping", minimum=1)
+    eval_every: int = setting(100, "training-curve PSNR on one fixed observed frame", minimum=1)
+    backend: Literal["auto", "cpu", "torch", "reference", "gsplat"] = setting(
+        "auto", "rasterizer backend (mogaf.render)"
+    )
+    device: Literal["auto", "cpu", "cuda"] = setting(
+        "auto", '"auto" (cuda if available), "cpu", "cuda" (gsplat backend)', injected=True
+    )
+    threads: int = setting(
+        1,
+        "torch (and CPU rasterizer) threads during the stage; 0 = leave as set by the caller. 1 keeps float reductions in one order (bitwise-reproducible artefacts) and avoids OpenMP spin-waiting when the cores are shared; the per-step work is small, so little is lost.",
+        minimum=0,
+    )
 
-CHOICES = {
-    "device": ("auto", "cpu", "cuda"),
-    "background_gaussians": ("auto", "yes", "no"),
-    "curriculum": ("auto", "on", "off"),
-    "silhouette": ("auto", "on", "off"),
-}
-INT_KEYS = {
-    "iterations", "coarse_downscale", "canonical_frame", "canonical_candidates", "batch_size", "downscale", "max_gaussians", "num_fg_init", "num_bg_init", "num_bases",
-    "sh_degree", "threads", "init_optim_iters", "carve_window", "carve_dilate", "carve_candidates", "track_targets",
-    "curriculum_start", "warmup_steps", "control_every", "reset_opacity_every", "log_every", "checkpoint_every",
-    "eval_every", "silhouette_pixels", "silhouette_fit_iters", "silhouette_fit_points", "silhouette_fit_frames",
-}
+
+DEFAULT_PARAMS: dict[str, Any] = defaults(ReconSettings)
 
 
 def resolve_params(params: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """Defaults <- params, type-checked; unknown keys are refused."""
-    params = dict(params or {})
-    refuse_unknown_params("recon", params, DEFAULT_PARAMS)
-    out = dict(DEFAULT_PARAMS)
-    out.update(params)
-    for key, default in DEFAULT_PARAMS.items():
-        value = out[key]
-        if key in CHOICES:
-            if value not in CHOICES[key]:
-                raise MogafError(f"recon param '{key}' must be one of {', '.join(CHOICES[key])}, got {value!r}")
-        elif isinstance(default, bool):
-            if not isinstance(value, bool):
-                raise MogafError(f"recon param '{key}' must be true or false, got {value!r}")
-        elif key in INT_KEYS:
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value:
-                raise MogafError(f"recon param '{key}' must be an integer, got {value!r}")
-            out[key] = int(value)
-            if out[key] < (-1 if key == "canonical_frame" else 0):
-                raise MogafError(f"recon param '{key}' must be non-negative, got {value!r}")
-        elif isinstance(default, float):
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise MogafError(f"recon param '{key}' must be a number, got {value!r}")
-            out[key] = float(value)
-    for key in ("iterations", "batch_size", "downscale", "coarse_downscale", "num_bases", "max_gaussians", "num_fg_init", "control_every",
-                "log_every", "checkpoint_every", "eval_every"):
-        if out[key] < 1:
-            raise MogafError(f"recon param '{key}' must be at least 1, got {out[key]}")
-    if out["iterations_scale"] <= 0:
-        raise MogafError(f"recon param 'iterations_scale' must be positive, got {out['iterations_scale']}")
+    """Defaults <- params, type-checked (ReconSettings); unknown keys are refused.
+    `iterations_scale` is applied to `iterations` and then reset to 1, so
+    equivalent settings share a digest."""
+    out = check(ReconSettings, "recon", params)
     out["iterations"] = max(1, int(round(out["iterations"] * out["iterations_scale"])))
-    out["iterations_scale"] = 1.0  # applied (keeps the digest of equivalent settings equal)
-    if out["sh_degree"] > 3:
-        raise MogafError(f"recon param 'sh_degree' must be 0..3, got {out['sh_degree']}")
+    out["iterations_scale"] = 1.0
     return out

@@ -29,6 +29,7 @@ import torch.nn.functional as F
 
 from ..representation import blend_bases
 from .data import TrainData
+from .interpolation import gap_interpolation
 from .losses import basis_smoothness
 
 
@@ -64,13 +65,19 @@ class SilhouetteTargets:
         self.pixels = self.pixels.to(device)
         self.present = self.present.to(device)
 
-    def terms(self, frames: torch.Tensor, uv: torch.Tensor, front: torch.Tensor, weight: torch.Tensor,
-              labels: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    def terms(
+        self,
+        frames: torch.Tensor,
+        uv: torch.Tensor,
+        front: torch.Tensor,
+        weight: torch.Tensor,
+        labels: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """uv (Fb, N, 2) projected centres in frames (Fb,), front (Fb, N) bool, weight (N,) -> (forward, coverage)."""
         Fb, N = uv.shape[:2]
         grid = torch.stack([uv[..., 0] / self.W * 2 - 1, uv[..., 1] / self.H * 2 - 1], -1)[:, None]  # (Fb,1,N,2)
         dt = F.grid_sample(self.dt[frames], grid, mode="bilinear", padding_mode="border", align_corners=False)[:, 0, 0]
-        outside = (F.relu(-uv[..., 0]) + F.relu(uv[..., 0] - self.W) + F.relu(-uv[..., 1]) + F.relu(uv[..., 1] - self.H))
+        outside = F.relu(-uv[..., 0]) + F.relu(uv[..., 0] - self.W) + F.relu(-uv[..., 1]) + F.relu(uv[..., 1] - self.H)
         w = weight[None] * front.float()
         fwd = ((dt + outside) * w).sum() / w.sum().clamp_min(1e-6) / self.norm
         cov = uv.sum() * 0.0
@@ -97,7 +104,9 @@ class SilhouetteTargets:
         return fwd, cov
 
 
-def project_batch(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, near: float) -> tuple[torch.Tensor, torch.Tensor]:
+def project_batch(
+    points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, near: float
+) -> tuple[torch.Tensor, torch.Tensor]:
     """points (N, Fb, 3) world, K (Fb,3,3), w2c (Fb,4,4) -> uv (Fb, N, 2), front (Fb, N)."""
     cam = torch.einsum("fij,nfj->fni", w2c[:, :3, :3], points) + w2c[:, None, :3, 3]
     z = cam[..., 2]
@@ -106,9 +115,25 @@ def project_batch(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, near
     return uv, z > near
 
 
-def fit_bases_to_silhouettes(data: TrainData, means: np.ndarray, coef_logits: np.ndarray, labels: np.ndarray,
-                             rot: torch.Tensor, tr: torch.Tensor, cano: int, scale: float, *, iters: int,
-                             max_points: int, frames_per_iter: int, pool: int, seed: int, w_still: float = 0.0, w_smooth: float = 0.05, gap_fill: bool = True) -> tuple[torch.Tensor, torch.Tensor, dict]:
+def fit_bases_to_silhouettes(
+    data: TrainData,
+    means: np.ndarray,
+    coef_logits: np.ndarray,
+    labels: np.ndarray,
+    rot: torch.Tensor,
+    tr: torch.Tensor,
+    cano: int,
+    scale: float,
+    *,
+    iters: int,
+    max_points: int,
+    frames_per_iter: int,
+    pool: int,
+    seed: int,
+    w_still: float = 0.0,
+    w_smooth: float = 0.05,
+    gap_fill: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor, dict]:
     """Fit the motion bases (and coefficients) so projected centres follow the masks of every frame."""
     if iters <= 0:
         return rot, tr, {}
@@ -124,7 +149,7 @@ def fit_bases_to_silhouettes(data: TrainData, means: np.ndarray, coef_logits: np
     for b in range(coef_logits.shape[1]):
         lb = labels[owner == b]
         basis_inst[b] = np.searchsorted(inst_ids, np.bincount(lb).argmax()) if lb.size else 0
-    if N > max_points:
+    if max_points < N:
         pick = torch.randperm(N, generator=gen)[:max_points].sort().values.numpy()
     else:
         pick = np.arange(N)
@@ -142,8 +167,6 @@ def fit_bases_to_silhouettes(data: TrainData, means: np.ndarray, coef_logits: np
     ones = torch.ones(m.shape[0])
     grow = max(1, int(0.7 * iters))
     hist = []
-    from .init import gap_interpolation
-
     gi = gap_interpolation(T, data.tidx) if gap_fill else None
     knots = torch.tensor(np.unique(data.tidx))
     for i in range(iters):
@@ -155,18 +178,24 @@ def fit_bases_to_silhouettes(data: TrainData, means: np.ndarray, coef_logits: np
             frames = allowed
         lo, hi = max(0, c0 - w), min(T - 1, c0 + w)
         with torch.no_grad():  # steps outside the window follow the edge (constant)
-            r.data[:, hi + 1:] = r.data[:, hi:hi + 1]
-            t.data[:, hi + 1:] = t.data[:, hi:hi + 1]
-            r.data[:, :lo] = r.data[:, lo:lo + 1]
-            t.data[:, :lo] = t.data[:, lo:lo + 1]
+            r.data[:, hi + 1 :] = r.data[:, hi : hi + 1]
+            t.data[:, hi + 1 :] = t.data[:, hi : hi + 1]
+            r.data[:, :lo] = r.data[:, lo : lo + 1]
+            t.data[:, :lo] = t.data[:, lo : lo + 1]
         ts = tidx[frames]
         R, tt = blend_bases(coefs, r[:, ts], t[:, ts])  # (n, Fb, 3, 3)
         pos = torch.einsum("nfij,nj->nfi", R, m) + tt
         uv, front = project_batch(pos, K[frames], w2c[frames], 1e-3 * scale)
         fwd, cov = targets.terms(frames, uv, front, ones, lab)
-        smooth = basis_smoothness(r[:, lo:hi + 1], t[:, lo:hi + 1], scale) if hi - lo >= 2 else fwd * 0
-        still = ((r[:, lo + 1:hi + 1] - r[:, lo:hi]).norm(dim=-1).mean()
-                 + ((t[:, lo + 1:hi + 1] - t[:, lo:hi]) / scale).norm(dim=-1).mean()) if hi > lo else fwd * 0
+        smooth = basis_smoothness(r[:, lo : hi + 1], t[:, lo : hi + 1], scale) if hi - lo >= 2 else fwd * 0
+        still = (
+            (
+                (r[:, lo + 1 : hi + 1] - r[:, lo:hi]).norm(dim=-1).mean()
+                + ((t[:, lo + 1 : hi + 1] - t[:, lo:hi]) / scale).norm(dim=-1).mean()
+            )
+            if hi > lo
+            else fwd * 0
+        )
         loss = fwd + cov + w_smooth * smooth + w_still * still
         opt.zero_grad()
         loss.backward()
@@ -180,13 +209,25 @@ def fit_bases_to_silhouettes(data: TrainData, means: np.ndarray, coef_logits: np
             hist.append((i, float(fwd.detach()), float(cov.detach())))
     idx = torch.tensor(basis_inst)
     r_out, t_out = r.detach()[idx].clone(), t.detach()[idx].clone()
-    info = {"silhouette_fit_forward_px": hist[-1][1] * targets.norm, "silhouette_fit_coverage_px": hist[-1][2] * targets.norm}
+    info = {
+        "silhouette_fit_forward_px": hist[-1][1] * targets.norm,
+        "silhouette_fit_coverage_px": hist[-1][2] * targets.norm,
+    }
     return r_out, t_out, info
 
 
 @torch.no_grad()
-def carve_with_motion(data: TrainData, means: np.ndarray, coef_logits: np.ndarray, rot: torch.Tensor, tr: torch.Tensor,
-                      *, dilate: int, min_fraction: float, chunk: int = 2048) -> np.ndarray:
+def carve_with_motion(
+    data: TrainData,
+    means: np.ndarray,
+    coef_logits: np.ndarray,
+    rot: torch.Tensor,
+    tr: torch.Tensor,
+    *,
+    dilate: int,
+    min_fraction: float,
+    chunk: int = 2048,
+) -> np.ndarray:
     """Share of frames (that see it) in which each posed point falls in the dilated fg mask -> keep mask (N,).
 
     A visual hull over all observed frames, once the bases follow the masks.
@@ -205,8 +246,8 @@ def carve_with_motion(data: TrainData, means: np.ndarray, coef_logits: np.ndarra
     N = means.shape[0]
     frac = np.zeros(N)
     for s in range(0, N, chunk):
-        m = torch.tensor(means[s:s + chunk], dtype=torch.float32)
-        c = torch.softmax(torch.tensor(coef_logits[s:s + chunk], dtype=torch.float32), -1)
+        m = torch.tensor(means[s : s + chunk], dtype=torch.float32)
+        c = torch.softmax(torch.tensor(coef_logits[s : s + chunk], dtype=torch.float32), -1)
         R, t = blend_bases(c, rot[:, ts].float(), tr[:, ts].float())
         pos = torch.einsum("nfij,nj->nfi", R, m) + t
         uv, front = project_batch(pos, K, w2c, 1e-6)
@@ -215,5 +256,5 @@ def carve_with_motion(data: TrainData, means: np.ndarray, coef_logits: np.ndarra
         inside = front & (col >= 0) & (row >= 0) & (col < data.width) & (row < data.height)
         fidx = torch.arange(data.num_frames)[:, None].expand_as(col)
         hit = masks_t[fidx, row.clamp(0, data.height - 1), col.clamp(0, data.width - 1)] & inside
-        frac[s:s + chunk] = (hit.sum(0).float() / inside.sum(0).clamp_min(1).float()).numpy()
+        frac[s : s + chunk] = (hit.sum(0).float() / inside.sum(0).clamp_min(1).float()).numpy()
     return frac >= min_fraction

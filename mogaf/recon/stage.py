@@ -17,6 +17,7 @@ from ..representation import save_model
 from ..split import read_split
 from .data import TrainData, coarser, extend_masks_to_content, input_digests, load_train_data
 from .init import initialise
+from .init_common import _use_bg
 from .params import resolve_params
 from .trainer import Trainer, load_checkpoint, run_resumable
 
@@ -35,22 +36,27 @@ def stage_digest(params: Mapping[str, Any], seed: int) -> str:
 
 
 def checkpoint_digest(params: Mapping[str, Any], seed: int, data: TrainData, inputs: dict[str, str]) -> str:
-    return config_digest({
-        "stage": "recon", "params": dict(params), "seed": int(seed), "inputs": inputs,
-        "frames": data.frame_ids.tolist(), "shape": [data.num_frames, data.height, data.width],
-    })
+    return config_digest(
+        {
+            "stage": "recon",
+            "params": dict(params),
+            "seed": int(seed),
+            "inputs": inputs,
+            "frames": data.frame_ids.tolist(),
+            "shape": [data.num_frames, data.height, data.width],
+        }
+    )
 
 
 def prepare_data(data: TrainData, p: dict) -> None:
     """Mask handling that depends on the parameters (see extend_masks_to_content)."""
-    from .init import _use_bg
-
     if not _use_bg(p, data) and p["content_threshold"] > 0:
         extend_masks_to_content(data, p["content_threshold"])
 
 
-def build_trainer(data: TrainData, params: dict, seed: int, *, checkpoint: str | os.PathLike | None = None,
-                  digest: str = "") -> tuple[Trainer, bool]:
+def build_trainer(
+    data: TrainData, params: dict, seed: int, *, checkpoint: str | os.PathLike | None = None, digest: str = ""
+) -> tuple[Trainer, bool]:
     """A Trainer resumed from `checkpoint` when its digest matches, else freshly initialised."""
     torch.manual_seed(int(seed))
     coarse = None
@@ -67,10 +73,19 @@ def build_trainer(data: TrainData, params: dict, seed: int, *, checkpoint: str |
     return Trainer(data, params, seed, init=init, coarse=coarse), False
 
 
-def run_recon_stage(scene_h5: str | os.PathLike, split_h5: str | os.PathLike, priors_h5: str | os.PathLike | None,
-                    out_h5: str | os.PathLike, params: Mapping[str, Any] | None = None, *, seed: int = 0,
-                    checkpoint: str | os.PathLike | None = None, progress: bool = True,
-                    keep_checkpoint: bool = False, stop_at: int | None = None) -> Path:
+def run_recon_stage(
+    scene_h5: str | os.PathLike,
+    split_h5: str | os.PathLike,
+    priors_h5: str | os.PathLike | None,
+    out_h5: str | os.PathLike,
+    params: Mapping[str, Any] | None = None,
+    *,
+    seed: int = 0,
+    checkpoint: str | os.PathLike | None = None,
+    progress: bool = True,
+    keep_checkpoint: bool = False,
+    stop_at: int | None = None,
+) -> Path:
     """Reconstruct the observed part of a scene as 4D Gaussians and write recon.h5.
 
     checkpoint: a path for the resumable training state (written atomically
@@ -90,16 +105,34 @@ def run_recon_stage(scene_h5: str | os.PathLike, split_h5: str | os.PathLike, pr
         torch.set_num_threads(previous_threads)
 
 
-def _run(scene_h5, split_h5, priors_h5, out_h5, p: dict, seed: int, checkpoint, progress: bool, keep_checkpoint: bool,
-         stop_at: int | None) -> Path:
+def _run(
+    scene_h5,
+    split_h5,
+    priors_h5,
+    out_h5,
+    p: dict,
+    seed: int,
+    checkpoint,
+    progress: bool,
+    keep_checkpoint: bool,
+    stop_at: int | None,
+) -> Path:
     split = read_split(split_h5)
     data = load_train_data(scene_h5, split, priors_h5, downscale=p["downscale"])
     prepare_data(data, p)
     inputs = input_digests({"scene": scene_h5, "split": split_h5, "priors": priors_h5})
     digest = checkpoint_digest(p, seed, data, inputs)
     trainer, resumed = build_trainer(data, p, seed, checkpoint=checkpoint, digest=digest)
-    paused = run_resumable(trainer, log, stage="recon", resumed=resumed, checkpoint=checkpoint, digest=digest,
-                           progress=progress, stop_at=stop_at)
+    paused = run_resumable(
+        trainer,
+        log,
+        stage="recon",
+        resumed=resumed,
+        checkpoint=checkpoint,
+        digest=digest,
+        progress=progress,
+        stop_at=stop_at,
+    )
     if paused is not None:
         return paused
     t0 = time.perf_counter()
@@ -120,8 +153,11 @@ def _run(scene_h5, split_h5, priors_h5, out_h5, p: dict, seed: int, checkpoint, 
         "canonical_timestep": int(split.observed_timesteps[data.tidx[trainer.canonical_frame]]),
         "bases_init": trainer.motion_source,
         "motion_at_unobserved_steps": MOTION_AT_UNOBSERVED_STEPS,
-        "init": {k: (float(v) if isinstance(v, (float, np.floating)) else int(v)) for k, v in info.items()
-                 if isinstance(v, (int, float, np.integer, np.floating))},
+        "init": {
+            k: (float(v) if isinstance(v, (float, np.floating)) else int(v))
+            for k, v in info.items()
+            if isinstance(v, (int, float, np.integer, np.floating))
+        },
         "params": p,
     }
     path = save_model(out_h5, "recon", model, config_digest=stage_digest(p, seed), attrs=attrs)

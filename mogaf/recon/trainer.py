@@ -28,13 +28,16 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..camera import camera_centers
+from ..errors import MogafError
+from ..rendering import rasterize
 from .data import TrainData
 from .densify import DensifyRules, DensityStats, control_step
-from ..camera import camera_centers
-from .init import InitResult
-from .losses import basis_smoothness, gradient_loss, masked_l1, rgb_loss, z_velocity_loss, accel_loss
+from .init_common import InitResult
+from .interpolation import gap_interpolation
+from .losses import basis_smoothness, gradient_loss, masked_l1, rgb_loss, z_velocity_loss
 from .model import ReconModel, gaussian_colors
-from ..rendering import rasterize
+from .silhouette import SilhouetteTargets, project_batch
 
 CHECKPOINT_VERSION = 1
 
@@ -79,16 +82,21 @@ def _lr_names(params: dict, scale: float) -> dict[str, float]:
 def resolve_device(name: str) -> torch.device:
     if name == "cuda" or (name == "auto" and torch.cuda.is_available()):
         if not torch.cuda.is_available():
-            from ..errors import MogafError
-
             raise MogafError("recon: device 'cuda' asked for, but torch sees no CUDA device")
         return torch.device("cuda")
     return torch.device("cpu")
 
 
 class Trainer:
-    def __init__(self, data: TrainData, params: dict, seed: int, init: InitResult | None = None,
-                 state: dict | None = None, coarse: TrainData | None = None):
+    def __init__(
+        self,
+        data: TrainData,
+        params: dict,
+        seed: int,
+        init: InitResult | None = None,
+        state: dict | None = None,
+        coarse: TrainData | None = None,
+    ):
         self.fine = data
         self.coarse = coarse
         self.p = params
@@ -107,8 +115,9 @@ class Trainer:
         self.gen = torch.Generator().manual_seed(self.seed)
         if state is None:
             assert init is not None
-            self.model = ReconModel(init.fg, init.rot6d, init.transl, init.bg, sh_degree=params["sh_degree"],
-                                    scene_scale=init.scene_scale)
+            self.model = ReconModel(
+                init.fg, init.rot6d, init.transl, init.bg, sh_degree=params["sh_degree"], scene_scale=init.scene_scale
+            )
             self.canonical_frame = init.canonical_frame
             self.motion_source = init.motion_source
             self.init_info = dict(init.info)
@@ -116,8 +125,9 @@ class Trainer:
             self.curve = Curve()
             self.elapsed = 0.0
         else:
-            self.model = ReconModel.from_state(state["model"], sh_degree=params["sh_degree"],
-                                               scene_scale=float(state["scene_scale"]))
+            self.model = ReconModel.from_state(
+                state["model"], sh_degree=params["sh_degree"], scene_scale=float(state["scene_scale"])
+            )
             self.canonical_frame = int(state["canonical_frame"])
             self.motion_source = str(state["motion_source"])
             self.init_info = dict(state.get("init_info", {}))
@@ -131,23 +141,26 @@ class Trainer:
         if self.motion_source == "identity":
             for k in ("motion.rot6d", "motion.transl"):
                 self.base_lr[k] *= params["lr_motion_identity_boost"]
-        self.optimizers = {name: torch.optim.Adam([p], lr=self.base_lr[name], eps=1e-15)
-                           for name, p in self.model.named_tensors().items()}
+        self.optimizers = {
+            name: torch.optim.Adam([p], lr=self.base_lr[name], eps=1e-15)
+            for name, p in self.model.named_tensors().items()
+        }
         self.stats = DensityStats(self.model.num_gaussians)
         if state is not None:
             for name, opt in self.optimizers.items():
                 opt.load_state_dict(state["optimizers"][name])
             self.stats.load(state["stats"])
         self.has_bg = self.model.bg is not None
-        from .init import gap_interpolation
-
         gi = gap_interpolation(data.num_timesteps, data.tidx) if params["gap_interpolation"] else None
         if gi is None:
             self.gap_fill = None
         else:
             knots = np.unique(data.tidx)
-            self.gap_fill = (torch.tensor(gi[0], device=self.dev), torch.tensor(knots, device=self.dev),
-                             torch.tensor(gi[1], dtype=torch.float32, device=self.dev))
+            self.gap_fill = (
+                torch.tensor(gi[0], device=self.dev),
+                torch.tensor(knots, device=self.dev),
+                torch.tensor(gi[1], dtype=torch.float32, device=self.dev),
+            )
         mode = params["curriculum"]
         self.curriculum = (mode == "on") or (mode == "auto" and self.motion_source == "identity")
         self.rules = DensifyRules(
@@ -162,7 +175,8 @@ class Trainer:
         )
         smode = params["silhouette"]
         self.silhouette = params["w_silhouette"] > 0 and (
-            (smode == "on") or (smode == "auto" and self.motion_source != "procrustes"))
+            (smode == "on") or (smode == "auto" and self.motion_source != "procrustes")
+        )
         self.use_level(self.level_for(self.iteration))
         self._loss_acc: list[float] = []
         self._psnr_acc: list[float] = []
@@ -196,8 +210,6 @@ class Trainer:
                 "sil": None,
             }
             if self.silhouette:
-                from .silhouette import SilhouetteTargets
-
                 gen = torch.Generator().manual_seed(self.seed + 29 + level)
                 lv["sil"] = SilhouetteTargets(data, self.p["silhouette_pixels"], gen, d)
             self._levels[level] = lv
@@ -209,8 +221,6 @@ class Trainer:
             setattr(self, k, lv[k])
 
     def silhouette_loss(self, f: int, means: torch.Tensor) -> torch.Tensor:
-        from .silhouette import project_batch
-
         frames = torch.tensor([f], device=self.dev)
         uv, front = project_batch(means[:, None], self.K[frames], self.w2c[frames], 1e-3 * self.scale)
         labels = self.model.fg.aux.get("labels")
@@ -267,15 +277,16 @@ class Trainer:
             if hi < T - 1:
                 v = x[:, hi] - x[:, hi - 1] if hi >= 1 and hi - 1 >= lo else torch.zeros_like(x[:, hi])
                 k = torch.arange(1, T - hi, dtype=x.dtype).reshape(1, -1, 1)
-                x[:, hi + 1:] = x[:, hi:hi + 1] + k * v[:, None]
+                x[:, hi + 1 :] = x[:, hi : hi + 1] + k * v[:, None]
             if lo > 0:
                 v = x[:, lo] - x[:, lo + 1] if lo + 1 <= hi else torch.zeros_like(x[:, lo])
                 k = torch.arange(lo, 0, -1, dtype=x.dtype).reshape(1, -1, 1)
-                x[:, :lo] = x[:, lo:lo + 1] + k * v[:, None]
+                x[:, :lo] = x[:, lo : lo + 1] + k * v[:, None]
 
     # -------------------------------------------------------------- rendering
-    def render_frame(self, f: int, extra_fg: torch.Tensor | None = None, extra_bg: torch.Tensor | None = None,
-                     with_mask: bool = True):
+    def render_frame(
+        self, f: int, extra_fg: torch.Tensor | None = None, extra_bg: torch.Tensor | None = None, with_mask: bool = True
+    ):
         m = self.model
         t = int(self.tidx[f])
         means_fg, quats_fg = m.fg_poses_at(t)
@@ -308,8 +319,17 @@ class Trainer:
         bgc = torch.zeros(C, device=self.dev)
         bgc[:3] = self.background
         out = rasterize(
-            torch.cat(parts_means, 0), torch.cat(parts_quats, 0), torch.cat(parts_scales, 0), torch.cat(parts_op, 0),
-            feats, self.w2c[f], self.K[f], self.W, self.H, background=bgc, backend=self.p["backend"],
+            torch.cat(parts_means, 0),
+            torch.cat(parts_quats, 0),
+            torch.cat(parts_scales, 0),
+            torch.cat(parts_op, 0),
+            feats,
+            self.w2c[f],
+            self.K[f],
+            self.W,
+            self.H,
+            background=bgc,
+            backend=self.p["backend"],
         )
         if torch.is_grad_enabled() and hasattr(out, "retain_means2d_grad"):
             out.retain_means2d_grad()
@@ -334,6 +354,7 @@ class Trainer:
         def note(name: str, value: torch.Tensor) -> torch.Tensor:
             terms[name] = terms.get(name, 0.0) + float(value.detach())
             return value
+
         outs = []
         psnrs = []
         for f in pick.tolist():
@@ -378,7 +399,9 @@ class Trainer:
                 if p["w_depth"] > 0:
                     loss = loss + p["w_depth"] * note("depth", masked_l1(pd, td, dmask, q))
                 if p["w_depth_grad"] > 0:
-                    loss = loss + p["w_depth_grad"] * note("depth_grad", gradient_loss(pd[None], td[None], dmask[None], 0.95))
+                    loss = loss + p["w_depth_grad"] * note(
+                        "depth_grad", gradient_loss(pd[None], td[None], dmask[None], 0.95)
+                    )
             if self.silhouette:
                 wsil = p["w_silhouette"] * (1 - p["silhouette_decay"] * min(1.0, it / max(1, p["iterations"])))
                 loss = loss + wsil * note("silhouette", self.silhouette_loss(f, means_f))
@@ -390,7 +413,9 @@ class Trainer:
         # regularisers (once per step)
         reg = torch.zeros((), device=self.dev)
         if p["w_smooth_bases"] > 0 and T >= 3:
-            reg = reg + p["w_smooth_bases"] * note("smooth_bases", basis_smoothness(m.motion["rot6d"], m.motion["transl"], self.scale))
+            reg = reg + p["w_smooth_bases"] * note(
+                "smooth_bases", basis_smoothness(m.motion["rot6d"], m.motion["transl"], self.scale)
+            )
         if (p["w_smooth_tracks"] > 0 or p["w_z_accel"] > 0) and T >= 3:
             ts = self.tidx[pick].clamp(1, T - 2)
             nb = torch.cat([ts - 1, ts, ts + 1])
@@ -399,7 +424,9 @@ class Trainer:
                 a = (2 * mn[:, 1] - mn[:, 0] - mn[:, 2]).norm(dim=-1).mean() / self.scale
                 reg = reg + p["w_smooth_tracks"] * 0.5 * note("smooth_tracks", a)
             if p["w_z_accel"] > 0:
-                reg = reg + p["w_z_accel"] * note("z_vel", z_velocity_loss(mn, self.cam_centers[pick.to(self.dev)], self.scale))
+                reg = reg + p["w_z_accel"] * note(
+                    "z_vel", z_velocity_loss(mn, self.cam_centers[pick.to(self.dev)], self.scale)
+                )
         if p["w_scale_var"] > 0:
             for g in m.parts().values():
                 reg = reg + p["w_scale_var"] * torch.var(g.get("log_scales"), dim=-1).mean()
@@ -422,7 +449,9 @@ class Trainer:
         self.control()
         return float(total.detach()), float(np.mean(psnrs))
 
-    def track_loss(self, f: int, targets: torch.Tensor, feats: torch.Tensor, acc: torch.Tensor, q: float) -> torch.Tensor:
+    def track_loss(
+        self, f: int, targets: torch.Tensor, feats: torch.Tensor, acc: torch.Tensor, q: float
+    ) -> torch.Tensor:
         off = 4 if self.has_bg else 3
         vis_f = self.tracks_vis[:, f]
         xy_f = self.tracks_xy[:, f]
@@ -438,9 +467,9 @@ class Trainer:
             return feats.sum() * 0.0
         grid = torch.stack([px[:, 0] / self.W * 2 - 1, px[:, 1] / self.H * 2 - 1], -1).reshape(1, 1, -1, 2)
         k = len(targets)
-        maps = torch.cat([feats[..., off:off + 3 * k], acc], -1).permute(2, 0, 1)[None]
+        maps = torch.cat([feats[..., off : off + 3 * k], acc], -1).permute(2, 0, 1)[None]
         s = F.grid_sample(maps, grid, mode="bilinear", align_corners=False)[0, :, 0].T  # (M, 3k+1)
-        pts = s[:, :3 * k].reshape(-1, k, 3) / s[:, -1:].clamp_min(1e-4)[:, None]
+        pts = s[:, : 3 * k].reshape(-1, k, 3) / s[:, -1:].clamp_min(1e-4)[:, None]
         losses = []
         weights = []
         T = self.data.num_timesteps
@@ -518,14 +547,27 @@ class Trainer:
         }
 
     # -------------------------------------------------------------- loop
-    def run(self, *, progress: bool = True, checkpoint: str | os.PathLike | None = None, digest: str = "",
-            stop_at: int | None = None) -> None:
+    def run(
+        self,
+        *,
+        progress: bool = True,
+        checkpoint: str | os.PathLike | None = None,
+        digest: str = "",
+        stop_at: int | None = None,
+    ) -> None:
         from tqdm import tqdm
 
         p = self.p
         end = p["iterations"] if stop_at is None else min(stop_at, p["iterations"])
-        bar = tqdm(total=p["iterations"], initial=self.iteration, disable=not progress, file=sys.stderr,
-                   desc="recon", dynamic_ncols=True, leave=False)
+        bar = tqdm(
+            total=p["iterations"],
+            initial=self.iteration,
+            disable=not progress,
+            file=sys.stderr,
+            desc="recon",
+            dynamic_ncols=True,
+            leave=False,
+        )
         t0 = time.perf_counter()
         base_elapsed = self.elapsed
         try:
@@ -542,7 +584,11 @@ class Trainer:
                     bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{psnr:.2f}", n=self.model.num_gaussians)
                 bar.update(1)
                 self.elapsed = base_elapsed + time.perf_counter() - t0
-                if checkpoint is not None and (self.iteration % p["checkpoint_every"] == 0) and self.iteration < p["iterations"]:
+                if (
+                    checkpoint is not None
+                    and (self.iteration % p["checkpoint_every"] == 0)
+                    and self.iteration < p["iterations"]
+                ):
                     save_checkpoint(checkpoint, self.checkpoint_state(digest))
         finally:
             bar.close()
@@ -576,11 +622,22 @@ def load_checkpoint(path: str | os.PathLike, digest: str) -> dict[str, Any] | No
     return state
 
 
-def run_resumable(trainer: Trainer, log, *, stage: str, resumed: bool, checkpoint: str | os.PathLike | None,
-                  digest: str, progress: bool, stop_at: int | None) -> Path | None:
+def run_resumable(
+    trainer: Trainer,
+    log,
+    *,
+    stage: str,
+    resumed: bool,
+    checkpoint: str | os.PathLike | None,
+    digest: str,
+    progress: bool,
+    stop_at: int | None,
+) -> Path | None:
     """Train to the end, or to `stop_at` leaving a checkpoint (its path is returned then; None at the end)."""
     if resumed:
-        log.info("%s: resumed from %s at iteration %d of %d", stage, checkpoint, trainer.iteration, trainer.p["iterations"])
+        log.info(
+            "%s: resumed from %s at iteration %d of %d", stage, checkpoint, trainer.iteration, trainer.p["iterations"]
+        )
     trainer.run(progress=progress, checkpoint=checkpoint, digest=digest, stop_at=stop_at)
     if stop_at is not None and trainer.iteration < trainer.p["iterations"]:
         if checkpoint is None:

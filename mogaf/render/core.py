@@ -69,7 +69,9 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     if device.type == "cuda":
         if backend not in ("auto", "gsplat"):
             raise MogafError(f"mogaf.render: backend '{backend}' renders CPU tensors only; got CUDA tensors")
-        from mogaf.render.gsplat_backend import gsplat_module
+        from mogaf.render.gsplat_backend import (
+            gsplat_module,  # local: gsplat is optional (CUDA only); its backend loads only for CUDA tensors
+        )
 
         if gsplat_module() is None:
             raise MogafError("mogaf.render: CUDA tensors need gsplat (pip install gsplat), which is not importable")
@@ -79,7 +81,7 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     if backend == "gsplat":
         raise MogafError("mogaf.render: backend 'gsplat' needs CUDA tensors")
     if backend == "auto":
-        from mogaf.render import cpu
+        from mogaf.render import cpu  # local: a backend module loads only when that backend is picked
 
         return "cpu" if cpu.load() is not None else "torch"
     return backend
@@ -166,7 +168,9 @@ def rasterize(
             raise MogafError(f"mogaf.render: background has {bg.numel()} values, expected 1 or {C}")
 
     if name == "gsplat":
-        from mogaf.render.gsplat_backend import render_gsplat
+        from mogaf.render.gsplat_backend import (
+            render_gsplat,  # local: gsplat is optional (CUDA only); its backend loads only for CUDA tensors
+        )
 
         feat_img, depth, alpha, node, means2d, radii = render_gsplat(
             means, quats, scales, opacities, features, viewmat, K, width, height, near, far, eps2d, tile_size or 16
@@ -175,7 +179,7 @@ def rasterize(
         visible = (radii > 0).any(-1)
     else:
         if name == "cpu":
-            from mogaf.render.cpu import project_cpu
+            from mogaf.render.cpu import project_cpu  # local: a backend module loads only when that backend is picked
 
             means2d, conics, depths, radii, visible = project_cpu(
                 means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d
@@ -187,7 +191,10 @@ def rasterize(
         if name == "cpu":
             # All N Gaussians go in (culled ones have radii 0): no gather/scatter. The
             # kernel also composites the background and normalises the depth.
-            from mogaf.render.cpu import DEFAULT_TILE, composite_cpu
+            from mogaf.render.cpu import (  # local: a backend module loads only when that backend is picked
+                DEFAULT_TILE,
+                composite_cpu,
+            )
 
             feat_img, alpha, depth = composite_cpu(
                 means2d, conics, opacities, features, depths, radii, width, height, bg, tile_size or DEFAULT_TILE
@@ -206,11 +213,15 @@ def rasterize(
                 height,
             )
             if name == "torch":
-                from mogaf.render.torch_raster import composite_torch
+                from mogaf.render.torch_raster import (
+                    composite_torch,  # local: a backend module loads only when that backend is picked
+                )
 
                 acc, alpha = composite_torch(*args)
             else:
-                from mogaf.render.reference import composite_dense
+                from mogaf.render.reference import (
+                    composite_dense,  # local: a backend module loads only when that backend is picked
+                )
 
                 acc, alpha = composite_dense(*args)
             feat_img = acc[..., :C]

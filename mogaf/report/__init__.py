@@ -83,7 +83,9 @@ def load_metrics(paths: list[str | os.PathLike]) -> list[dict[str, Any]]:
         try:
             data = json.loads(p.read_bytes(), parse_constant=_no_constants)
         except (OSError, ValueError) as exc:  # ValueError: also malformed UTF-8, NaN, Infinity
-            raise input_error(p, f"not readable JSON ({exc.__class__.__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+            raise input_error(
+                p, f"not readable JSON ({exc.__class__.__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+            ) from None
         if not isinstance(data, dict) or "methods" not in data:
             raise input_error(p, "not a mogaf metrics.json (no 'methods' section)")
         problem = _metrics_problem(data)
@@ -91,8 +93,11 @@ def load_metrics(paths: list[str | os.PathLike]) -> list[dict[str, Any]]:
             raise input_error(p, f"not a usable metrics.json: {problem}")
         key = _result_key(data)
         if key in seen:
-            raise input_error(p, f"holds the same result as {seen[key]} ({key[0]}/{key[1]}, ratio {key[2]:g}, "
-                                 f"variant {key[3]}); the tables take one file per result, remove one")
+            raise input_error(
+                p,
+                f"holds the same result as {seen[key]} ({key[0]}/{key[1]}, ratio {key[2]:g}, "
+                f"variant {key[3]}); the tables take one file per result, remove one",
+            )
         seen[key] = str(p)
         data["_path"] = str(p)
         out.append(data)

@@ -10,7 +10,6 @@ default pipeline and the run-time sweep variants (quality-for-time knobs).
 from __future__ import annotations
 
 import math
-import os
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -19,7 +18,17 @@ from ..artefact import atomic_path
 from . import load_metrics
 from .tables import METHOD_LABELS, METHOD_ORDER, METRICS, Table, _metric, _variant, fmt
 
-HIGHER_IS_BETTER = {"psnr", "ssim", "mpsnr", "mssim", "delta_3d@0.10", "delta_3d@0.05", "aj", "delta_avg", "occlusion_accuracy"}
+HIGHER_IS_BETTER = {
+    "psnr",
+    "ssim",
+    "mpsnr",
+    "mssim",
+    "delta_3d@0.10",
+    "delta_3d@0.05",
+    "aj",
+    "delta_avg",
+    "occlusion_accuracy",
+}
 
 
 def collect_points(results: list[dict[str, Any]], metric: str, variants: list[str]) -> list[dict[str, Any]]:
@@ -33,9 +42,27 @@ def collect_points(results: list[dict[str, Any]], metric: str, variants: list[st
             wall = _metric(r, method, "total_wall_s")
             if err is None or wall is None or not (math.isfinite(err) and math.isfinite(wall)):
                 continue
-            points.append({"dataset": r["dataset"], "scene": r["scene"], "ratio": float(r["ratio"]), "variant": _variant(r),
-                           "method": method, "wall_s": float(wall), metric: float(err)})
-    return sorted(points, key=lambda p: (p["dataset"], p["scene"], p["ratio"], METHOD_ORDER.index(p["method"]) if p["method"] in METHOD_ORDER else 99, p["wall_s"]))
+            points.append(
+                {
+                    "dataset": r["dataset"],
+                    "scene": r["scene"],
+                    "ratio": float(r["ratio"]),
+                    "variant": _variant(r),
+                    "method": method,
+                    "wall_s": float(wall),
+                    metric: float(err),
+                }
+            )
+    return sorted(
+        points,
+        key=lambda p: (
+            p["dataset"],
+            p["scene"],
+            p["ratio"],
+            METHOD_ORDER.index(p["method"]) if p["method"] in METHOD_ORDER else 99,
+            p["wall_s"],
+        ),
+    )
 
 
 def pareto_front(points: list[dict[str, Any]], metric: str) -> list[dict[str, Any]]:
@@ -48,7 +75,9 @@ def pareto_front(points: list[dict[str, Any]], metric: str) -> list[dict[str, An
     return front
 
 
-def write_runtime_report(metrics_files: list[str], out_csv: str, out_md: str, out_png: str, params: dict[str, Any]) -> list[Path]:
+def write_runtime_report(
+    metrics_files: list[str], out_csv: str, out_md: str, out_png: str, params: dict[str, Any]
+) -> list[Path]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -59,8 +88,10 @@ def write_runtime_report(metrics_files: list[str], out_csv: str, out_md: str, ou
     points = collect_points(load_metrics(metrics_files), metric, variants)
     label = METRICS.get(metric, (metric,))[0]
 
-    table = Table(f"Forecast {label} against total wall time (default pipeline and run-time sweep)",
-                  ["dataset", "scene", "ratio", "variant", "method", "wall time [s]", label, "on Pareto line"])
+    table = Table(
+        f"Forecast {label} against total wall time (default pipeline and run-time sweep)",
+        ["dataset", "scene", "ratio", "variant", "method", "wall time [s]", label, "on Pareto line"],
+    )
     scopes: dict[tuple[str, str, float], list[dict[str, Any]]] = defaultdict(list)
     for p in points:
         scopes[(p["dataset"], p["scene"], p["ratio"])].append(p)
@@ -70,8 +101,18 @@ def write_runtime_report(metrics_files: list[str], out_csv: str, out_md: str, ou
             fronts[scope + (method,)] = pareto_front([p for p in pts if p["method"] == method], metric)
     for p in points:
         on_front = any(q is p for q in fronts[(p["dataset"], p["scene"], p["ratio"], p["method"])])
-        table.rows.append([p["dataset"], p["scene"], f"{p['ratio']:g}", p["variant"], METHOD_LABELS.get(p["method"], p["method"]),
-                           f"{p['wall_s']:.1f}", fmt(p[metric], metric), "yes" if on_front else "no"])
+        table.rows.append(
+            [
+                p["dataset"],
+                p["scene"],
+                f"{p['ratio']:g}",
+                p["variant"],
+                METHOD_LABELS.get(p["method"], p["method"]),
+                f"{p['wall_s']:.1f}",
+                fmt(p[metric], metric),
+                "yes" if on_front else "no",
+            ]
+        )
 
     with atomic_path(out_csv) as tmp:
         Path(tmp).write_text(table.csv())
@@ -83,8 +124,13 @@ def write_runtime_report(metrics_files: list[str], out_csv: str, out_md: str, ou
     for ax, (scope, pts) in zip(axes[0], sorted(scopes.items())):
         for method in [m for m in METHOD_ORDER if any(p["method"] == m for p in pts)]:
             mine = [p for p in pts if p["method"] == method]
-            line = ax.plot([p["wall_s"] for p in fronts[scope + (method,)]], [p[metric] for p in fronts[scope + (method,)]],
-                           "-o", label=METHOD_LABELS.get(method, method), markersize=5)[0]
+            line = ax.plot(
+                [p["wall_s"] for p in fronts[scope + (method,)]],
+                [p[metric] for p in fronts[scope + (method,)]],
+                "-o",
+                label=METHOD_LABELS.get(method, method),
+                markersize=5,
+            )[0]
             ax.scatter([p["wall_s"] for p in mine], [p[metric] for p in mine], color=line.get_color(), alpha=0.35, s=18)
         ax.set_title(f"{scope[0]}/{scope[1]}, ratio {scope[2]:g}")
         ax.set_xlabel("total wall time of the producing stages [s]")
@@ -98,8 +144,3 @@ def write_runtime_report(metrics_files: list[str], out_csv: str, out_md: str, ou
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
     return [Path(out_csv), Path(out_md), Path(out_png)]
-
-
-def default_outputs(out_dir: str | os.PathLike) -> tuple[str, str, str]:
-    base = Path(out_dir)
-    return str(base / "error_vs_runtime.csv"), str(base / "error_vs_runtime.md"), str(base / "error_vs_runtime.png")

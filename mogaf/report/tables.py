@@ -1,7 +1,9 @@
 """Paper-layout tables (Markdown, LaTeX, CSV) from metrics.json files.
 
-Nothing is typed in by hand: every cell comes from a metrics.json; a cell
-whose result does not exist says "no result". Tables:
+Nothing is typed in by hand: every cell comes from a metrics.json. What was
+not run is left out: a row, a column or a method with no result in any file
+is not printed (a table with nothing left says so in one line), and a cell
+missing among present ones shows a dash ("–"; empty in the CSV). Tables:
 - forecast:  every result x method (image metrics, 3D EPE, run time)
 - iphone:    paper Table 1 (iPhone layout: ratio x scene x method, mPSNR/mSSIM/mLPIPS)
 - dnerf:     paper Table 2 (D-NeRF layout: ratio x scene x method, PSNR/SSIM/LPIPS)
@@ -24,6 +26,9 @@ from typing import Any
 from ..artefact import atomic_path
 from . import NO_RESULT, load_metrics
 
+# A cell whose result does not exist, among cells that have one.
+MISSING = "–"
+
 METHOD_LABELS = {
     "gcn": "GSPred-SoM (GCN)",
     "ode": "ODE-GS-SoM (latent ODE)",
@@ -41,6 +46,8 @@ def method_label(result: dict[str, Any], method: str) -> str:
     if method == "mogaf" and params.get("mode") == "paper":
         return METHOD_LABELS["mogaf_paper"]
     return METHOD_LABELS.get(method, method)
+
+
 # name -> (label, digits, scale); tracking fractions are shown in percent like the paper.
 METRICS = {
     "psnr": ("PSNR↑", 2, 1.0),
@@ -73,9 +80,36 @@ class Table:
     # Optional spanning header above the columns: (label, span) pairs.
     spans: list[tuple[str, int]] | None = None
     notes: list[str] = field(default_factory=list)
+    # The leading columns that name a row (scene, method, ...); the rest hold results.
+    keys: int = 0
+
+    def empty_line(self) -> str:
+        return f"Nothing to show: {NO_RESULT} in the metrics.json files read holds what this table reports."
+
+    def prune(self) -> Table:
+        """Leave out what was not run: rows whose result cells are all missing,
+        then result columns missing in every row (and a spanning header whose
+        columns all went). A table with no row keeps its columns (the CSV header)."""
+        self.rows = [r for r in self.rows if any(c != MISSING for c in r[self.keys :])]
+        if not self.rows:
+            return self
+        keep = [i for i in range(len(self.columns)) if i < self.keys or any(r[i] != MISSING for r in self.rows)]
+        if self.spans:
+            spans, start = [], 0
+            for label, span in self.spans:
+                kept = sum(1 for i in range(start, start + span) if i in keep)
+                if kept:
+                    spans.append((label, kept))
+                start += span
+            self.spans = spans
+        self.columns = [self.columns[i] for i in keep]
+        self.rows = [[r[i] for i in keep] for r in self.rows]
+        return self
 
     def markdown(self) -> str:
         lines = [f"### {self.title}", ""]
+        if not self.rows:
+            return "\n".join(lines + [self.empty_line()]) + "\n"
         if self.spans:
             top = [label for label, span in self.spans for _ in range(span)]
             lines.append("| " + " | ".join(top) + " |")
@@ -85,26 +119,58 @@ class Table:
             lines.append("| " + " | ".join(self.columns) + " |")
             lines.append("|" + "---|" * len(self.columns))
         lines += ["| " + " | ".join(r) + " |" for r in self.rows]
-        if not self.rows:
-            lines.append("| " + " | ".join([NO_RESULT] * len(self.columns)) + " |")
         lines += [""] + [f"{n}" for n in self.notes]
         return "\n".join(lines).rstrip() + "\n"
 
     def latex(self) -> str:
         def esc(s: str) -> str:
-            for a, b in (("\\", r"\textbackslash{}"), ("&", r"\&"), ("%", r"\%"), ("_", r"\_"), ("#", r"\#"),
-                         ("↑", r"$\uparrow$"), ("↓", r"$\downarrow$"), ("δ", r"$\delta$"), ("✓", r"\checkmark"), ("–", "--")):
+            for a, b in (
+                ("\\", r"\textbackslash{}"),
+                ("&", r"\&"),
+                ("%", r"\%"),
+                ("_", r"\_"),
+                ("#", r"\#"),
+                ("↑", r"$\uparrow$"),
+                ("↓", r"$\downarrow$"),
+                ("δ", r"$\delta$"),
+                ("✓", r"\checkmark"),
+                ("–", "--"),
+            ):
                 s = s.replace(a, b)
             return s
 
-        out = [r"\begin{table}[t]", r"\centering", f"\\caption{{{esc(self.title)}}}", r"\resizebox{\linewidth}{!}{",
-               r"\begin{tabular}{" + "l" * 1 + "c" * (len(self.columns) - 1) + "}", r"\toprule"]
+        if not self.rows:
+            return (
+                "\n".join(
+                    [
+                        r"\begin{table}[t]",
+                        r"\centering",
+                        f"\\caption{{{esc(self.title)}}}",
+                        esc(self.empty_line()),
+                        r"\end{table}",
+                    ]
+                )
+                + "\n"
+            )
+        out = [
+            r"\begin{table}[t]",
+            r"\centering",
+            f"\\caption{{{esc(self.title)}}}",
+            r"\resizebox{\linewidth}{!}{",
+            r"\begin{tabular}{" + "l" * 1 + "c" * (len(self.columns) - 1) + "}",
+            r"\toprule",
+        ]
         if self.spans:
-            out.append(" & ".join(f"\\multicolumn{{{span}}}{{c}}{{{esc(label)}}}" if span > 1 else esc(label) for label, span in self.spans) + r" \\")
+            out.append(
+                " & ".join(
+                    f"\\multicolumn{{{span}}}{{c}}{{{esc(label)}}}" if span > 1 else esc(label)
+                    for label, span in self.spans
+                )
+                + r" \\"
+            )
         out.append(" & ".join(esc(c) for c in self.columns) + r" \\")
         out.append(r"\midrule")
-        rows = self.rows or [[NO_RESULT] * len(self.columns)]
-        out += [" & ".join(esc(c) for c in r) + r" \\" for r in rows]
+        out += [" & ".join(esc(c) for c in r) + r" \\" for r in self.rows]
         out += [r"\bottomrule", r"\end{tabular}", "}"]
         out += [r"\par{\footnotesize " + esc(n) + "}" for n in self.notes]
         out.append(r"\end{table}")
@@ -114,13 +180,13 @@ class Table:
         buf = io.StringIO()
         writer = csv.writer(buf, lineterminator="\n")
         writer.writerow(self.columns)
-        writer.writerows(self.rows)
+        writer.writerows([c if i < self.keys or c != MISSING else "" for i, c in enumerate(r)] for r in self.rows)
         return buf.getvalue()
 
 
 def fmt(value: Any, metric: str) -> str:
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return NO_RESULT
+        return MISSING
     _, digits, scale = METRICS.get(metric, (metric, 3, 1.0))
     return f"{float(value) * scale:.{digits}f}"
 
@@ -176,29 +242,35 @@ def _mark_budgets(t: Table, results: list[dict[str, Any]], methods: list[str]) -
         name = next((method_label(r, m) for r in results if m in r.get("methods", {})), METHOD_LABELS.get(m, m))
         labels[m] = name + ("*" if diffs else "")
         if diffs:
-            t.notes.append(f"* {name}: run off its defaults: "
-                           + "; ".join(f"{k} = {', '.join(sorted(v))}" for k, v in sorted(diffs.items())))
+            t.notes.append(
+                f"* {name}: run off its defaults: "
+                + "; ".join(f"{k} = {', '.join(sorted(v))}" for k, v in sorted(diffs.items()))
+            )
     return labels
 
 
 # ------------------------------------------------------------------ tables
 def forecast_table(results: list[dict[str, Any]]) -> Table:
-    cols = ["dataset", "scene", "ratio", "variant", "method"] + [METRICS[m][0] for m in ("psnr", "ssim", "lpips", "mpsnr", "epe_3d", "total_wall_s")]
-    t = Table("Forecast results (every metrics.json, every method)", cols)
+    cols = ["dataset", "scene", "ratio", "variant", "method"] + [
+        METRICS[m][0] for m in ("psnr", "ssim", "lpips", "mpsnr", "epe_3d", "total_wall_s")
+    ]
+    t = Table("Forecast results (every metrics.json, every method)", cols, keys=5)
     _mark_budgets(t, results, [m for m in METHOD_ORDER if any(m in r.get("methods", {}) for r in results)])
     for r in sorted(results, key=lambda r: (_key(r), _variant(r))):
         for method in [m for m in METHOD_ORDER if m in r.get("methods", {})]:
             label = method_label(r, method) + ("*" if budget_differences(r, method) else "")
-            t.rows.append([r["dataset"], r["scene"], f"{float(r['ratio']):g}", _variant(r), label]
-                          + [fmt(_metric(r, method, m), m) for m in ("psnr", "ssim", "lpips", "mpsnr", "epe_3d", "total_wall_s")])
-    return t
+            t.rows.append(
+                [r["dataset"], r["scene"], f"{float(r['ratio']):g}", _variant(r), label]
+                + [fmt(_metric(r, method, m), m) for m in ("psnr", "ssim", "lpips", "mpsnr", "epe_3d", "total_wall_s")]
+            )
+    return t.prune()
 
 
 def _layout_table(results: list[dict[str, Any]], layout: str, metrics: tuple[str, ...], title: str) -> Table:
     chosen = [r for r in results if _variant(r) == "default" and r.get("protocol") == layout]
     methods = [m for m in METHOD_ORDER if any(m in r.get("methods", {}) for r in chosen)] or ["mogaf"]
     cols = ["Obs. ratio", "Scene"] + [METRICS[x][0] for _ in methods for x in metrics]
-    t = Table(title, cols)
+    t = Table(title, cols, keys=2)
     labels = _mark_budgets(t, chosen, methods)
     t.spans = [("", 2)] + [(labels[m], len(metrics)) for m in methods]
     by_ratio: dict[float, list[dict[str, Any]]] = defaultdict(list)
@@ -207,15 +279,29 @@ def _layout_table(results: list[dict[str, Any]], layout: str, metrics: tuple[str
     for ratio in sorted(by_ratio, reverse=True):
         group = sorted(by_ratio[ratio], key=_key)
         for r in group:
-            t.rows.append([f"{ratio:.0%}", f"{r['dataset']}/{r['scene']}"] + [fmt(_metric(r, m, x), x) for m in methods for x in metrics])
+            t.rows.append(
+                [f"{ratio:.0%}", f"{r['dataset']}/{r['scene']}"]
+                + [fmt(_metric(r, m, x), x) for m in methods for x in metrics]
+            )
         if len(group) > 1:
-            t.rows.append([f"{ratio:.0%}", "Average"] + [fmt(_mean([_metric(r, m, x) for r in group]), x) for m in methods for x in metrics])
-    t.notes.append("GSPred's original 4D-GS-based column of the paper is not reproduced here (it needs the 4D-GS deformation field); its forecaster runs on our representation as GSPred-SoM.")
+            t.rows.append(
+                [f"{ratio:.0%}", "Average"]
+                + [fmt(_mean([_metric(r, m, x) for r in group]), x) for m in methods for x in metrics]
+            )
+    t.notes.append(
+        "GSPred's original 4D-GS-based column of the paper is not reproduced here (it needs the 4D-GS deformation field); its forecaster runs on our representation as GSPred-SoM."
+    )
+    t.prune()
+    # a method whose every column went (no result) takes its '*' note with it
+    shown = {label.removesuffix("*") for label, _ in t.spans or []}
+    t.notes = [n for n in t.notes if not n.startswith("* ") or n[2:].split(": run off its defaults")[0] in shown]
     return t
 
 
 def iphone_table(results: list[dict[str, Any]]) -> Table:
-    return _layout_table(results, "iphone", MASKED_METRICS, "Forecasting on iPhone-layout scenes (paper Table 1 layout)")
+    return _layout_table(
+        results, "iphone", MASKED_METRICS, "Forecasting on iPhone-layout scenes (paper Table 1 layout)"
+    )
 
 
 def dnerf_table(results: list[dict[str, Any]]) -> Table:
@@ -235,7 +321,7 @@ def _image_metric_names(result: dict[str, Any]) -> tuple[str, ...]:
 def grouping_table(results: list[dict[str, Any]], ablations: dict[str, Any]) -> Table:
     names = ("psnr", "ssim", "lpips", "delta_3d@0.10", "delta_3d@0.05", "occlusion_accuracy", "ari", "mean_iou")
     cols = ["scope", "Method"] + [("(m)" + METRICS[n][0]) if n in IMAGE_METRICS else METRICS[n][0] for n in names]
-    t = Table("Grouping ablation: Gaga-4D vs motion-aware grouping (Supp. Table, MoGaF forecaster)", cols)
+    t = Table("Grouping ablation: Gaga-4D vs motion-aware grouping (Supp. Table, MoGaF forecaster)", cols, keys=2)
     variants = [v for v, spec in ablations.get("variants", {}).items() if (spec.get("labels") or {}).get("grouping")]
     for variant in variants:
         pairs = _pairs(results, variant)
@@ -253,29 +339,48 @@ def grouping_table(results: list[dict[str, Any]], ablations: dict[str, Any]) -> 
                     else:
                         # Masked image metrics where the layout has them (iPhone), as the paper.
                         metric = {"psnr": 0, "ssim": 1, "lpips": 2}.get(n)
-                        vals = [_metric(item[pick], "mogaf", _image_metric_names(item[pick])[metric] if metric is not None else n) for item in items]
+                        vals = [
+                            _metric(
+                                item[pick],
+                                "mogaf",
+                                _image_metric_names(item[pick])[metric] if metric is not None else n,
+                            )
+                            for item in items
+                        ]
                     cells.append(fmt(_mean(vals), n))
                 t.rows.append([scope, row_label] + cells)
     t.notes.append("Image metrics are masked (mPSNR, mSSIM, mLPIPS) for iPhone-layout scenes, as in the paper.")
-    return t
+    return t.prune()
 
 
 def groupwise_table(results: list[dict[str, Any]], ablations: dict[str, Any]) -> Table:
     cols = ["Encoder", "Opt.", "Forecast"] + [METRICS[m][0] for m in TRACKING_METRICS]
-    t = Table("Group-wise design ablation (Supp. Table: encoder x group-wise optimisation x group-wise forecasting)", cols)
-    specs = [(v, s["labels"]) for v, s in ablations.get("variants", {}).items() if {"encoder", "opt", "forecast"} <= set((s.get("labels") or {}))]
+    t = Table(
+        "Group-wise design ablation (Supp. Table: encoder x group-wise optimisation x group-wise forecasting)",
+        cols,
+        keys=3,
+    )
+    specs = [
+        (v, s["labels"])
+        for v, s in ablations.get("variants", {}).items()
+        if {"encoder", "opt", "forecast"} <= set(s.get("labels") or {})
+    ]
     for encoder in ("HC", "LW"):
-        for variant, labels in sorted((x for x in specs if x[1]["encoder"] == encoder), key=lambda x: (x[1]["forecast"], x[1]["opt"])):
+        for variant, labels in sorted(
+            (x for x in specs if x[1]["encoder"] == encoder), key=lambda x: (x[1]["forecast"], x[1]["opt"])
+        ):
             chosen = [r for r in results if _variant(r) == variant]
             mark = lambda b: "✓" if b else "–"  # noqa: E731
-            t.rows.append([f"{encoder} ({len(chosen)} results)", mark(labels["opt"]), mark(labels["forecast"])]
-                          + [fmt(_mean([_metric(r, "mogaf", m) for r in chosen]), m) for m in TRACKING_METRICS])
-    return t
+            t.rows.append(
+                [f"{encoder} ({len(chosen)} results)", mark(labels["opt"]), mark(labels["forecast"])]
+                + [fmt(_mean([_metric(r, "mogaf", m) for r in chosen]), m) for m in TRACKING_METRICS]
+            )
+    return t.prune()
 
 
 def masking_table(results: list[dict[str, Any]], ablations: dict[str, Any]) -> Table:
     cols = ["scope", "Method"] + [METRICS[m][0] for m in IMAGE_METRICS]
-    t = Table("Masking ablation: forecaster trained with and without contiguous-span masking", cols)
+    t = Table("Masking ablation: forecaster trained with and without contiguous-span masking", cols, keys=2)
     variants = [v for v, s in ablations.get("variants", {}).items() if (s.get("labels") or {}).get("masking") is False]
     for variant in variants:
         scopes: dict[tuple[str, float], list[tuple[dict[str, Any], dict[str, Any]]]] = defaultdict(list)
@@ -284,8 +389,11 @@ def masking_table(results: list[dict[str, Any]], ablations: dict[str, Any]) -> T
         for (dataset, ratio), items in sorted(scopes.items()):
             scope = f"{dataset} {ratio:.0%} ({len(items)} scene{'s' if len(items) > 1 else ''})"
             for label, pick in (("Ours w/o masking", 1), ("Ours", 0)):
-                t.rows.append([scope, label] + [fmt(_mean([_metric(item[pick], "mogaf", m) for item in items]), m) for m in IMAGE_METRICS])
-    return t
+                t.rows.append(
+                    [scope, label]
+                    + [fmt(_mean([_metric(item[pick], "mogaf", m) for item in items]), m) for m in IMAGE_METRICS]
+                )
+    return t.prune()
 
 
 def build_tables(results: list[dict[str, Any]], ablations: dict[str, Any]) -> dict[str, Table]:
@@ -299,7 +407,9 @@ def build_tables(results: list[dict[str, Any]], ablations: dict[str, Any]) -> di
     }
 
 
-def write_tables(metrics_files: list[str], out_files: list[str], params: dict[str, Any], ablations: dict[str, Any]) -> list[Path]:
+def write_tables(
+    metrics_files: list[str], out_files: list[str], params: dict[str, Any], ablations: dict[str, Any]
+) -> list[Path]:
     """Write table_<name>.{md,tex,csv} for every table; out_files name them all."""
     tables = build_tables(load_metrics(metrics_files), ablations)
     written = []

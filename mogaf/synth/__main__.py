@@ -10,6 +10,7 @@ import time
 from ..errors import MogafError
 from .generate import generate_scene
 from .params import PRESETS
+from .preview import contact_sheet
 
 
 def _value(text: str):
@@ -20,10 +21,14 @@ def _value(text: str):
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m mogaf.synth", description="Generate a synthetic scene in the DyCheck iPhone layout.")
+    ap = argparse.ArgumentParser(
+        prog="python -m mogaf.synth", description="Generate a synthetic scene in the DyCheck iPhone layout."
+    )
     ap.add_argument("out_dir")
     ap.add_argument("--preset", default="default", choices=sorted(PRESETS))
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a generator parameter (JSON value)")
+    ap.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a generator parameter (JSON value)"
+    )
     ap.add_argument("--preview", metavar="PNG", help="also write a contact sheet")
     args = ap.parse_args(argv)
     params = {"preset": args.preset}
@@ -37,8 +42,6 @@ def main(argv: list[str] | None = None) -> int:
         out = generate_scene(args.out_dir, params)
         print(f"wrote {out} in {time.perf_counter() - start:.1f} s")
         if args.preview:
-            from .preview import contact_sheet
-
             print(f"wrote {contact_sheet(out, args.preview)}")
     except MogafError as exc:
         print(f"mogaf.synth: error: {exc}", file=sys.stderr)

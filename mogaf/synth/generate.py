@@ -163,7 +163,9 @@ def _background_points(world: World, w2c: np.ndarray, depth: np.ndarray, inst: n
     return ((cam - t) @ R).astype(np.float32)
 
 
-def _covisible(world: World, renderer: Renderer, w2c: np.ndarray, train_w2c: np.ndarray, depth: np.ndarray, ti: int) -> np.ndarray:
+def _covisible(
+    world: World, renderer: Renderer, w2c: np.ndarray, train_w2c: np.ndarray, depth: np.ndarray, ti: int
+) -> np.ndarray:
     """Pixels of a test view whose surface point the train camera sees at the same time."""
     H, W = depth.shape
     K = world.K
@@ -190,15 +192,30 @@ def _write_layout(root: Path, p: dict[str, Any]) -> None:
             _write_json(root / "camera" / f"{names[cam][ti]}.json", camera_json(world, world.camera_w2c(cam, ti)))
     train_ids = names[0]
     val_ids = names[1] + names[2]
-    _write_json(root / "splits" / "train.json", {"frame_names": train_ids, "camera_ids": [0] * T, "time_ids": list(range(T))})
-    _write_json(root / "splits" / "val.json", {"frame_names": val_ids, "camera_ids": [1] * T + [2] * T, "time_ids": list(range(T)) * 2})
-    _write_json(root / "dataset.json", {"count": 3 * T, "ids": train_ids + val_ids, "num_exemplars": T, "train_ids": train_ids, "val_ids": val_ids})
+    _write_json(
+        root / "splits" / "train.json", {"frame_names": train_ids, "camera_ids": [0] * T, "time_ids": list(range(T))}
+    )
+    _write_json(
+        root / "splits" / "val.json",
+        {"frame_names": val_ids, "camera_ids": [1] * T + [2] * T, "time_ids": list(range(T)) * 2},
+    )
+    _write_json(
+        root / "dataset.json",
+        {"count": 3 * T, "ids": train_ids + val_ids, "num_exemplars": T, "train_ids": train_ids, "val_ids": val_ids},
+    )
     _write_json(
         root / "metadata.json",
-        {names[cam][ti]: {"appearance_id": ti, "camera_id": cam, "warp_id": ti} for cam in range(NUM_CAMERAS) for ti in range(T)},
+        {
+            names[cam][ti]: {"appearance_id": ti, "camera_id": cam, "warp_id": ti}
+            for cam in range(NUM_CAMERAS)
+            for ti in range(T)
+        },
     )
     dmin, dmax = out["depth_range"]
-    _write_json(root / "scene.json", {"center": [0.0, 0.0, 0.0], "scale": 1.0, "near": round(0.9 * dmin, 6), "far": round(1.1 * dmax, 6)})
+    _write_json(
+        root / "scene.json",
+        {"center": [0.0, 0.0, 0.0], "scale": 1.0, "near": round(0.9 * dmin, 6), "far": round(1.1 * dmax, 6)},
+    )
     bg = out["bg_points"]
     _write_npy(root / "points.npy", bg)
     centres = np.array([camera_origin(world.camera_w2c(c, ti)) for c in range(NUM_CAMERAS) for ti in range(T)])
@@ -222,12 +239,23 @@ def _write_layout(root: Path, p: dict[str, Any]) -> None:
         {
             "background": 0,
             "instances": [
-                {"id": o.inst, "name": o.name, "rigid": bool(o.rigid), "kind": o.kind, "pose_index": pose_index.get(o.inst, -1), "shape": o.shape()}
+                {
+                    "id": o.inst,
+                    "name": o.name,
+                    "rigid": bool(o.rigid),
+                    "kind": o.kind,
+                    "pose_index": pose_index.get(o.inst, -1),
+                    "shape": o.shape(),
+                }
                 for o in world.objects
             ],
         },
     )
-    poses = np.stack([np.stack([o.pose(float(tau)) for tau in world.taus]) for o in rigid_objs]) if rigid_objs else np.zeros((0, T, 4, 4))
+    poses = (
+        np.stack([np.stack([o.pose(float(tau)) for tau in world.taus]) for o in rigid_objs])
+        if rigid_objs
+        else np.zeros((0, T, 4, 4))
+    )
     _write_npy(gt / "object_poses.npy", poses.astype(np.float64))
     _write_npy(gt / "object_pose_ids.npy", np.array([o.inst for o in rigid_objs], dtype=np.int32))
     _write_npy(gt / "points3d.npy", points3d.astype(np.float32))

@@ -12,7 +12,18 @@ import numpy as np
 from .generate import frame_name
 
 PALETTE = np.array(
-    [[40, 40, 40], [230, 80, 60], [60, 160, 230], [250, 200, 40], [120, 220, 120], [200, 100, 220], [240, 150, 200], [100, 230, 220], [180, 180, 90], [255, 255, 255]],
+    [
+        [40, 40, 40],
+        [230, 80, 60],
+        [60, 160, 230],
+        [250, 200, 40],
+        [120, 220, 120],
+        [200, 100, 220],
+        [240, 150, 200],
+        [100, 230, 220],
+        [180, 180, 90],
+        [255, 255, 255],
+    ],
     dtype=np.uint8,
 )
 
@@ -24,7 +35,9 @@ def _read_rgb(path: Path) -> np.ndarray:
     return img[..., ::-1] if img.ndim == 3 else img
 
 
-def contact_sheet(scene_dir: str | os.PathLike, out_png: str | os.PathLike, times: list[int] | None = None, zoom: int = 2) -> Path:
+def contact_sheet(
+    scene_dir: str | os.PathLike, out_png: str | os.PathLike, times: list[int] | None = None, zoom: int = 2
+) -> Path:
     """Rows = times; columns = train RGB, test 1 RGB, test 2 RGB, train instance ids
     (with visible GT tracks as dots), train depth, test 1 covisible mask."""
     root = Path(scene_dir)
@@ -38,7 +51,7 @@ def contact_sheet(scene_dir: str | os.PathLike, out_png: str | os.PathLike, time
         cols = [_read_rgb(root / "rgb" / "1x" / f"{frame_name(c, ti)}.png") for c in range(3)]
         inst = _read_rgb(root / "mogaf_gt" / "instance" / "1x" / f"{frame_name(0, ti)}.png")
         ic = PALETTE[np.minimum(inst, len(PALETTE) - 1)].copy()
-        for (u, v) in tracks[visible[:, ti], ti]:
+        for u, v in tracks[visible[:, ti], ti]:
             ic[int(v), int(u)] = 255
         cols.append(ic)
         depth = np.load(root / "depth" / "1x" / f"{frame_name(0, ti)}.npy")[..., 0]

@@ -124,7 +124,9 @@ class HeightCloth:
     def __init__(self, origin, E, length, height, amplitude, k, phase, q, texture, inst):
         self.origin = np.asarray(origin, dtype=np.float64)
         self.E = np.asarray(E, dtype=np.float64)
-        self.L, self.Hc, self.A, self.k, self.phase, self.q = (float(x) for x in (length, height, amplitude, k, phase, q))
+        self.L, self.Hc, self.A, self.k, self.phase, self.q = (
+            float(x) for x in (length, height, amplitude, k, phase, q)
+        )
         self.texture, self.inst = texture, inst
         self.centre = self.origin + self.E @ np.array([self.L / 2, self.Hc / 2, 0.0])
         self.radius = float(np.sqrt((self.L / 2) ** 2 + (self.Hc / 2) ** 2 + self.A**2)) + 1e-3

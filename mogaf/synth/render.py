@@ -43,7 +43,9 @@ def _rect(prim, K: np.ndarray, w2c: np.ndarray, ss: int, Hs: int, Ws: int):
     """Sub-pixel index rectangle (r0, r1, c0, c1) that can see `prim`, None if none."""
     if not np.isfinite(prim.radius):
         return 0, Hs, 0, Ws
-    corners = prim.centre + prim.radius * np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], dtype=np.float64)
+    corners = prim.centre + prim.radius * np.array(
+        [[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], dtype=np.float64
+    )
     cam = corners @ w2c[:3, :3].T + w2c[:3, 3]
     if cam[:, 2].min() <= 1e-3:
         return 0, Hs, 0, Ws

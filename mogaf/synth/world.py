@@ -49,7 +49,16 @@ def look_at(centre, target, roll: float = 0.0) -> np.ndarray:
 
 def _sample_box_surface(rng: np.random.Generator, half: np.ndarray, n: int) -> np.ndarray:
     """n points uniform on the surface of the box [-half, half] (local)."""
-    areas = np.array([half[1] * half[2], half[1] * half[2], half[0] * half[2], half[0] * half[2], half[0] * half[1], half[0] * half[1]])
+    areas = np.array(
+        [
+            half[1] * half[2],
+            half[1] * half[2],
+            half[0] * half[2],
+            half[0] * half[2],
+            half[0] * half[1],
+            half[0] * half[1],
+        ]
+    )
     face = rng.choice(6, size=n, p=areas / areas.sum())
     pts = rng.uniform(-1.0, 1.0, (n, 3)) * half
     axis = face // 2
@@ -183,10 +192,18 @@ class Cloth(Object):
         self.texture = texture
 
     def shape(self):
-        return {"length": self.L, "height": self.Hc, "amplitude": self.A, "pinned_edge_origin": self.origin.tolist(), "frame": self.E.tolist()}
+        return {
+            "length": self.L,
+            "height": self.Hc,
+            "amplitude": self.A,
+            "pinned_edge_origin": self.origin.tolist(),
+            "frame": self.E.tolist(),
+        }
 
     def surface(self, tau: float) -> HeightCloth:
-        return HeightCloth(self.origin, self.E, self.L, self.Hc, self.A, self.k, self.omega * tau, self.q, self.texture, self.inst)
+        return HeightCloth(
+            self.origin, self.E, self.L, self.Hc, self.A, self.k, self.omega * tau, self.q, self.texture, self.inst
+        )
 
     def primitives(self, tau):
         return [self.surface(tau)]
@@ -218,7 +235,10 @@ class BoxChain(Object):
         raise NotImplementedError
 
     def primitives(self, tau):
-        return [Box(R, c, half, self.texture, self.inst, face_offset=3 * i) for i, ((R, c), half) in enumerate(zip(self.segment_frames(tau), self.halves()))]
+        return [
+            Box(R, c, half, self.texture, self.inst, face_offset=3 * i)
+            for i, ((R, c), half) in enumerate(zip(self.segment_frames(tau), self.halves()))
+        ]
 
     def sample_material(self, rng, n):
         halves = self.halves()
@@ -306,8 +326,11 @@ class Articulated(BoxChain):
         return [self.body_half, self.lid_half]
 
     def shape(self):
-        return {"centre": self.centre.tolist(), "body_half_extents": self.body_half.tolist(),
-                "lid_half_extents": self.lid_half.tolist()}
+        return {
+            "centre": self.centre.tolist(),
+            "body_half_extents": self.body_half.tolist(),
+            "lid_half_extents": self.lid_half.tolist(),
+        }
 
 
 class Ballistic:
@@ -442,7 +465,9 @@ def build_world(params: dict[str, Any]) -> World:
     # ---- sphere on a ballistic arc (bounces when the sequence is long/fast enough)
     r_s = 0.18
     v_xy = _clamped_velocity(np.array(p["sphere_velocity"]), tau_max, p["max_travel"])
-    ballistic = Ballistic([0.42, 0.75], v_xy, tau_mid, 0.42, p["sphere_launch_vz"], p["gravity"], p["restitution"], r_s, tau_max)
+    ballistic = Ballistic(
+        [0.42, 0.75], v_xy, tau_mid, 0.42, p["sphere_launch_vz"], p["gravity"], p["restitution"], r_s, tau_max
+    )
     vh = np.array([v_xy[0], v_xy[1], 0.0])
     roll_axis = np.cross(UP, vh) if np.linalg.norm(vh) > 1e-9 else np.array([1.0, 0.0, 0.0])
     rigid_objects.append(
@@ -462,9 +487,18 @@ def build_world(params: dict[str, Any]) -> World:
     # ---- non-rigid object
     if p["nonrigid"] == "articulated":
         objects.append(
-            Articulated(3, "chest", centre=[0.0, 1.25, 0.3], body_half=[0.42, 0.28, 0.3], lid_thickness=0.06,
-                        yaw=np.deg2rad(-15.0), swing=p["lid_swing"], rate=p["lid_rate"],
-                        texture=BoxTexture(rng, rng.uniform()), phase=0.0)
+            Articulated(
+                3,
+                "chest",
+                centre=[0.0, 1.25, 0.3],
+                body_half=[0.42, 0.28, 0.3],
+                lid_thickness=0.06,
+                yaw=np.deg2rad(-15.0),
+                swing=p["lid_swing"],
+                rate=p["lid_rate"],
+                texture=BoxTexture(rng, rng.uniform()),
+                phase=0.0,
+            )
         )
     elif p["nonrigid"] == "cloth":
         pole_x, pole_y = 0.3, 1.85
@@ -485,14 +519,26 @@ def build_world(params: dict[str, Any]) -> World:
         )
     else:
         static.append(Box(np.eye(3), [0.7, 1.8, 0.05], [0.12, 0.12, 0.05], pole_tex, 0))  # plinth
-        objects.append(Arm(3, "arm", base=[0.7, 1.8, 0.1], lengths=[0.6, 0.5], thickness=0.13, texture=BoxTexture(rng, rng.uniform()), phase=rng.uniform(0, 2 * np.pi)))
+        objects.append(
+            Arm(
+                3,
+                "arm",
+                base=[0.7, 1.8, 0.1],
+                lengths=[0.6, 0.5],
+                thickness=0.13,
+                texture=BoxTexture(rng, rng.uniform()),
+                phase=rng.uniform(0, 2 * np.pi),
+            )
+        )
 
     # ---- cameras
     W, H = p["width"], p["height"]
     f = 0.5 * W / np.tan(np.deg2rad(p["hfov_deg"]) / 2)
     K = np.array([[f, 0.0, W / 2], [0.0, f, H / 2], [0.0, 0.0, 1.0]])
     u = times / times[-1]
-    walk = np.stack([p["camera_sweep"] * (u - 0.5), 0.15 * np.sin(np.pi * u) - 0.05, 0.02 * np.sin(2 * np.pi * u)], axis=1)
+    walk = np.stack(
+        [p["camera_sweep"] * (u - 0.5), 0.15 * np.sin(np.pi * u) - 0.05, 0.02 * np.sin(2 * np.pi * u)], axis=1
+    )
     centres = LOOK_AT + TRAIN_OFFSET + walk + _jitter(rng, times, p["camera_jitter"])
     targets = LOOK_AT + _jitter(rng, times, 2.5 * p["camera_jitter"])
     rolls = 0.01 * np.sin(2 * np.pi * 0.6 * times + rng.uniform(0, 2 * np.pi))
@@ -503,7 +549,9 @@ def build_world(params: dict[str, Any]) -> World:
         test.append(look_at(LOOK_AT + off + np.array([0, 0, dz]), LOOK_AT + np.array([0.0, 0.0, -0.03]), roll))
     test_w2c = np.stack(test)
 
-    world = World(params=p, objects=objects, static=static, taus=taus, times=times, train_w2c=train_w2c, test_w2c=test_w2c, K=K)
+    world = World(
+        params=p, objects=objects, static=static, taus=taus, times=times, train_w2c=train_w2c, test_w2c=test_w2c, K=K
+    )
     world.info["sphere_bounce_times"] = [float(b / p["speed"]) for b in ballistic.bounces if b <= tau_max]
     problem = check_world(world)
     if problem:
@@ -518,7 +566,7 @@ def build_world(params: dict[str, Any]) -> World:
             a = rng.uniform(0, 2 * np.pi)
             v = p["extra_speed"] * np.array([np.cos(a), 0.35 * rng.uniform(-1, 1), 0.6 * np.sin(a)])
             v = _clamped_velocity(v, tau_max, min(p["max_travel"], 0.6))
-            kw = dict(
+            kw = dict(  # noqa: C408 (keyword names read as the parameters they are)
                 centre_fn=_linear(lane + rng.uniform(-0.08, 0.08, 3), v, tau_mid),
                 R0=rotation(rng.normal(size=3), rng.uniform(0, 2 * np.pi)),
                 spin_axis=rng.normal(size=3),
@@ -527,9 +575,13 @@ def build_world(params: dict[str, Any]) -> World:
             inst = 4 + i
             if kind == "box":
                 half = size * np.array([1.0, rng.uniform(0.6, 1.0), rng.uniform(0.6, 1.0)])
-                obj: Object = RigidBox(inst, f"box_extra_{i + 1}", half=half, texture=BoxTexture(rng, rng.uniform()), **kw)
+                obj: Object = RigidBox(
+                    inst, f"box_extra_{i + 1}", half=half, texture=BoxTexture(rng, rng.uniform()), **kw
+                )
             else:
-                obj = RigidSphere(inst, f"sphere_extra_{i + 1}", radius=size, texture=SphereTexture(rng, rng.uniform()), **kw)
+                obj = RigidSphere(
+                    inst, f"sphere_extra_{i + 1}", radius=size, texture=SphereTexture(rng, rng.uniform()), **kw
+                )
             world.objects.append(obj)
             if check_world(world) is None:
                 break

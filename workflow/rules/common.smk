@@ -7,8 +7,9 @@ from snakemake.exceptions import WorkflowError
 
 import mogaf.config as mcfg
 import mogaf.paths as mpaths
+import mogaf.registry as mreg
 from mogaf.errors import MogafError
-from mogaf.schema import config_error, file_layers
+from mogaf.schema import config_error, file_layers, load_config_schema
 
 SCHEMA = Path(workflow.basedir) / "config" / "schema.yaml"
 ABLATION_SCHEMA = Path(workflow.basedir) / "config" / "ablations.schema.yaml"
@@ -29,7 +30,7 @@ def _validate(cfg, schema, layers):
     """The schema check as one line naming the config file and the key
     (Snakemake's own `validate` prints the schema it failed, a page of it)."""
     try:
-        error = config_error(cfg, mcfg.load_yaml(schema), layers)
+        error = config_error(cfg, load_config_schema(schema), layers)
     except MogafError as exc:
         raise WorkflowError(str(exc))
     if error is not None:
@@ -37,6 +38,9 @@ def _validate(cfg, schema, layers):
 
 
 _validate(config, SCHEMA, _config_layers())
+# config/config.yaml holds only what a user changes: every other stage setting
+# takes its default from the stage's settings dataclass (mogaf.settings).
+config.update(mcfg.with_defaults(config))
 
 # Every pipeline write goes to results/ or the cache folder (kernels, LPIPS).
 mpaths.use_cache_dir(config["cache_dir"])
@@ -64,8 +68,11 @@ def _load_ablations():
             raise WorkflowError(str(exc))
         # A variant's merged config must satisfy the same schema.
         overrides = data["variants"][name].get("overrides") or {}
-        _validate(mcfg.variant_config(config, data["variants"], name), SCHEMA,
-                  _config_layers() + [(f"{path}: variant '{name}'", overrides)])
+        _validate(
+            mcfg.variant_config(config, data["variants"], name),
+            SCHEMA,
+            _config_layers() + [(f"{path}: variant '{name}'", overrides)],
+        )
     return data
 
 
@@ -80,7 +87,9 @@ onstart:
         for path in [*job.output, *job.log]:
             found = mpaths.unwritable_folder(path)
             if found is not None:
-                raise WorkflowError(f"{found[0]}: not writable ({found[1]}); rule {job.rule.name} writes {path} there")
+                raise WorkflowError(
+                    f"{found[0]}: not writable ({found[1]}); rule {job.rule.name} writes {path} there"
+                )
 
 
 wildcard_constraints:
@@ -139,12 +148,17 @@ def stage_path(stage, wildcards):
     return ratio_path(wildcards, f"{stage_prefix(stage, wildcards)}{mcfg.ARTEFACT_FILES[stage]}")
 
 
+def artefact(stage):
+    """The path pattern of a stage's artefact (mogaf.registry), for its rule's output."""
+    return mreg.rule_output(stage)
+
+
 def scene_h5(wildcards):
-    return f"results/{wildcards.dataset}/{wildcards.scene}/scene.h5"
+    return mreg.rule_output("ingest").format(dataset=wildcards.dataset, scene=wildcards.scene)
 
 
 def split_h5(wildcards):
-    return ratio_path(wildcards, "split.h5")
+    return ratio_path(wildcards, mreg.spec("split").output)
 
 
 def params_for(section):

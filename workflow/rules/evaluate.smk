@@ -6,21 +6,21 @@ rule evaluate:
     input:
         unpack(evaluate_inputs),
     output:
-        metrics="results/{dataset}/{scene}/ratio{ratio}/{prefix}metrics.json",
+        metrics=artefact("evaluate"),
         renders=report(
             directory("results/{dataset}/{scene}/ratio{ratio}/{prefix}renders"),
             patterns=["{name}.mp4"],
             caption="../report/renders.rst",
             category="Forecast videos",
         ),
-    params:
-        evaluate=params_for("evaluate"),
-        methods=lambda wildcards: scene_cfg(wildcards)["forecast"]["methods"],
-        variant=lambda wildcards: variant_of(wildcards) or "default",
-    threads: 2
     log:
         log_file("evaluate"),
     conda:
         "../../envs/mogaf.yaml"
+    threads: 2
+    params:
+        evaluate=params_for("evaluate"),
+        methods=lambda wildcards: scene_cfg(wildcards)["forecast"]["methods"],
+        variant=lambda wildcards: variant_of(wildcards) or "default",
     script:
         "../scripts/evaluate.py"

@@ -11,19 +11,19 @@ rule forecast_group:
         split=split_h5,
     output:
         "results/{dataset}/{scene}/ratio{ratio}/{prefix}forecast/{method}/group{group}.h5",
-    params:
-        forecast=forecast_params,
-        seed=seed,
-    threads: 1
-    resources:
-        mem_mb=4000,
-        runtime=30,
     log:
         "results/{dataset}/{scene}/ratio{ratio}/{prefix}logs/forecast_{method}_group{group}.log",
     benchmark:
         "results/{dataset}/{scene}/ratio{ratio}/{prefix}benchmarks/forecast_{method}_group{group}.tsv"
     conda:
         "../../envs/mogaf.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=30,
+    params:
+        forecast=forecast_params,
+        seed=seed,
     script:
         "../scripts/forecast_group.py"
 
@@ -36,14 +36,14 @@ rule forecast:
         parts=forecast_part_files,
     output:
         "results/{dataset}/{scene}/ratio{ratio}/{prefix}forecast/{method}.h5",
-    params:
-        forecast=forecast_params,
-        seed=seed,
     log:
         "results/{dataset}/{scene}/ratio{ratio}/{prefix}logs/forecast_{method}.log",
     benchmark:
         "results/{dataset}/{scene}/ratio{ratio}/{prefix}benchmarks/forecast_{method}.tsv"
     conda:
         "../../envs/mogaf.yaml"
+    params:
+        forecast=forecast_params,
+        seed=seed,
     script:
         "../scripts/forecast_merge.py"

@@ -8,16 +8,16 @@ checkpoint group:
         priors=lambda wildcards: stage_path("priors", wildcards),
         scene=scene_h5,
     output:
-        "results/{dataset}/{scene}/ratio{ratio}/{prefix}groups.h5",
-    params:
-        grouping=params_for("grouping"),
-        seed=seed,
-    threads: 2
+        artefact("group"),
     log:
         log_file("group"),
     benchmark:
         benchmark_tsv("group")
     conda:
         "../../envs/mogaf.yaml"
+    threads: 2
+    params:
+        grouping=params_for("grouping"),
+        seed=seed,
     script:
         "../scripts/group.py"

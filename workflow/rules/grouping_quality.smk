@@ -10,15 +10,15 @@ rule grouping_quality:
         scene=scene_h5,
         split=split_h5,
     output:
-        "results/{dataset}/{scene}/ratio{ratio}/{prefix}grouping_quality.h5",
-    params:
-        grouping_quality=params_for("grouping_quality"),
-    threads: 2
+        artefact("grouping_quality"),
     log:
         log_file("grouping_quality"),
     benchmark:
         benchmark_tsv("grouping_quality")
     conda:
         "../../envs/mogaf.yaml"
+    threads: 2
+    params:
+        grouping_quality=params_for("grouping_quality"),
     script:
         "../scripts/grouping_quality.py"

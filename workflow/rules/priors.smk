@@ -6,15 +6,15 @@ rule priors:
         scene=scene_h5,
         split=split_h5,
     output:
-        "results/{dataset}/{scene}/ratio{ratio}/{prefix}priors.h5",
-    params:
-        priors=params_for("priors"),
-        seed=seed,
+        artefact("priors"),
     log:
         log_file("priors"),
     benchmark:
         benchmark_tsv("priors")
     conda:
         "../../envs/mogaf.yaml"
+    params:
+        priors=params_for("priors"),
+        seed=seed,
     script:
         "../scripts/priors.py"

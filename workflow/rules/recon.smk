@@ -7,13 +7,13 @@ rule recon:
         split=split_h5,
         priors=lambda wildcards: stage_path("priors", wildcards),
     output:
-        "results/{dataset}/{scene}/ratio{ratio}/{prefix}recon.h5",
-    params:
-        recon=params_for("recon"),
-        seed=seed,
-        device=device,
-        # Survives a killed job so a rerun resumes instead of starting over.
-        checkpoint="results/{dataset}/{scene}/ratio{ratio}/{prefix}checkpoints/recon.pt",
+        artefact("recon"),
+    log:
+        log_file("recon"),
+    benchmark:
+        benchmark_tsv("recon")
+    conda:
+        "../../envs/mogaf.yaml"
     # One torch thread (recon.threads): fixed float-reduction order, so artefacts are
     # bitwise reproducible; two such jobs share a 2-core machine.
     threads: 1
@@ -21,11 +21,11 @@ rule recon:
         mem_mb=8000,
         runtime=240,
         gpu=lambda wildcards: 1 if device(wildcards) == "cuda" else 0,
-    log:
-        log_file("recon"),
-    benchmark:
-        benchmark_tsv("recon")
-    conda:
-        "../../envs/mogaf.yaml"
+    params:
+        recon=params_for("recon"),
+        seed=seed,
+        device=device,
+        # Survives a killed job so a rerun resumes instead of starting over.
+        checkpoint="results/{dataset}/{scene}/ratio{ratio}/{prefix}checkpoints/recon.pt",
     script:
         "../scripts/recon.py"

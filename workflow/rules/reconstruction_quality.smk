@@ -11,14 +11,14 @@ rule reconstruction_quality:
         split=split_h5,
     output:
         "results/{dataset}/{scene}/ratio{ratio}/{prefix}reconstruction_quality/{model}.h5",
-    params:
-        reconstruction_quality=params_for("reconstruction_quality"),
-    threads: 2
     log:
         log_file("reconstruction_quality_{model}"),
     benchmark:
         benchmark_tsv("reconstruction_quality_{model}")
     conda:
         "../../envs/mogaf.yaml"
+    threads: 2
+    params:
+        reconstruction_quality=params_for("reconstruction_quality"),
     script:
         "../scripts/reconstruction_quality.py"

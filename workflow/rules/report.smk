@@ -8,19 +8,43 @@ rule tables:
         existing_metrics,
     output:
         report(
-            multiext("results/tables/table_", "forecast.md", "iphone.md", "dnerf.md", "grouping.md", "groupwise.md", "masking.md"),
+            multiext(
+                "results/tables/table_",
+                "forecast.md",
+                "iphone.md",
+                "dnerf.md",
+                "grouping.md",
+                "groupwise.md",
+                "masking.md",
+            ),
             caption="../report/tables.rst",
             category="Tables",
         ),
-        multiext("results/tables/table_", "forecast.tex", "iphone.tex", "dnerf.tex", "grouping.tex", "groupwise.tex", "masking.tex"),
-        multiext("results/tables/table_", "forecast.csv", "iphone.csv", "dnerf.csv", "grouping.csv", "groupwise.csv", "masking.csv"),
-    params:
-        report=config["report"],
-        ablations=ABLATIONS,
+        multiext(
+            "results/tables/table_",
+            "forecast.tex",
+            "iphone.tex",
+            "dnerf.tex",
+            "grouping.tex",
+            "groupwise.tex",
+            "masking.tex",
+        ),
+        multiext(
+            "results/tables/table_",
+            "forecast.csv",
+            "iphone.csv",
+            "dnerf.csv",
+            "grouping.csv",
+            "groupwise.csv",
+            "masking.csv",
+        ),
     log:
         "results/tables/logs/tables.log",
     conda:
         "../../envs/mogaf.yaml"
+    params:
+        report=config["report"],
+        ablations=ABLATIONS,
     script:
         "../scripts/tables.py"
 
@@ -32,12 +56,12 @@ rule runtime_report:
         csv="results/tables/error_vs_runtime.csv",
         md="results/tables/error_vs_runtime.md",
         png=report("results/tables/error_vs_runtime.png", caption="../report/runtime.rst", category="Error vs run time"),
-    params:
-        report=runtime_report_params(),
     log:
         "results/tables/logs/runtime_report.log",
     conda:
         "../../envs/mogaf.yaml"
+    params:
+        report=runtime_report_params(),
     script:
         "../scripts/runtime_report.py"
 

@@ -8,14 +8,14 @@ rule rigid_init:
         model=lambda wildcards: stage_path("recon", wildcards),
         groups=lambda wildcards: stage_path("group", wildcards),
     output:
-        "results/{dataset}/{scene}/ratio{ratio}/{prefix}rigid.h5",
-    params:
-        rigid_init=params_for("rigid_init"),
+        artefact("rigid_init"),
     log:
         log_file("rigid_init"),
     benchmark:
         benchmark_tsv("rigid_init")
     conda:
         "../../envs/mogaf.yaml"
+    params:
+        rigid_init=params_for("rigid_init"),
     script:
         "../scripts/rigid_init.py"

@@ -6,7 +6,7 @@ rule split:
     input:
         scene=scene_h5,
     output:
-        "results/{dataset}/{scene}/ratio{ratio}/split.h5",
+        artefact("split"),
     log:
         "results/{dataset}/{scene}/ratio{ratio}/logs/split.log",
     conda:

@@ -4,14 +4,14 @@
 
 rule synthesize:
     output:
-        directory("results/{dataset}/{scene}/source"),
-    params:
-        synthetic=lambda wildcards: config["synthetic"][wildcards.scene],
+        directory(artefact("synthesize")),
     log:
         "results/{dataset}/{scene}/logs/synthesize.log",
     wildcard_constraints:
         dataset="|".join(synthetic_datasets()),
     conda:
         "../../envs/mogaf.yaml"
+    params:
+        synthetic=lambda wildcards: config["synthetic"][wildcards.scene],
     script:
         "../scripts/synthesize.py"

@@ -14,7 +14,7 @@ run_stage(
     reconstruction_quality=inputs["reconstruction_quality"],
     grouping_quality=inputs["grouping_quality"],
     forecasts={m: inputs[f"forecast_{m}"] for m in snakemake.params.methods},
-    benchmarks={k[len("bench_"):]: v for k, v in inputs.items() if k.startswith("bench_")},
+    benchmarks={k[len("bench_") :]: v for k, v in inputs.items() if k.startswith("bench_")},
     out_metrics=snakemake.output.metrics,
     out_renders=snakemake.output.renders,
     params=snakemake.params.evaluate,

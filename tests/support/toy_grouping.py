@@ -1,4 +1,4 @@
-"""Small hand-made 4D scenes for tests and quick checks of the grouping.
+"""Small hand-made 4D scenes for the grouping tests.
 
 `two_object_scene` builds a Model4D whose trajectories are known (canonical =
 positions at the first step) with two objects moving differently, a
@@ -14,10 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import project
-from ..representation import GaussianSet, Model4D
-from ..scene import Instances
-from .core import MaskFrames
+from mogaf.camera import project
+from mogaf.grouping.core import MaskFrames
+from mogaf.representation import GaussianSet, Model4D
+from mogaf.scene import Instances
 
 
 def _rot_z(a: float) -> np.ndarray:
@@ -45,8 +45,15 @@ def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarr
     return T
 
 
-def model_from_points(points: np.ndarray, labels: np.ndarray | None = None, num_bases: int = 4, seed: int = 0,
-                      coef_noise: float = 0.3, scale: float = 0.02, timesteps: np.ndarray | None = None) -> Model4D:
+def model_from_points(
+    points: np.ndarray,
+    labels: np.ndarray | None = None,
+    num_bases: int = 4,
+    seed: int = 0,
+    coef_noise: float = 0.3,
+    scale: float = 0.02,
+    timesteps: np.ndarray | None = None,
+) -> Model4D:
     """Model4D with trajectories = points (P,T,3), canonical = first step.
 
     Motion coefficient logits favour basis (label mod num_bases) with
@@ -81,8 +88,9 @@ def model_from_points(points: np.ndarray, labels: np.ndarray | None = None, num_
     )
 
 
-def splat_instance_masks(points: np.ndarray, labels: np.ndarray, K: np.ndarray, w2c: np.ndarray, width: int,
-                         height: int, radius: int = 1) -> np.ndarray:
+def splat_instance_masks(
+    points: np.ndarray, labels: np.ndarray, K: np.ndarray, w2c: np.ndarray, width: int, height: int, radius: int = 1
+) -> np.ndarray:
     """(H,W) int32 instance mask: nearest point within `radius` px wins (z-buffer)."""
     uv, z = project(points, K, w2c)
     depth = np.full((height, width), np.inf)
@@ -129,8 +137,15 @@ class ToyScene:
     height: int
 
 
-def two_object_scene(n_per_object: int = 800, T: int = 12, width: int = 64, height: int = 48, seed: int = 0,
-                     rigid_flags=(1, 1), close: bool = False) -> ToyScene:
+def two_object_scene(
+    n_per_object: int = 800,
+    T: int = 12,
+    width: int = 64,
+    height: int = 48,
+    seed: int = 0,
+    rigid_flags=(1, 1),
+    close: bool = False,
+) -> ToyScene:
     """A sphere translating and spinning, and a box tumbling the other way.
 
     close=True places the objects almost in contact (gap ~ 3 point spacings),

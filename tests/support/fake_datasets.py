@@ -1,4 +1,4 @@
-"""Tiny datasets on disk, for tests and examples (no shared data needed).
+"""Tiny datasets on disk for the tests (no shared data needed).
 
 `fake_dnerf` and `fake_iphone` write a few small frames in the D-NeRF and the
 DyCheck iPhone (+ Shape-of-Motion) layouts. Cameras circle the origin and
@@ -41,8 +41,10 @@ def write_json(path: str | Path, obj) -> Path:
     return p
 
 
-def _look_at_c2w_gl(eye: np.ndarray, target=np.zeros(3), up=np.array([0.0, 0.0, 1.0])) -> np.ndarray:
-    """OpenGL camera-to-world (x right, y up, z backward) looking at target."""
+def _look_at_c2w_gl(eye: np.ndarray, target=None, up=None) -> np.ndarray:
+    """OpenGL camera-to-world (x right, y up, z backward) looking at target (default: the origin; up: +z)."""
+    target = np.zeros(3) if target is None else target
+    up = np.array([0.0, 0.0, 1.0]) if up is None else up
     back = eye - target
     back = back / np.linalg.norm(back)
     right = np.cross(up, back)
@@ -108,12 +110,14 @@ def fake_dnerf(
             write_png(root / split / f"{stem}.png", np.dstack([rgb, a]) if rgba else rgb)
             if masks:
                 write_png(root / split / "masks" / f"{stem}.png", ids)
-            frames.append({
-                "file_path": f"./{split}/{stem}",
-                "time": float(times[order[k]]),
-                "transform_matrix": c2w.tolist(),
-                "marker_pixel": [col, row],
-            })
+            frames.append(
+                {
+                    "file_path": f"./{split}/{stem}",
+                    "time": float(times[order[k]]),
+                    "transform_matrix": c2w.tolist(),
+                    "marker_pixel": [col, row],
+                }
+            )
             k += 1
         write_json(root / f"transforms_{split}.json", {"camera_angle_x": fov, "frames": frames})
     if masks:
@@ -132,7 +136,9 @@ def write_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None, 
     fmt = "binary_little_endian" if binary else "ascii"
     header = "\n".join(["ply", f"format {fmt} 1.0", "comment fake", f"element vertex {n}", *props, "end_header"]) + "\n"
     if binary:
-        fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")] + ([("red", "u1"), ("green", "u1"), ("blue", "u1")] if rgb is not None else [])
+        fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")] + (
+            [("red", "u1"), ("green", "u1"), ("blue", "u1")] if rgb is not None else []
+        )
         rec = np.zeros(n, dtype=fields)
         rec["x"], rec["y"], rec["z"] = np.asarray(xyz, np.float32).T
         if rgb is not None:
@@ -171,8 +177,10 @@ def fake_iphone(
     w, h = int(round(W / scale)), int(round(H / scale))
     rng = np.random.default_rng(2)
     f = 0.9 * W
-    splits = {"train": {"frame_names": [], "camera_ids": [], "time_ids": []},
-              "val": {"frame_names": [], "camera_ids": [], "time_ids": []}}
+    splits = {
+        "train": {"frame_names": [], "camera_ids": [], "time_ids": []},
+        "val": {"frame_names": [], "camera_ids": [], "time_ids": []},
+    }
     metadata = {}
     markers: dict[str, list[int]] = {}
     for cam in range(1 + val_cameras):
@@ -209,12 +217,20 @@ def fake_iphone(
             if 0 <= col < w and 0 <= row < h:
                 rgb[row, col] = 255
             markers[name] = [col, row]
-            write_png(root / "rgb" / f"{scale}x" / f"{name}.png", np.dstack([rgb, np.full((h, w), 255, np.uint8)]) if rgba else rgb)
+            write_png(
+                root / "rgb" / f"{scale}x" / f"{name}.png",
+                np.dstack([rgb, np.full((h, w), 255, np.uint8)]) if rgba else rgb,
+            )
             if depth and split == "train":
                 root.joinpath("depth", f"{scale}x").mkdir(parents=True, exist_ok=True)
-                np.save(root / "depth" / f"{scale}x" / f"{name}.npy", rng.uniform(0.5, 2.0, (h, w, 1)).astype(np.float32))
+                np.save(
+                    root / "depth" / f"{scale}x" / f"{name}.npy", rng.uniform(0.5, 2.0, (h, w, 1)).astype(np.float32)
+                )
             if covisible and split == "val":
-                write_png(root / "covisible" / f"{scale}x" / "val" / f"{name}.png", (rng.random((h, w)) > 0.5).astype(np.uint8) * 255)
+                write_png(
+                    root / "covisible" / f"{scale}x" / "val" / f"{name}.png",
+                    (rng.random((h, w)) > 0.5).astype(np.uint8) * 255,
+                )
             if keypoints and split == "train":
                 kp = [[1.0, 2.0, 1.0], [3.0, 1.0, 1.0], [0.0, 0.0, 0.0]]
                 write_json(root / "keypoint" / f"{scale}x" / "train" / f"{name}.json", kp)
@@ -241,11 +257,21 @@ def fake_iphone(
                 np.save(d / f"{q}_{t}.npy", arr)
     for split, data in splits.items():
         write_json(root / "splits" / f"{split}.json", data)
-    write_json(root / "dataset.json", {"count": len(names), "ids": names, "num_exemplars": num_times,
-                                        "train_ids": splits["train"]["frame_names"], "val_ids": splits["val"]["frame_names"]})
+    write_json(
+        root / "dataset.json",
+        {
+            "count": len(names),
+            "ids": names,
+            "num_exemplars": num_times,
+            "train_ids": splits["train"]["frame_names"],
+            "val_ids": splits["val"]["frame_names"],
+        },
+    )
     write_json(root / "metadata.json", metadata)
     write_json(root / "markers.json", markers)
     write_json(root / "scene.json", {"center": [0.0, 0.0, 0.0], "far": 4.0, "near": 0.1, "scale": 0.5})
-    write_json(root / "extra.json", {"factor": scale, "fps": 30.0, "bbox": [[-1, -1, -1], [1, 1, 1]],
-                                      "lookat": [0, 0, 0], "up": [0, 0, 1]})
+    write_json(
+        root / "extra.json",
+        {"factor": scale, "fps": 30.0, "bbox": [[-1, -1, -1], [1, 1, 1]], "lookat": [0, 0, 0], "up": [0, 0, 1]},
+    )
     return root

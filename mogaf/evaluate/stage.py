@@ -1,0 +1,164 @@
+"""The evaluation stage: metrics.json and renders of every forecast (run_evaluate_stage).
+
+See the mogaf.evaluate package docstring for what is measured.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import shutil
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import __version__
+from ..artefact import write_json
+from ..grouping.quality import read_grouping_quality
+from ..metrics import image_metrics, mean_metrics
+from ..metrics.lpips import load_lpips_weights
+from ..reconstruction_quality import read_reconstruction_quality
+from ..report.tables import METHOD_ORDER, method_label
+from ..representation import load_model
+from ..split import load_frames, read_split
+from ..video import labelled_row, to_uint8
+from .images import _save_png, _write_video, render_forecast_views
+from .inputs import _check_forecast, forecast_summary, read_forecast, runtime_section
+from .params import resolve_params
+from .tracking import tracking_section
+
+log = logging.getLogger(__name__)
+
+
+def _round(obj: Any, digits: int = 6) -> Any:
+    if isinstance(obj, float):
+        return round(obj, digits) if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        # settings are copied as they are (an Adam eps of 1e-15 must not become 0)
+        return {k: (v if k == "params" else _round(v, digits)) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_round(v, digits) for v in obj]
+    if isinstance(obj, (np.floating,)):
+        return _round(float(obj), digits)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    return obj
+
+
+def run_evaluate_stage(
+    *,
+    scene: str,
+    split: str,
+    model: str,
+    reconstruction_quality: str,
+    grouping_quality: str,
+    forecasts: Mapping[str, str],
+    benchmarks: Mapping[str, str],
+    out_metrics: str,
+    out_renders: str,
+    params: Mapping[str, Any],
+    variant: str,
+    ids: Mapping[str, str],
+) -> Path:
+    """metrics.json and renders of every forecast. `model`: the model the
+    forecasts start from (refined.h5, or recon.h5 without refinement);
+    `reconstruction_quality`: reconstruction_quality/{refined,recon}.h5 of that model;
+    `grouping_quality`: grouping_quality.h5 of the grouping the forecasts used."""
+    p = resolve_params(params)
+    start = time.perf_counter()
+    if p["lpips"]:
+        load_lpips_weights()  # fail before rendering anything when the weights are missing
+    # the sections copied from their own stages: a bad file fails before any render
+    reconstruction = read_reconstruction_quality(reconstruction_quality)
+    grouping = read_grouping_quality(grouping_quality)
+    sp = read_split(split)
+    m4 = load_model(model)
+    frames = load_frames(scene, sp, "evaluation")
+    masked = sp.protocol == "iphone"
+    masks = frames.covisibility_masks()
+    methods = sorted(forecasts)
+    renders_tmp = Path(out_renders).with_name(f".{Path(out_renders).name}.tmp-{os.getpid()}")
+    shutil.rmtree(renders_tmp, ignore_errors=True)
+    renders_tmp.mkdir(parents=True)
+    gts = [frames.images[f] / 255.0 for f in range(frames.num_frames)]
+    result: dict[str, Any] = {
+        "mogaf_version": __version__,
+        "dataset": ids.get("dataset"),
+        "scene": ids.get("scene"),
+        "ratio": sp.ratio,
+        "variant": variant,
+        "protocol": sp.protocol,
+        "num_evaluation_views": int(frames.num_frames),
+        "forecast_timesteps": [int(t) for t in sp.forecast_timesteps],
+        "methods": {},
+    }
+    labels: dict[str, str] = {}
+    side_by_side: dict[str, list[np.ndarray]] = {}  # uint8 renders for all_methods.mp4
+    try:
+        for method in methods:
+            fc = read_forecast(forecasts[method])
+            _check_forecast(fc, m4, sp)
+            renders = render_forecast_views(m4, fc, frames, p)
+            per = [
+                image_metrics(renders[f], gts[f], None if masks is None else masks[f], masked, bool(p["lpips"]))
+                for f in range(frames.num_frames)
+            ]
+            section: dict[str, Any] = {
+                "image": mean_metrics(per),
+                "per_view": [
+                    {"frame": frames.frame_names[f], "timestep": int(frames.time_index[f]), **per[f]}
+                    for f in range(frames.num_frames)
+                ],
+            }
+            section["tracking"], epe_3d_quick = tracking_section(m4, fc, scene, sp, p)
+            section["forecast"] = forecast_summary(fc["attrs"])
+            if epe_3d_quick is not None:
+                section["forecast"]["epe_3d_quick"] = epe_3d_quick
+            result["methods"][method] = section
+            if p["save_renders"]:
+                for f in range(frames.num_frames):
+                    _save_png(renders_tmp / method / f"{frames.frame_names[f]}.png", renders[f])
+            if p["video"]:
+                label = method_label({"methods": {method: section}}, method)
+                labels[method] = label
+                panels = [
+                    labelled_row(
+                        [gts[f], renders[f], np.abs(renders[f] - gts[f])],
+                        ["GT", label, "|error|"],
+                        f"{label}, time step {int(frames.time_index[f])}, view {frames.frame_names[f]}",
+                    )
+                    for f in range(frames.num_frames)
+                ]
+                _write_video(renders_tmp / f"{method}.mp4", panels, int(p["video_fps"]))
+                side_by_side[method] = [to_uint8(r) for r in renders]
+        if p["video"] and len(methods) > 1:
+            # one video of every method beside the GT, in the tables' order
+            order = sorted(methods, key=lambda m: METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER))
+            panels = [
+                labelled_row(
+                    [gts[f]] + [side_by_side[m][f] for m in order],
+                    ["GT"] + [labels[m] for m in order],
+                    f"time step {int(frames.time_index[f])}, view {frames.frame_names[f]}",
+                )
+                for f in range(frames.num_frames)
+            ]
+            _write_video(renders_tmp / "all_methods.mp4", panels, int(p["video_fps"]))
+        result["reconstruction"] = reconstruction
+        result["grouping"] = grouping
+        if p["runtime_in_metrics"]:
+            rt = runtime_section(benchmarks, methods)
+            rt["stages"]["evaluate"] = {"wall_s": round(time.perf_counter() - start, 3), "max_rss_mb": None}
+            result["runtime"] = rt
+            for method in methods:
+                result["methods"][method]["runtime"] = {"total_wall_s": rt["total_wall_s"][method]}
+        final = Path(out_renders)
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(renders_tmp, final)
+    finally:
+        shutil.rmtree(renders_tmp, ignore_errors=True)
+    return write_json(out_metrics, _round(result))

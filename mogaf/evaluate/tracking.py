@@ -1,0 +1,122 @@
+"""Tracking metrics of a forecast: ground-truth surface points carried by the forecast poses.
+
+GT points are attached to their nearest Gaussians at the last observed step
+(in each Gaussian's local frame) and carried by the forecast poses; 3D EPE,
+delta_3D, and on the train camera 2D AJ, delta_avg and occlusion accuracy
+(visibility from the rendered depth). Synthetic scenes only (they have GT
+tracks).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from .. import metrics as M
+from ..camera import project
+from ..rendering import render_poses
+from ..representation import Model4D, quat_to_matrix
+from ..split import Split, load_frames, load_ground_truth
+
+
+def attach_points(
+    points: np.ndarray, means: np.ndarray, quats: np.ndarray, k: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Attach points (P,3) to their k nearest Gaussians at one time.
+
+    Returns neighbour ids (P,k), inverse-distance weights (P,k) summing to 1,
+    and each point's offset in each neighbour's local frame (P,k,3).
+    """
+    import torch
+    from scipy.spatial import cKDTree
+
+    k = max(1, min(int(k), means.shape[0]))
+    dist, idx = cKDTree(means).query(points, k=k)
+    dist = dist.reshape(len(points), k)
+    idx = idx.reshape(len(points), k)
+    w = 1.0 / np.maximum(dist, 1e-9)
+    w /= w.sum(axis=1, keepdims=True)
+    R = quat_to_matrix(torch.as_tensor(quats, dtype=torch.float64)).numpy()  # (N,3,3)
+    rel = points[:, None, :] - means[idx]
+    offsets = np.einsum("pkji,pkj->pki", R[idx], rel)  # R^T (p - mu)
+    return idx, w, offsets
+
+
+def carry_points(
+    idx: np.ndarray, weights: np.ndarray, offsets: np.ndarray, means: np.ndarray, quats: np.ndarray
+) -> np.ndarray:
+    """Positions (P,T,3) of attached points under per-Gaussian poses (N,T,3/4)."""
+    import torch
+
+    R = quat_to_matrix(torch.as_tensor(quats[idx], dtype=torch.float64)).numpy()  # (P,k,T,3,3)
+    pos = np.einsum("pktij,pkj->pkti", R, offsets) + means[idx]  # (P,k,T,3)
+    return np.einsum("pk,pkti->pti", weights, pos)
+
+
+def predicted_gt_tracks(model: Model4D, fc: dict[str, Any], gt_observed: Mapping[str, Any], k: int) -> np.ndarray:
+    """Forecast positions (P, T_fc, 3) of the ground-truth surface points."""
+    last = model.trajectory_means.shape[1] - 1
+    points_last = np.asarray(gt_observed["points3d"], np.float64)[:, -1]
+    idx, w, off = attach_points(
+        points_last,
+        np.asarray(model.trajectory_means[:, last], np.float64),
+        np.asarray(model.trajectory_quats[:, last], np.float64),
+        k,
+    )
+    return carry_points(idx, w, off, np.asarray(fc["means"], np.float64), np.asarray(fc["quats"], np.float64))
+
+
+def tracking_section(
+    model: Model4D, fc: dict[str, Any], scene_h5: str, split: Split, params: Mapping[str, Any]
+) -> tuple[dict[str, Any] | None, float | None]:
+    """Tracking metrics of the GT surface points carried by the forecast, and
+    the quick 3D check: their mean distance from the GT over every point and
+    forecast step (no visibility, no unit scaling). (None, None) without GT."""
+    gt_obs = load_ground_truth(scene_h5, split, "observed")
+    if "points3d" not in gt_obs:
+        return None, None
+    gt_fc = load_ground_truth(scene_h5, split, "forecast")
+    pred3d = predicted_gt_tracks(model, fc, gt_obs, int(params["tracking_neighbors"]))
+    gt3d = np.asarray(gt_fc["points3d"], np.float64)
+    epe_3d_quick = float(np.mean(np.linalg.norm(pred3d - gt3d, axis=-1)))
+    P, T = gt3d.shape[:2]
+    gt_vis = np.asarray(gt_fc.get("visible", np.ones((P, T), bool)), bool)
+    pred2d = gt2d = pred_vis = None
+    if "tracks2d" in gt_fc and split.frame_ids["train_future"].size:
+        frames = load_frames(scene_h5, split, "train_future")
+        by_t = {int(t): f for f, t in enumerate(frames.time_index)}
+        pred2d = np.zeros((P, T, 2))
+        pred_vis = np.zeros((P, T), bool)
+        for i, t in enumerate(split.forecast_timesteps):
+            f = by_t.get(int(t))
+            if f is None:
+                continue
+            uv, z = project(pred3d[:, i], frames.K[f], frames.w2c[f])
+            pred2d[:, i] = uv
+            out = render_poses(
+                model, fc["means"][:, i], fc["quats"][:, i], frames.K[f], frames.w2c[f], frames.width, frames.height
+            )
+            depth = out.depth[..., 0].detach().cpu().numpy()
+            col = np.clip(np.floor(uv[:, 0]).astype(int), 0, frames.width - 1)
+            row = np.clip(np.floor(uv[:, 1]).astype(int), 0, frames.height - 1)
+            inside = (
+                (uv[:, 0] >= 0) & (uv[:, 0] < frames.width) & (uv[:, 1] >= 0) & (uv[:, 1] < frames.height) & (z > 0)
+            )
+            surface = depth[row, col]
+            pred_vis[:, i] = inside & (z <= surface * (1.0 + float(params["visibility_tolerance"])))
+        gt2d = np.asarray(gt_fc["tracks2d"], np.float64)
+    res = M.tracking_metrics(
+        gt_vis=gt_vis,
+        pred_vis=pred_vis,
+        pred_3d=pred3d,
+        gt_3d=gt3d,
+        pred_2d=pred2d,
+        gt_2d=gt2d,
+        scale=float(params["tracking_scale"]),
+        aj_thresholds=tuple(params["aj_thresholds"]),
+        pck_thresholds=tuple(params["delta_thresholds"]),
+        strict=False,
+    )
+    return {k: (None if v is None else float(v)) for k, v in res.items()}, epe_3d_quick

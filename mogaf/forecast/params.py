@@ -1,0 +1,289 @@
+"""Forecast settings: one dataclass per method's config section
+(forecast.mogaf with its nested `structured`, forecast.gcn, forecast.ode),
+the method names and which section each method reads.
+
+Each forecaster's DEFAULTS is defaults(<its settings>).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from ..settings import defaults, section_schema, setting
+
+
+@dataclass(frozen=True)
+class StructuredSettings:
+    """Settings of the structured MoGaF forecaster (config section `forecast.mogaf.structured`)."""
+
+    context: int = setting(
+        16, "past values the network reads per channel (shorter when fewer frames are observed)", minimum=2
+    )
+    horizon: int = setting(8, "values predicted per forward pass (multi-step head and loss)", minimum=1)
+    weight_decay: float = setting(
+        0.0,
+        "replaces the paper mode's 0.03: decay shrinks the residual over the prior, so a thrown sphere's fall is not learned (GT benchmark, default/sphere at 0.8: 0.102 m with 0.03, 0.021 m without)",
+        minimum=0,
+    )
+    rigid_residual: float = setting(
+        0.05, "rigid-fit RMS residual / group RMS radius under which a group without a hint is rigid", minimum=0
+    )
+    still_factor: float = setting(
+        3.0, "non-rigid groups: a Gaussian moving less than this x the noise level stays still", minimum=0
+    )
+    gate: bool = setting(True, "backtest the learned forecaster against constant velocity and frozen per group")
+    backtest_frac: float = setting(
+        0.5,
+        "the backtest holds back this share of the observed frames, at most the forecast horizon",
+        exclusive_minimum=0,
+        exclusive_maximum=1,
+    )
+    max_train_windows: int = setting(
+        65536, "training windows kept per fit (random, seeded): bounds memory for big groups", minimum=1
+    )
+
+
+STRUCTURED_DEFAULTS: dict[str, Any] = defaults(StructuredSettings)
+
+
+@dataclass(frozen=True)
+class MogafSettings:
+    """Settings of the MoGaF forecaster, both modes (config section `forecast.mogaf`)."""
+
+    mode: Literal["structured", "paper"] = setting(
+        "structured",
+        "ours: 'structured' (mogaf.forecast.structured, the default) or 'paper' (the paper's forecaster "
+        "exactly, mogaf.forecast.transformer; config/paper.yaml, 'MoGaF (paper)' in tables)",
+    )
+    structured: dict = setting(
+        defaults(StructuredSettings),
+        "the structured mode's own settings (the paper mode ignores them)",
+        schema=section_schema(StructuredSettings),
+    )
+    # --- architecture: supp. "Architecture Details" / main Sec. 4.1 "Implementation Details" ---
+    d_model: int = setting(32, '"32-dimensional hidden state"', minimum=1)
+    nhead: int = setting(8, '"eight attention heads"', minimum=1)
+    dim_feedforward: int = setting(64, '"64-dimensional feedforward layer"', minimum=1)
+    dropout: float = setting(0.2, '"We apply a dropout rate of 0.2" (residual branches and feed-forward)')
+    num_layers: int = setting(
+        1,
+        '"single-layer Transformer encoder" (LW); 5 = HC (supp. "Effect of Forecaster Capacity") not stated in the paper (ours):',
+        minimum=1,
+    )
+    attn_dropout: float = setting(
+        0.0, "no dropout on attention weights (PatchTST's default; its RevIN + flatten-head design matches)"
+    )
+    norm_first: bool = setting(True, "pre-norm: keeps a linear path from the normalised inputs to the flatten head")
+    zero_init_residual: bool = setting(
+        True, "attention/FFN branches start at zero, i.e. training starts from a linear autoregressor"
+    )
+    # --- state normalisation: supp. "use instance normalization for each sequence" ---
+    norm_eps: float = setting(
+        1e-5,
+        "variance floor (RevIN's eps): std = sqrt(var + eps), so static sequences stay finite",
+        exclusive_minimum=0,
+    )
+    # --- objective: main "Training Objectives", supp. "Training Procedure and Inference Scheme" ---
+    lambda_acc: float = setting(1.0, '"lambda_acc = 1.0 for all experiments"')
+    loss_space: Literal["normalized", "pose"] = setting(
+        "normalized", 'L_pred and L_acc on the instance-normalised state ("pose": world units); see module doc'
+    )
+    # --- masked input training: main "Masked Input Training", supp. "Training Procedure" ---
+    masking: bool = setting(True, 'False = the "w/o masking" ablation (main Table "Ablation results", bottom)')
+    mask_ratio_start: float = setting(
+        0.4, '"a contiguous span covering 40--0% of the sequence is masked"', minimum=0, exclusive_maximum=1
+    )
+    mask_ratio_end: float = setting(
+        0.0,
+        "masked input training: main 'Masked Input Training', supp. 'Training Procedure'",
+        minimum=0,
+        exclusive_maximum=1,
+    )
+    mask_anneal_frac: float = setting(
+        0.5, "ours: linear 40% -> 0% over the first half of training, unmasked after", exclusive_minimum=0, maximum=1
+    )
+    # --- optimisation: not in the paper; ours, sized for <= 60 s per group on 2 CPU cores ---
+    iterations: int = setting(
+        800,
+        "Adam steps; cost does not grow with the group size: ~20 s CPU at 1 thread for T = 36 (~28 s for T = 48), leaving ~2-3x headroom under the 60 s/group budget on a loaded 2-core machine",
+        minimum=1,
+    )
+    batch_size: int = setting(
+        128, "most Gaussians per step, drawn without replacement (epochs = iterations * batch / G)", minimum=1
+    )
+    batch_tokens: int = setting(
+        4480,
+        "pose tokens per step: batch = min(batch_size, batch_tokens // (T-1)), at least 16; 4480 = 128 x 35 (T = 36). Attention costs ~ batch x (T-1)^2, so long sequences take smaller batches and the step cost grows ~linearly in T instead of quadratically (0 = always batch_size)",
+        minimum=0,
+    )
+    lr: float = setting(5e-3, "optimisation: not in the paper; ours, sized for <= 60 s per group on 2 CPU cores")
+    lr_min: float = setting(1e-5, "cosine decay floor")
+    weight_decay: float = setting(
+        0.03,
+        "L2 on all weights (Adam). A group's sequences are near copies after instance normalisation, so one-target training is under-determined; without decay the free directions of the flatten head make the autoregressive rollout blow up (GT benchmark, ratio 0.6: default/sphere 1.55 -> 0.39 m, hard/box_extra_1 1.87 -> 0.11 m). 0.1 damps further but bends periodic motion (circular test 3% -> 15%)",
+        minimum=0,
+    )
+    grad_clip: float = setting(1.0, "global grad-norm clip")
+    # --- runtime ---
+    num_threads: int = setting(
+        1, "tiny tensors: one intra-op thread is as fast and never oversubscribes parallel jobs (0 = torch's default)"
+    )
+    rollout_chunk: int = setting(16384, "Gaussians per forward pass at inference", minimum=1)
+
+
+MOGAF_DEFAULTS: dict[str, Any] = defaults(MogafSettings)
+
+
+@dataclass(frozen=True)
+class GCNSettings:
+    """Settings of the GCN baseline, GSPred (config section `forecast.gcn`)."""
+
+    # graph nodes / skinning -- scripts/predict/d-nerf/*.sh
+    n_nodes: int = setting(100, "max_keypoints=100 (options: --max_points 100)", minimum=1)
+    nearest_num: int = setting(
+        6, "nearest_num=6 network -- options/gaussian_option.py gcn_training + scripts/predict/d-nerf/*.sh", minimum=1
+    )
+    input_size: int = setting(10, 'input_size=10 (frames in, "window 10 -> 1")', minimum=1)
+    output_size: int = setting(1, "--output_size 1", minimum=1)
+    num_stage: int = setting(
+        6, "num_stage=6 residual GC blocks (option default 4, every predict script sets 6)", minimum=1
+    )
+    linear_size: int = setting(128, "--linear_size 128 (hidden features)", minimum=1)
+    dropout: float = setting(0.0, "--dropout 0.")
+    no_mapping: bool = setting(
+        False,
+        "--no_mapping off: output through Linear-ReLU-Linear optimisation -- train_GCN.py + scripts/predict/d-nerf/*.sh",
+    )
+    epochs: int = setting(2001, "epoch=2001", minimum=1)
+    batch_size: int = setting(32, "--batch_size 32 (drop_last=True)", minimum=1)
+    lr: float = setting(0.01, "Adam(lr=0.01, eps=1e-15)")
+    adam_eps: float = setting(1e-15, "GSPred train_GCN.py: Adam(lr=0.01, eps=1e-15)")
+    lr_min: float = setting(1e-4, "CosineAnnealingLR(T_max=epoch, eta_min=1e-4)")
+    noise_init: float = setting(0.0, "noise_init=0 in every predict script (option default 0.1)")
+    noise_step: int = setting(100, "noise_step=100 runtime")
+    num_threads: int = setting(0, "0 = leave torch's intra-op thread count alone")
+
+
+GCN_DEFAULTS: dict[str, Any] = defaults(GCNSettings)
+
+
+@dataclass(frozen=True)
+class ODESettings:
+    """Settings of the latent-ODE baseline, ODE-GS (config section `forecast.ode`)."""
+
+    # model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)
+    latent_dim: int = setting(
+        64, "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)", minimum=1
+    )
+    d_model: int = setting(
+        128, "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)", minimum=1
+    )
+    nhead: int = setting(
+        8, "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)", minimum=1
+    )
+    num_encoder_layers: int = setting(
+        4, "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)", minimum=1
+    )
+    num_decoder_layers: int = setting(
+        4, "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)", minimum=1
+    )
+    ode_nhidden: int = setting(
+        64, "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)", minimum=1
+    )
+    decoder_nhidden: int = setting(
+        128, "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)", minimum=1
+    )
+    ode_layers: int = setting(
+        4, "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)", minimum=2
+    )
+    use_tanh: bool = setting(
+        True, "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)"
+    )
+    encoder_dropout: float = setting(
+        0.1, "extrapolation_ode_model.py: TransformerEncoderLayer(dropout=0.1, dim_feedforward=4*d_model)"
+    )
+    rtol: float = setting(
+        1e-3, "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)"
+    )
+    atol: float = setting(
+        1e-4, "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)"
+    )
+    max_num_steps: int = setting(
+        1000,
+        "ours: dopri5 step cap per output interval (torchdiffeq option); hitting it is flagged data -- config_DNerf_default.yaml `data:`",
+        minimum=1,
+    )
+    time_split: float = setting(0.8, "observed part of the normalised [0, 1] sequence time", exclusive_minimum=0)
+    obs_time_span: float = setting(
+        0.6,
+        "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)",
+        exclusive_minimum=0,
+    )
+    max_extrap_time_span: float = setting(
+        0.2,
+        "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)",
+        exclusive_minimum=0,
+    )
+    extrap_points: int = setting(
+        10, "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)", minimum=1
+    )
+    num_time_windows: int = setting(
+        50, "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)", minimum=1
+    )
+    max_gaussians_per_epoch: int = setting(
+        50000,
+        "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)",
+        minimum=1,
+    )
+    batch_size: int = setting(
+        1024,
+        "model -- configs/config_DNerf_default.yaml `model:` (D-NeRF, the MoGaF paper's comparison set)",
+        minimum=1,
+    )
+    # train -- config_DNerf_default.yaml `train:` / `scheduler:`
+    epochs: int = setting(40, "train -- config_DNerf_default.yaml `train:` / `scheduler:`", minimum=0)
+    lr: float = setting(1e-3, "Adam (train_extrapolation.py passes no weight decay)")
+    lr_min: float = setting(1e-5, "CosineAnnealingLR eta_min, T_max = 40 = epochs")
+    reg_weight: float = setting(1e-5, "latent second-derivative regulariser")
+    xyz_reg_weight: float = setting(1e-3, "xyz acceleration regulariser")
+    reg_temperature: float = setting(0.05, "train -- config_DNerf_default.yaml `train:` / `scheduler:`")
+    expected_traj_loss_init: float = setting(0.05, "train -- config_DNerf_default.yaml `train:` / `scheduler:`")
+    expected_traj_loss_end: float = setting(0.0, "train -- config_DNerf_default.yaml `train:` / `scheduler:`")
+    reg_use_ema: bool = setting(True, "train -- config_DNerf_default.yaml `train:` / `scheduler:`")
+    reg_ema_decay: float = setting(0.9, "train -- config_DNerf_default.yaml `train:` / `scheduler:`")
+    # runtime
+    num_threads: int = setting(0, "0 = leave torch's intra-op thread count alone")
+    rollout_chunk: int = setting(4096, "Gaussians per solve at inference", minimum=1)
+
+
+ODE_DEFAULTS: dict[str, Any] = defaults(ODESettings)
+
+
+METHODS: tuple[str, ...] = ("mogaf", "mogaf_paper", "gcn", "ode", "constant_velocity", "frozen")
+# each method's settings (constant_velocity and frozen take none)
+METHOD_SETTINGS: dict[str, type] = {
+    "mogaf": MogafSettings,
+    "mogaf_paper": MogafSettings,
+    "gcn": GCNSettings,
+    "ode": ODESettings,
+}
+
+# Methods whose settings live in another method's config section, the
+# settings they fix whatever that section says, and those of the section they
+# do not read (so changing those reruns nothing of theirs).
+PARAM_SECTIONS: dict[str, str] = {"mogaf_paper": "mogaf"}
+FIXED_PARAMS: dict[str, dict[str, Any]] = {"mogaf_paper": {"mode": "paper"}}
+UNREAD_PARAMS: dict[str, tuple[str, ...]] = {"mogaf_paper": ("structured",)}
+
+
+def section_params(method: str, section: Mapping[str, Any] | None) -> dict[str, Any]:
+    """What `method` reads of its config section (forecast.<param_section(method)>)."""
+    unread = UNREAD_PARAMS.get(method, ())
+    return {**{k: v for k, v in dict(section or {}).items() if k not in unread}, **FIXED_PARAMS.get(method, {})}
+
+
+def param_section(method: str) -> str:
+    """The `forecast.<section>` holding `method`'s settings."""
+    return PARAM_SECTIONS.get(method, method)

@@ -1,0 +1,62 @@
+"""The forecasters by method name: make_forecaster, defaults, fit_and_rollout.
+
+The torch-backed modules (gcn, ode, transformer) import torch lazily, inside
+their functions, so importing this module stays cheap.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from mogaf.errors import MogafError
+from mogaf.forecast.base import Forecaster, ForecastResult
+from mogaf.forecast.classical import ConstantVelocity, Frozen
+from mogaf.forecast.gcn import GCNForecaster
+from mogaf.forecast.ode import LatentODEForecaster
+from mogaf.forecast.params import METHODS
+from mogaf.forecast.transformer import MoGaFForecaster, MoGaFPaperForecaster
+
+
+def _registry() -> dict[str, type[Forecaster]]:
+    return {
+        "mogaf": MoGaFForecaster,
+        "mogaf_paper": MoGaFPaperForecaster,
+        "gcn": GCNForecaster,
+        "ode": LatentODEForecaster,
+        "constant_velocity": ConstantVelocity,
+        "frozen": Frozen,
+    }
+
+
+def make_forecaster(method: str, params: Mapping[str, Any] | None = None, seed: int = 0) -> Forecaster:
+    reg = _registry()
+    if method not in reg:
+        raise MogafError(f"forecast: unknown method '{method}' (choose from {', '.join(METHODS)})")
+    return reg[method](params, seed)
+
+
+def defaults(method: str) -> dict[str, Any]:
+    """A copy of the method's DEFAULTS."""
+    reg = _registry()
+    if method not in reg:
+        raise MogafError(f"forecast: unknown method '{method}' (choose from {', '.join(METHODS)})")
+    return dict(reg[method].DEFAULTS)
+
+
+def fit_and_rollout(
+    method: str,
+    observed: np.ndarray,
+    n_steps: int,
+    params: Mapping[str, Any] | None = None,
+    seed: int = 0,
+    rigid: bool | None = None,
+) -> ForecastResult:
+    """Fit `method` on one group's observed poses and roll out n_steps.
+    `rigid`: the grouping's rigid flag of the group (None: unknown)."""
+    fc = make_forecaster(method, params, seed)
+    fc.fit(observed, rigid=rigid)
+    poses = fc.rollout(n_steps)
+    return ForecastResult(poses=poses, info=dict(fc.info))

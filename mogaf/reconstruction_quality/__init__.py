@@ -1,0 +1,33 @@
+"""Stage reconstruction_quality (-> reconstruction_quality/{refined,recon}.h5):
+the 4D model's image quality at held-out views at observed times.
+
+Its own stage, not part of evaluation, so that the variants forecasting from
+one model (e.g. every forecaster ablation) render these views once. It reads
+the model the forecasts start from (refined.h5, or recon.h5 without
+refinement), the split and scene.h5's "evaluation_observed" frames: held-out
+cameras, observed times only, so no future frame is opened.
+
+reconstruction_quality/{model}.h5 (stage "reconstruction_quality"):
+  frame_ids (F,) int64     scene frames rendered (evenly spaced, at most max_frames)
+  timesteps (F,) int64     their time steps
+  attrs: params (JSON), heldout_observed (JSON: mean PSNR and SSIM, and for
+    the iPhone protocol mPSNR and mSSIM over the co-visible pixels; a frame
+    whose value is not finite, e.g. a perfect render, is left out of a mean)
+metrics.json["reconstruction"] copies it: {"heldout_observed": ..., "num_frames": F},
+or {} where the split has no held-out view at an observed step.
+
+Modules: params (DEFAULT_PARAMS), measure (the metrics), stage (the
+artefact).
+"""
+
+from .measure import measure_reconstruction_quality
+from .params import DEFAULT_PARAMS, RECONSTRUCTION_QUALITY_STAGE
+from .stage import read_reconstruction_quality, run_reconstruction_quality_stage
+
+__all__ = [
+    "DEFAULT_PARAMS",
+    "RECONSTRUCTION_QUALITY_STAGE",
+    "measure_reconstruction_quality",
+    "read_reconstruction_quality",
+    "run_reconstruction_quality_stage",
+]

@@ -1,0 +1,49 @@
+"""The reconstruction_quality stage: writing and reading reconstruction_quality/{model}.h5."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..artefact import config_digest, read_artefact, write_artefact
+from ..errors import input_error
+from ..metrics import mean_metrics
+from ..split import read_split
+from .measure import measure_reconstruction_quality
+from .params import RECONSTRUCTION_QUALITY_STAGE, _resolve
+
+
+def run_reconstruction_quality_stage(
+    model_h5: str | os.PathLike,
+    scene_h5: str | os.PathLike,
+    split_h5: str | os.PathLike,
+    out: str | os.PathLike,
+    params: Mapping[str, Any] | None = None,
+) -> Path:
+    p = _resolve(params)
+    measured = measure_reconstruction_quality(model_h5, scene_h5, read_split(split_h5), p)
+    data = {"frame_ids": measured["frame_ids"], "timesteps": measured["timesteps"]}
+    attrs = {"params": p, "heldout_observed": mean_metrics(measured["per_frame"])}
+    return write_artefact(out, RECONSTRUCTION_QUALITY_STAGE, data, config_digest=config_digest(p), attrs=attrs)
+
+
+def read_reconstruction_quality(path: str | os.PathLike) -> dict[str, Any]:
+    """The section metrics.json["reconstruction"] carries."""
+    art = read_artefact(path, RECONSTRUCTION_QUALITY_STAGE, required=("frame_ids", "timesteps"))
+    means = art.attrs.get("heldout_observed")
+    if not isinstance(means, dict) or not all(isinstance(v, (int, float)) for v in means.values()):
+        raise input_error(path, "attribute 'heldout_observed' is not a mapping of metric means (corrupted artefact)")
+    num_frames = int(np.asarray(art["frame_ids"]).size)
+    if np.asarray(art["timesteps"]).shape != (num_frames,):
+        raise input_error(
+            path,
+            f"entry 'timesteps' has shape {np.asarray(art['timesteps']).shape}, "
+            f"but {num_frames} frame(s) were rendered (corrupted artefact)",
+        )
+    if num_frames == 0:
+        return {}
+    return {"heldout_observed": {k: float(v) for k, v in means.items()}, "num_frames": num_frames}

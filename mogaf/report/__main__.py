@@ -1,0 +1,52 @@
+"""`python -m mogaf.report glance METRICS.json... [--write FILE | --check FILE]`.
+
+glance: print the results-at-a-glance table (mogaf.report.glance) made from
+metrics.json files; --write puts it between the `<!-- glance:start -->` and
+`<!-- glance:end -->` markers of a Markdown file (the README), --check exits 1
+when that section differs from what the files give.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ..errors import MogafError
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m mogaf.report", description=__doc__.split("\n\n")[1])
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("glance", help="results-at-a-glance table (method x PSNR / LPIPS / mPSNR / tracking EPE)")
+    p.add_argument("metrics", nargs="+", help="metrics.json files (written by the evaluate stage)")
+    out = p.add_mutually_exclusive_group()
+    out.add_argument("--write", metavar="FILE", help="rewrite FILE's section between the glance markers")
+    out.add_argument("--check", metavar="FILE", help="exit 1 if FILE's glance section differs from the table")
+    args = parser.parse_args(argv)
+
+    from .glance import glance, section_matches, write_section
+
+    try:
+        block = glance(args.metrics)
+        if args.write:
+            changed = write_section(args.write, block)
+            print(f"{args.write}: glance section {'rewritten' if changed else 'already up to date'}")
+        elif args.check:
+            if not section_matches(args.check, block):
+                print(
+                    f"{args.check}: glance section differs from {', '.join(args.metrics)}; "
+                    f"rewrite it with: python -m mogaf.report glance {' '.join(args.metrics)} --write {args.check}",
+                    file=sys.stderr,
+                )
+                return 1
+            print(f"{args.check}: glance section up to date")
+        else:
+            sys.stdout.write(block)
+    except MogafError as exc:
+        print(f"mogaf.report: error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

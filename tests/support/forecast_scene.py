@@ -1,0 +1,112 @@
+"""Forecast-stage inputs with known motion, written with the library's own writers.
+
+A scene.h5 of tiny blank frames (T = 8 time steps, RATIO 0.5: steps 0-3
+observed, 4-7 forecast) with ground-truth 3D points riding on the rigid
+group, its split.h5, and a refine-stage model whose N = 30 foreground
+Gaussians have known trajectories, in three groups of N_PER:
+  STATIC    never move
+  RIGID     one common constant velocity (RIGID_VELOCITY)
+  NONRIGID  each its own constant velocity and a fixed random orientation
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from mogaf.representation import GaussianSet, Model4D, save_model
+from mogaf.scene import SPLIT_CODES, Scene, save_scene
+from mogaf.split import split_scene, write_split
+
+T, RATIO = 8, 0.5
+T_OBS = 4
+N_PER = 10
+N = 3 * N_PER
+STATIC, RIGID, NONRIGID = 0, 1, 2
+RIGID_VELOCITY = np.array([0.1, 0.05, -0.02])
+
+
+def members(k: int) -> np.ndarray:
+    return np.arange(k * N_PER, (k + 1) * N_PER)
+
+
+def world(seed: int = 0):
+    """Positions (N, T, 3) and orientations (N, 4) over the full time grid."""
+    rng = np.random.default_rng(seed)
+    centres = np.array([[-5.0, 0.0, 0.0], [0.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
+    start = np.concatenate([c + rng.uniform(-0.3, 0.3, size=(N_PER, 3)) for c in centres])
+    velocity = np.zeros((N, 3))
+    velocity[members(RIGID)] = RIGID_VELOCITY
+    velocity[members(NONRIGID)] = rng.uniform(-0.2, 0.2, size=(N_PER, 3))
+    pos = start[:, None, :] + velocity[:, None, :] * np.arange(T)[None, :, None]
+    quats = np.tile([1.0, 0.0, 0.0, 0.0], (N, 1))
+    q = rng.normal(size=(N_PER, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    quats[members(NONRIGID)] = q * np.sign(q[:, :1])
+    return pos, quats, velocity
+
+
+def write_scene(folder: Path, *, with_gt: bool) -> tuple[Path, Path]:
+    pos, _, _ = world()
+    names, K, w2c, time, tidx, cams, splits = [], [], [], [], [], [], []
+    for t in range(T):
+        for cam in (0, 1):
+            names.append(f"{cam}_{t:05d}")
+            K.append([[10.0, 0, 2], [0, 10.0, 2], [0, 0, 1]])
+            m = np.eye(4)
+            m[:3, 3] = [0.1 * cam, 0.0, 10.0]
+            w2c.append(m)
+            time.append(t / (T - 1))
+            tidx.append(t)
+            cams.append(cam)
+            splits.append(SPLIT_CODES["train"] if cam == 0 else SPLIT_CODES["val"])
+    F = len(names)
+    gt = {}
+    if with_gt:
+        # surface points riding exactly on the rigid group's Gaussians
+        gt = {"points3d": pos[members(RIGID)].astype(np.float64) + np.array([0.01, 0.0, 0.0])}
+    scene = Scene(
+        dataset="test",
+        name="fc",
+        layout="iphone",
+        frame_names=names,
+        images=np.zeros((F, 4, 4, 3), np.uint8),
+        K=np.array(K),
+        w2c=np.array(w2c),
+        time=np.array(time),
+        time_index=np.array(tidx),
+        num_timesteps=T,
+        camera_id=np.array(cams),
+        source_split=np.array(splits, np.int8),
+        ground_truth=gt,
+        meta={"background": [1.0, 1.0, 1.0]},
+    )
+    folder.mkdir(parents=True, exist_ok=True)
+    scene_h5 = save_scene(folder / "scene.h5", scene, config_digest="fc-test")
+    split_h5 = write_split(folder / "split.h5", split_scene(scene_h5, RATIO))
+    return scene_h5, split_h5
+
+
+def write_model(path: Path, observed_timesteps: np.ndarray) -> Path:
+    pos, quats, _ = world()
+    steps = np.asarray(observed_timesteps)
+    Tm = steps.size
+    rng = np.random.default_rng(1)
+    fg = GaussianSet(
+        means=pos[:, 0].astype(np.float32),
+        quats=quats.astype(np.float32),
+        log_scales=np.full((N, 3), -3.0, np.float32),
+        opacity_logits=np.zeros(N, np.float32),
+        color_logits=rng.normal(size=(N, 3)).astype(np.float32),
+    )
+    model = Model4D(
+        fg=fg,
+        motion_coef_logits=np.zeros((N, 1), np.float32),
+        rot6d=np.tile(np.array([1.0, 0, 0, 0, 1, 0], np.float32), (1, Tm, 1)),
+        translations=np.zeros((1, Tm, 3), np.float32),
+        timesteps=steps.astype(np.int64),
+        trajectory_means=pos[:, steps].astype(np.float32),
+        trajectory_quats=np.repeat(quats[:, None], Tm, axis=1).astype(np.float32),
+    )
+    return save_model(path, "refine", model, config_digest="fc-test")

@@ -1,0 +1,96 @@
+"""Typed settings (mogaf.settings): each default defined once, checked, documented."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+import pytest
+
+from mogaf import settings
+from mogaf.config import with_defaults
+from mogaf.errors import MogafError
+from support.paths import REPO
+
+
+@dataclasses.dataclass(frozen=True)
+class Toy:
+    steps: int = settings.setting(10, "ours", minimum=1)
+    rate: float = settings.setting(0.5, "paper", exclusive_minimum=0, exclusive_maximum=1)
+    mode: Literal["a", "b"] = settings.setting("a")
+    flag: bool = settings.setting(True)
+    limit: int | None = settings.setting(None)
+    sizes: list = settings.setting([1, 2])
+    seed: int = settings.setting(0, injected=True)
+
+
+def test_defaults_are_fresh_copies():
+    first = settings.defaults(Toy)
+    first["sizes"].append(3)
+    assert settings.defaults(Toy)["sizes"] == [1, 2]
+    assert list(first) == ["steps", "rate", "mode", "flag", "limit", "sizes", "seed"]
+
+
+def test_check_fills_converts_and_refuses():
+    out = settings.check(Toy, "toy", {"steps": 4.0, "limit": None})
+    assert out["steps"] == 4 and type(out["steps"]) is int and out["limit"] is None
+    assert out["rate"] == 0.5 and out["mode"] == "a" and out["seed"] == 0
+    for bad, words in [
+        ({"step": 1}, "unknown parameter(s) step"),
+        ({"steps": 0}, "'steps' must be at least 1"),
+        ({"steps": 1.5}, "'steps' must be an integer"),
+        ({"rate": 0}, "greater than 0"),
+        ({"rate": 1.0}, "less than 1"),
+        ({"mode": "c"}, "one of a, b"),
+        ({"flag": 1}, "true or false"),
+        ({"sizes": "x"}, "must be a list"),
+        ({"steps": True}, "must be an integer"),
+    ]:
+        with pytest.raises(MogafError, match=words.replace("(", r"\(").replace(")", r"\)")):
+            settings.check(Toy, "toy", bad)
+    with pytest.raises(MogafError, match="must be a mapping"):
+        settings.check(Toy, "toy", ["steps"])
+
+
+def test_load_gives_a_frozen_instance():
+    toy = settings.load(Toy, "toy", {"steps": 3})
+    assert toy.steps == 3 and toy.mode == "a"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        toy.steps = 4
+
+
+def test_section_schema_follows_the_fields():
+    schema = settings.section_schema(Toy)
+    props = schema["properties"]
+    assert schema["additionalProperties"] is False and "seed" not in props
+    assert props["steps"] == {"type": "integer", "minimum": 1, "description": "ours"}
+    assert props["rate"]["exclusiveMinimum"] == 0 and props["rate"]["exclusiveMaximum"] == 1
+    assert props["mode"]["enum"] == ["a", "b"] and props["limit"]["type"] == ["integer", "null"]
+    assert props["sizes"]["type"] == "array"
+
+
+@pytest.mark.parametrize("path", list(settings.SECTIONS))
+def test_every_setting_has_a_source_and_a_schema(path):
+    cls = settings.section_class(path)
+    assert dataclasses.is_dataclass(cls) and cls.__dataclass_params__.frozen
+    schema = settings.section_schema(cls)
+    for name, _default, source in settings.describe(cls):
+        field = next(f for f in dataclasses.fields(cls) if f.name == name)
+        if field.metadata.get("injected"):
+            continue
+        assert source, f"{path}.{name} has no source"
+        assert name in schema["properties"]
+    # the defaults pass their own check
+    assert settings.check(cls, path, {}) == settings.defaults(cls)
+
+
+def test_with_defaults_fills_every_section_and_keeps_given_values():
+    cfg = with_defaults({"recon": {"iterations": 7}, "forecast": {"methods": ["frozen"]}})
+    assert cfg["recon"]["iterations"] == 7 and cfg["recon"]["num_bases"] == 10
+    assert cfg["forecast"]["methods"] == ["frozen"] and cfg["forecast"]["mogaf"]["structured"]["context"] == 16
+    assert "seed" not in cfg["priors"] and "device" not in cfg["recon"]
+
+
+def test_config_readme_is_current():
+    text = (REPO / "config" / "README.md").read_text()
+    assert text.strip() == settings.markdown().strip(), "run: python -m mogaf.settings --markdown > config/README.md"
