@@ -236,7 +236,10 @@ SECTIONS: dict[str, tuple[str, str]] = {
         "mogaf.reconstruction_quality.params:ReconstructionQualitySettings",
         "reconstruction_quality",
     ),
+    # one entry per scene name, over its preset: no defaults of its own in the config tree
+    "synthetic.<scene>": ("mogaf.synth.params:SyntheticSettings", "synthetic_scene"),
 }
+PER_NAME = "<scene>"  # a path part standing for any key (the config's scene names)
 
 
 def section_class(path: str) -> type:
@@ -251,7 +254,7 @@ def section_defaults() -> dict[str, Any]:
     """Every stage section's defaults as a config tree (injected keys left out)."""
     tree: dict[str, Any] = {}
     for path, (_, name) in SECTIONS.items():
-        if not name:  # nested in another section, whose defaults hold it
+        if not name or PER_NAME in path:  # nested in another section, or one entry per name
             continue
         cls = section_class(path)
         node = tree
@@ -270,6 +273,12 @@ def workflow_schema(schema: Mapping[str, Any]) -> dict[str, Any]:
     out["definitions"] = {
         **dict(schema.get("definitions") or {}),
         **{name: section_schema(section_class(path)) for path, (_, name) in SECTIONS.items() if name},
+    }
+    # a synthetic scene names its preset besides the generator settings
+    scene = out["definitions"]["synthetic_scene"]
+    scene["properties"] = {
+        "preset": {"type": "string", "description": "mogaf.synth.params.PRESETS"},
+        **scene["properties"],
     }
     return out
 
