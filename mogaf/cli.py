@@ -20,9 +20,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from . import config as mcfg
 from . import registry, stages
 from .errors import MogafError
+from .metrics.lpips import convert_lpips_sdist
 from .paths import use_cache_dir
+from .report.tables import main_table_paths
+from .schema import config_error, load_config_schema
 
 # subcommand -> (function, {cli option: function argument}, config section or
 # None), for the stages whose subcommand takes path options only; from the registry.
@@ -43,8 +47,6 @@ DEVICE = {"recon", "refine"}
 
 
 def _config_for(args: argparse.Namespace) -> dict[str, Any]:
-    from . import config as mcfg
-
     cfg = mcfg.load_yaml(args.configfile)
     variants = (
         mcfg.load_yaml(cfg.get("ablations_file", "config/ablations.yaml")).get("variants", {}) if args.variant else {}
@@ -71,8 +73,6 @@ def _validate(cfg: dict[str, Any], configfile: str) -> None:
         import jsonschema  # noqa: F401
     except ImportError:  # the `workflow` extra is not installed; the stages check their own parameters
         return
-    from .schema import config_error, load_config_schema
-
     error = config_error(cfg, load_config_schema(schema), [(configfile, cfg)])
     if error is not None:
         raise error
@@ -141,8 +141,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _run(args: argparse.Namespace) -> int:
     if args.command == "lpips-convert":
-        from .metrics.lpips import convert_lpips_sdist
-
         convert_lpips_sdist(args.sdist, args.out)
         return 0
     if args.command in ("forecast", "evaluate", "tables"):
@@ -168,8 +166,6 @@ def _run(args: argparse.Namespace) -> int:
             )
         kwargs["params"] = scenes[args.scene]
     if args.command == "ingest":
-        from . import config as mcfg
-
         if not (args.dataset and args.scene):
             raise MogafError("ingest needs --dataset and --scene")
         kwargs.update(
@@ -231,9 +227,6 @@ def _run_extra(args: argparse.Namespace) -> int:
             ids=ids,
         )
     else:
-        from . import config as mcfg
-        from .report.tables import main_table_paths
-
         stages.run_stage(
             stages.tables,
             None,

@@ -22,6 +22,7 @@ from typing import Any
 
 from . import registry
 from .errors import MogafError
+from .forecast.params import param_section, section_params
 from .settings import section_defaults
 
 # The stage graph (which config sections and upstream stages determine each
@@ -146,8 +147,6 @@ def _stage_value(stage: str, config: Mapping[str, Any], key: str) -> Any:
         and key.count(".") == 1
         and isinstance(value, Mapping)
     ):
-        from .forecast import param_section, section_params
-
         method = stage.split(":", 1)[1]
         if key == f"forecast.{param_section(method)}":
             return section_params(method, value)
@@ -156,8 +155,6 @@ def _stage_value(stage: str, config: Mapping[str, Any], key: str) -> Any:
 
 def _sections(stage: str, config: Mapping[str, Any]) -> tuple[str, ...]:
     if stage.startswith("forecast:"):
-        from .forecast import param_section
-
         method = stage.split(":", 1)[1]
         return ("seed", "forecast.input", "forecast.groupwise", "forecast.common", f"forecast.{param_section(method)}")
     return STAGE_SECTIONS[stage]

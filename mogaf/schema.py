@@ -17,6 +17,7 @@ from typing import Any
 
 from .config import load_yaml
 from .errors import MogafError
+from .settings import workflow_schema
 
 MAX_MESSAGE = 240  # characters of jsonschema's message kept (it may quote a whole section)
 
@@ -89,7 +90,4 @@ def file_layers(paths: Sequence[str | os.PathLike]) -> list[tuple[str, Mapping[s
 def load_config_schema(path: str | os.PathLike) -> dict[str, Any]:
     """config/schema.yaml with the stage sections' definitions generated from
     their settings dataclasses (mogaf.settings): the schema every config is checked against."""
-    from .config import load_yaml  # local: mogaf.config imports this module's neighbours at load
-    from .settings import workflow_schema
-
     return workflow_schema(load_yaml(path))

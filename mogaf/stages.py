@@ -136,7 +136,7 @@ def _check_synthetic_target(out_dir: str) -> None:
 
 # ------------------------------------------------------------------ stages
 def synthesize(out_dir: str, params: Mapping[str, Any]) -> Path:
-    from .synth import generate_scene
+    from .synth import generate_scene  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out_dir}, directories=("out",))
     _check_synthetic_target(out_dir)
@@ -144,8 +144,8 @@ def synthesize(out_dir: str, params: Mapping[str, Any]) -> Path:
 
 
 def ingest(folder: str, out: str, layout: str, options: Mapping[str, Any], dataset: str, scene: str) -> Path:
-    from .datasets import read_scene
-    from .scene import save_scene
+    from .datasets import read_scene  # local: a stage's package (and torch) loads only when it runs
+    from .scene import save_scene  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out}, [folder], folders=[folder])
     scene_model = read_scene(layout, Path(folder), dataset=dataset, scene=scene, options=dict(options))
@@ -155,7 +155,11 @@ def ingest(folder: str, out: str, layout: str, options: Mapping[str, Any], datas
 
 
 def split(scene: str, out: str, ratio: str | float) -> Path:
-    from .split import check_ratio, split_scene, write_split
+    from .split import (  # local: a stage's package (and torch) loads only when it runs
+        check_ratio,
+        split_scene,
+        write_split,
+    )
 
     check_outputs({"out": out}, [scene])
     try:
@@ -170,7 +174,7 @@ def split(scene: str, out: str, ratio: str | float) -> Path:
 
 
 def priors(scene: str, split: str, out: str, params: Mapping[str, Any], seed: int) -> Path:
-    from .priors import run_priors_stage
+    from .priors import run_priors_stage  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out}, [scene, split])
     with stage_inputs(scene, split):
@@ -187,7 +191,7 @@ def recon(
     device: str = "auto",
     checkpoint: str | None = None,
 ) -> Path:
-    from .recon import run_recon_stage
+    from .recon import run_recon_stage  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out, "checkpoint": checkpoint}, [scene, split, priors])
     with stage_inputs(scene, split, priors):
@@ -197,7 +201,7 @@ def recon(
 
 
 def group(model: str, priors: str, scene: str, out: str, params: Mapping[str, Any], seed: int = 0) -> Path:
-    from .grouping import run_group_stage
+    from .grouping import run_group_stage  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out}, [model, priors, scene])
     with stage_inputs(model, priors, scene):
@@ -205,7 +209,7 @@ def group(model: str, priors: str, scene: str, out: str, params: Mapping[str, An
 
 
 def rigid_init(model: str, groups: str, out: str, params: Mapping[str, Any]) -> Path:
-    from .grouping import run_rigid_init_stage
+    from .grouping import run_rigid_init_stage  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out}, [model, groups])
     with stage_inputs(model, groups):
@@ -226,7 +230,7 @@ def refine(
     device: str = "auto",
     checkpoint: str | None = None,
 ) -> Path:
-    from .refine import run_refine_stage
+    from .refine import run_refine_stage  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out, "checkpoint": checkpoint}, [model, groups, rigid, priors, scene, split])
     with stage_inputs(model, groups, rigid, priors, scene, split):
@@ -249,7 +253,7 @@ def refine(
 def forecast_group(
     model: str, groups: str, split: str, out: str, params: Mapping[str, Any], method: str, group: str, seed: int
 ) -> Path:
-    from .forecast.stage import run_forecast_group
+    from .forecast.stage import run_forecast_group  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out}, [model, groups, split])
     with stage_inputs(model, groups, split):
@@ -267,7 +271,7 @@ def forecast_merge(
     method: str,
     seed: int = 0,
 ) -> Path:
-    from .forecast.stage import run_forecast_merge
+    from .forecast.stage import run_forecast_merge  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out}, [model, groups, split, *parts])
     with stage_inputs(model, groups, split, *parts):
@@ -278,7 +282,9 @@ def forecast_merge(
 def grouping_quality(
     grouped_model: str, groups: str, scene: str, split: str, out: str, params: Mapping[str, Any]
 ) -> Path:
-    from .grouping.quality import run_grouping_quality_stage
+    from .grouping.quality import (
+        run_grouping_quality_stage,  # local: a stage's package (and torch) loads only when it runs
+    )
 
     check_outputs({"out": out}, [grouped_model, groups, scene, split])
     with stage_inputs(grouped_model, groups, scene, split):
@@ -287,7 +293,9 @@ def grouping_quality(
 
 
 def reconstruction_quality(model: str, scene: str, split: str, out: str, params: Mapping[str, Any]) -> Path:
-    from .reconstruction_quality import run_reconstruction_quality_stage
+    from .reconstruction_quality import (
+        run_reconstruction_quality_stage,  # local: a stage's package (and torch) loads only when it runs
+    )
 
     check_outputs({"out": out}, [model, scene, split])
     with stage_inputs(model, scene, split):
@@ -309,7 +317,7 @@ def evaluate(
     variant: str,
     ids: Mapping[str, str],
 ) -> Path:
-    from .evaluate import run_evaluate_stage
+    from .evaluate import run_evaluate_stage  # local: a stage's package (and torch) loads only when it runs
 
     # groups.h5 is read for its lineage only: the forecasts, the model and the
     # grouping's quality must all come from this one grouping, and the
@@ -347,7 +355,7 @@ def evaluate(
 def tables(
     metrics_files: list[str], out_files: list[str], params: Mapping[str, Any], ablations: Mapping[str, Any]
 ) -> list[Path]:
-    from .report.tables import write_tables
+    from .report.tables import write_tables  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({f"table {i}": f for i, f in enumerate(out_files)}, metrics_files)
     return write_tables(metrics_files, out_files, dict(params), dict(ablations))
@@ -356,7 +364,7 @@ def tables(
 def runtime_report(
     metrics_files: list[str], out_csv: str, out_md: str, out_png: str, params: Mapping[str, Any]
 ) -> list[Path]:
-    from .report.runtime import write_runtime_report
+    from .report.runtime import write_runtime_report  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"csv": out_csv, "md": out_md, "png": out_png}, metrics_files)
     return write_runtime_report(metrics_files, out_csv, out_md, out_png, dict(params))

@@ -12,6 +12,7 @@ import argparse
 import sys
 
 from ..errors import MogafError
+from .glance import glance, section_matches, write_section
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -23,8 +24,6 @@ def main(argv: list[str] | None = None) -> int:
     out.add_argument("--write", metavar="FILE", help="rewrite FILE's section between the glance markers")
     out.add_argument("--check", metavar="FILE", help="exit 1 if FILE's glance section differs from the table")
     args = parser.parse_args(argv)
-
-    from .glance import glance, section_matches, write_section
 
     try:
         block = glance(args.metrics)

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from ..artefact import atomic_path
+from ..forecast import METHODS, defaults
 from . import NO_RESULT, load_metrics
 
 # A cell whose result does not exist, among cells that have one.
@@ -221,8 +222,6 @@ def budget_differences(result: dict[str, Any], method: str) -> dict[str, tuple[A
     params = (result.get("methods", {}).get(method, {}).get("forecast") or {}).get("params")
     if not params:
         return {}
-    from ..forecast import METHODS, defaults
-
     if method not in METHODS:
         return {}
     ref = defaults(method)
