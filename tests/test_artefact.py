@@ -142,7 +142,7 @@ def test_killed_writer_leaves_no_artefact(tmp_path):
     code = textwrap.dedent(
         f"""
         import os, signal, numpy as np
-        import mogaf.artefact as A
+        import mogaf.artefact.writer as A
         real = A._write_tree
         def slow(group, data, path, prefix="", content=None):
             real(group, data, path, prefix, content)

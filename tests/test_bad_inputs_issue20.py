@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 import yaml
 
-from mogaf import artefact, cli, stages
-from mogaf.artefact import write_artefact, write_json
+from mogaf import cli, stages
+from mogaf.artefact import atomic, write_artefact, write_json
 from mogaf.datasets import read_scene
 from mogaf.datasets.common import DatasetWarning
 from mogaf.errors import MogafError
@@ -233,7 +233,7 @@ def test_full_file_system_is_refused_before_anything_is_opened(tmp_path, monkeyp
         )
     )
     fields.update(f_bfree=0, f_bavail=0)
-    monkeypatch.setattr(artefact.os, "statvfs", lambda path: os.statvfs_result(tuple(fields.values())))
+    monkeypatch.setattr(atomic.os, "statvfs", lambda path: os.statvfs_result(tuple(fields.values())))
     out = tmp_path / "a.h5"
     msg = _fails(write_artefact, out, "test", {"x": np.zeros(3)}, config_digest="d")
     assert msg == f"{out}: cannot be written: no space left on device (0 bytes free there); free some space and rerun"
@@ -244,7 +244,7 @@ def test_full_disk_writing_json_is_one_line(tmp_path, monkeypatch):
     def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(artefact.json, "dump", full)
+    monkeypatch.setattr(atomic.json, "dump", full)
     out = tmp_path / "metrics.json"
     assert "no space left on device" in _fails(write_json, out, {"a": 1})
     assert list(tmp_path.iterdir()) == []

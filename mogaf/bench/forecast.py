@@ -21,7 +21,7 @@ an hour (GCN: 2001 epochs of a 6-block GCN over 100 control points) and 5-33 min
 Gaussian) pair of a 256-Gaussian set, 36-72 observed frames) per group on one
 loaded CPU core; --json with
 --resume keeps finished rows across runs. The default --budget cpu shortens only their
-epochs (REDUCED below) and marks them with '*' in the table; MoGaF always runs
+epochs (REDUCED in _forecast_report.py) and marks them with '*' in the table; MoGaF always runs
 at its defaults.
 
 --from-json A.json B.json ... runs nothing and prints one Markdown comparison
@@ -34,9 +34,7 @@ from __future__ import annotations
 
 import argparse
 import fnmatch
-import importlib
 import json
-import math
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -49,14 +47,25 @@ from mogaf.artefact import atomic_path
 from mogaf.errors import MogafError
 from mogaf.forecast import METHODS, fit_and_rollout, quat
 from mogaf.forecast.synthetic import TRAJECTORY_SETS
-from mogaf.paths import cache_dir
 
-# Shortened training of the baselines for a CPU run (--budget cpu).
-REDUCED: dict[str, dict[str, Any]] = {
-    "gcn": {"epochs": 60},  # of 2001
-    "ode": {"epochs": 2, "max_gaussians_per_epoch": 1024},  # of 40 epochs over all Gaussians
-}
-TORCH_METHODS = ("mogaf", "mogaf_paper", "gcn", "ode")
+from ._forecast_report import (  # noqa: F401  (read_rows, summary_table, per_step_table re-exported)
+    REDUCED,
+    TORCH_METHODS,
+    comparison_table,
+    format_table,
+    markdown_report,
+    per_step_table,
+    read_rows,
+    summary_table,
+)
+from ._forecast_sources import (  # noqa: F401  (the synthetic_* --source functions re-exported)
+    _load_source,
+    synthetic_articulated,
+    synthetic_bounce,
+    synthetic_default,
+    synthetic_hard,
+    synthetic_scene_sets,
+)
 
 
 def split(traj: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
@@ -164,256 +173,6 @@ def run_benchmark(
                 evaluate_trajectories(traj, ratio, todo, params, seed, report)
             rows.extend(fresh.get(m) or finished[(name, float(ratio), m)] for m in methods)
     return rows
-
-
-def format_table(rows: Sequence[Mapping[str, Any]], reduced: Mapping[str, Mapping[str, Any]] | None = None) -> str:
-    """A text table; `reduced` maps shortened methods to the settings used."""
-    reduced = reduced or {}
-    head = f"{'set':<18} {'ratio':>5} {'method':<19} {'EPE':>9} {'rot(deg)':>9} {'train s':>8}  flags"
-    lines = [head, "-" * len(head)]
-    for r in rows:
-        name = r["method"] + ("*" if r["method"] in reduced else "")
-        lines.append(
-            f"{r['set']:<18} {r['ratio']:>5.2f} {name:<19} {r['epe']:>9.4f} {r['rot_err_deg']:>9.2f} "
-            f"{r['train_s']:>8.1f}  {','.join(r['flags'])}"
-        )
-    if reduced:
-        lines.append("* shortened training (--budget cpu): " + "; ".join(f"{m}: {p}" for m, p in reduced.items()))
-    return "\n".join(lines)
-
-
-def read_rows(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """(header, rows) of a --json file written by this benchmark."""
-    try:
-        doc = json.loads(Path(path).read_text())
-        rows = [dict(r) for r in doc["rows"]]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise MogafError(f"{path}: not a forecast benchmark file ({exc})") from None
-    for i, r in enumerate(rows):
-        missing = [k for k in ("set", "ratio", "method", "epe", "train_s") if k not in r]
-        if missing:
-            raise MogafError(f"{path}: row {i} has no {', '.join(missing)}")
-    return {k: v for k, v in doc.items() if k != "rows"}, rows
-
-
-def _same_number(a: float, b: float) -> bool:
-    return a == b or (math.isnan(a) and math.isnan(b))
-
-
-def comparison_table(paths: Sequence[str | Path]) -> str:
-    """One Markdown table from several --json files: a line per (set, ratio),
-    a future-EPE column per method (lowest in bold) and the training time of
-    the learned methods. A baseline from a --budget cpu file is its own column,
-    marked '*'. The same row in two files must agree."""
-    cells: dict[tuple[str, float], dict[str, dict[str, Any]]] = {}
-    origin: dict[tuple[str, float, str], str] = {}
-    shapes: dict[tuple[str, float], tuple[Any, Any]] = {}
-    columns: set[str] = set()
-    for path in paths:
-        header, rows = read_rows(Path(path))
-        if header.get("budget") not in ("cpu", "paper"):
-            raise MogafError(f"{path}: has no budget 'cpu' or 'paper' (written before budgets were recorded?)")
-        for r in rows:
-            key, method = (str(r["set"]), float(r["ratio"])), str(r["method"])
-            col = method + ("*" if header.get("budget") == "cpu" and method in REDUCED else "")
-            shape = (r.get("gaussians"), r.get("observed_frames"))
-            if shapes.setdefault(key, shape) != shape:
-                raise MogafError(
-                    f"{path}: {key[0]} ratio {key[1]} was scored on other trajectories than in an earlier file"
-                )
-            old = cells.setdefault(key, {}).get(col)
-            if old is not None and not _same_number(old["epe"], r["epe"]):
-                raise MogafError(
-                    f"{path}: {key[0]} ratio {key[1]} {col} has EPE {r['epe']:.6g}, "
-                    f"{origin[(*key, col)]} has {old['epe']:.6g}"
-                )
-            cells[key][col] = r
-            origin[(*key, col)] = str(path)
-            columns.add(col)
-    if not cells:
-        raise MogafError("bench forecast: the --from-json files hold no rows")
-    known = [c for m in METHODS for c in (m, m + "*")]
-    order = [c for c in known if c in columns] + sorted(columns - set(known))  # methods of other versions last
-    timed = [c for c in order if c.rstrip("*") in TORCH_METHODS]
-    head = ["set", "ratio"] + [f"{c} EPE" for c in order] + [f"{c} train s" for c in timed]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for (name, ratio), row in cells.items():
-        finite = [r["epe"] for r in row.values() if math.isfinite(r["epe"])]
-        best = min(finite) if finite else None
-        out = [name, f"{ratio:.2f}"]
-        for c in order:
-            r = row.get(c)
-            if r is None:
-                out.append("–")
-                continue
-            text = f"{r['epe']:.4f}" + (f" ({', '.join(r['flags'])})" if r.get("flags") else "")
-            out.append(f"**{text}**" if r["epe"] == best else text)
-        out += [f"{row[c]['train_s']:,.0f}" if c in row else "–" for c in timed]
-        lines.append("| " + " | ".join(out) + " |")
-    if any(c.endswith("*") for c in order):
-        lines.append("")
-        lines.append("\\* shortened training (--budget cpu): " + "; ".join(f"{m}: {REDUCED[m]}" for m in REDUCED))
-    return "\n".join(lines)
-
-
-def _cells(paths: Sequence[str | Path]) -> dict[tuple[str, float], dict[str, dict[str, Any]]]:
-    """(set, ratio) -> column -> row, columns named as in comparison_table
-    (a --budget cpu baseline is 'method*'); the files are checked there."""
-    cells: dict[tuple[str, float], dict[str, dict[str, Any]]] = {}
-    for path in paths:
-        header, rows = read_rows(Path(path))
-        for r in rows:
-            col = str(r["method"]) + ("*" if header.get("budget") == "cpu" and r["method"] in REDUCED else "")
-            cells.setdefault((str(r["set"]), float(r["ratio"])), {})[col] = r
-    return cells
-
-
-def summary_table(paths: Sequence[str | Path], against: Sequence[str] = ("constant_velocity", "frozen")) -> str:
-    """Per method: the mean future EPE over the rows every method in the table
-    has, and on how many of its rows it beats each reference in `against`."""
-    comparison_table(paths)  # the same checks (agreeing files)
-    cells = _cells(paths)
-    columns = sorted(
-        {c for row in cells.values() for c in row},
-        key=lambda c: (METHODS.index(c.rstrip("*")) if c.rstrip("*") in METHODS else 99, c),
-    )
-    shared = [k for k, row in cells.items() if all(c in row for c in columns)]
-    head = ["method", f"mean EPE ({len(shared)} rows with every method)"] + [f"beats {a}" for a in against]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    means = {c: float(np.mean([cells[k][c]["epe"] for k in shared])) if shared else math.nan for c in columns}
-    best = min((v for v in means.values() if math.isfinite(v)), default=None)
-    for c in columns:
-        out = [
-            c,
-            (f"**{means[c]:.4f}**" if means[c] == best else f"{means[c]:.4f}") if math.isfinite(means[c]) else "–",
-        ]
-        for a in against:
-            both = [k for k, row in cells.items() if c in row and a in row]
-            if c == a or not both:
-                out.append("–")
-                continue
-            wins = sum(cells[k][c]["epe"] < cells[k][a]["epe"] for k in both)
-            out.append(f"{wins} of {len(both)} ({100.0 * wins / len(both):.0f} %)")
-        lines.append("| " + " | ".join(out) + " |")
-    return "\n".join(lines)
-
-
-def per_step_table(paths: Sequence[str | Path], fractions: Sequence[float] = (0.0, 0.5, 1.0)) -> str:
-    """Future EPE at the first, middle and last forecast step of every row and
-    method that kept its per-step EPE: where a rollout goes wrong."""
-    cells = _cells(paths)
-    columns = sorted(
-        {c for row in cells.values() for c, r in row.items() if r.get("epe_per_step")},
-        key=lambda c: (METHODS.index(c.rstrip("*")) if c.rstrip("*") in METHODS else 99, c),
-    )
-    head = ["set", "ratio", "steps"] + [f"{c} EPE at steps" for c in columns]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for (name, ratio), row in cells.items():
-        n = max((len(r.get("epe_per_step") or []) for r in row.values()), default=0)
-        if not n:
-            continue
-        picks = sorted({min(n - 1, int(round(f * (n - 1)))) for f in fractions})
-        out = [name, f"{ratio:.2f}", " / ".join(str(i + 1) for i in picks)]
-        for c in columns:
-            steps = (row.get(c) or {}).get("epe_per_step") or []
-            out.append(" / ".join(f"{steps[i]:.4f}" for i in picks) if len(steps) == n else "–")
-        lines.append("| " + " | ".join(out) + " |")
-    return "\n".join(lines)
-
-
-def markdown_report(paths: Sequence[str | Path]) -> str:
-    """What --from-json --summary prints: the comparison table, the summary
-    (mean EPE, win counts) and the per-step EPE (docs/forecasting.md keeps it)."""
-    return "\n\n".join([comparison_table(paths), summary_table(paths), per_step_table(paths)])
-
-
-def _local_rotations(points: np.ndarray, k: int = 8) -> np.ndarray:
-    """(P, T, 4) wxyz rotation of each point's k-neighbourhood (nearest at
-    frame 0) from frame 0 to every frame: the best rigid fit, det = +1."""
-    from scipy.spatial import cKDTree
-
-    from mogaf.rigid import procrustes_numpy  # local: mogaf.rigid imports torch, which only this path needs
-
-    k = min(k + 1, points.shape[0])
-    _, nn = cKDTree(points[:, 0]).query(points[:, 0], k=k)
-    src = points[nn, 0][:, None]  # (P, 1, k, 3)
-    dst = points[nn].transpose(0, 2, 1, 3)  # (P, T, k, 3)
-    R, _ = procrustes_numpy(src, dst)
-    return quat.make_continuous(_matrix_to_quat(R), axis=1)
-
-
-def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    import torch
-
-    from mogaf.representation import (
-        matrix_to_quat,  # local: mogaf.representation imports torch, which only this path needs
-    )
-
-    return matrix_to_quat(torch.from_numpy(np.ascontiguousarray(R, dtype=np.float64))).numpy()
-
-
-def synthetic_scene_sets(preset: str = "default") -> dict[str, np.ndarray]:
-    """Ground-truth trajectories of the embedded synthetic scene, one set per
-    object (the group-wise setting): (P_obj, T, 7) [surface point, rotation].
-    Rotations: the object pose for rigid objects, the local best rigid fit of
-    the point's neighbourhood for non-rigid ones. The scene is generated into
-    the cache once."""
-    import json as _json
-
-    from mogaf.synth import generate_scene  # local: mogaf.synth imports cv2, which only this path needs
-
-    root = cache_dir("bench_forecast", f"synthetic_{preset}")
-    if not (root / "mogaf_gt" / "points3d.npy").exists():
-        generate_scene(root, {"preset": preset})
-    gt = root / "mogaf_gt"
-    points = np.load(gt / "points3d.npy").astype(np.float64)
-    inst = np.load(gt / "points_instance.npy")
-    poses = np.load(gt / "object_poses.npy")
-    objects = _json.loads((gt / "instances.json").read_text())["instances"]
-    out = {}
-    for obj in objects:
-        oid = int(obj["id"])
-        if oid == 0:
-            continue
-        sel = np.flatnonzero(inst == oid)
-        if sel.size < 2:
-            continue
-        if int(obj.get("pose_index", -1)) >= 0:
-            R = poses[int(obj["pose_index"])][:, :3, :3]  # (T, 3, 3)
-            q = quat.make_continuous(np.repeat(_matrix_to_quat(R)[None], sel.size, axis=0), axis=1)
-        else:
-            q = _local_rotations(points[sel])
-        out[f"{preset}/{obj['name']}"] = np.concatenate([points[sel], q], axis=-1)
-    return out
-
-
-def synthetic_default() -> dict[str, np.ndarray]:
-    return synthetic_scene_sets("default")
-
-
-def synthetic_hard() -> dict[str, np.ndarray]:
-    return synthetic_scene_sets("hard")
-
-
-def synthetic_articulated() -> dict[str, np.ndarray]:
-    return synthetic_scene_sets("articulated")
-
-
-def synthetic_bounce() -> dict[str, np.ndarray]:
-    return synthetic_scene_sets("bounce")
-
-
-def _load_source(spec: str) -> dict[str, Any]:
-    mod_name, _, func_name = spec.partition(":")
-    if not func_name:
-        raise MogafError(f"bench forecast: --source must be MODULE:FUNCTION, got '{spec}'")
-    try:
-        obj = getattr(importlib.import_module(mod_name), func_name)()
-    except (ImportError, AttributeError) as exc:
-        raise MogafError(f"bench forecast: cannot load --source {spec} ({exc})") from None
-    if isinstance(obj, Mapping):
-        return dict(obj)
-    return {func_name: obj}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -12,6 +12,10 @@ Determinism: every random choice goes through one torch.Generator (frames,
 track targets, split positions) seeded from `seed`; its state is part of the
 checkpoint, as are the parameters, the Adam moments, the density
 statistics and the training curve, so a resumed run continues bit for bit.
+
+Beside it: schedule.py (learning rates, curriculum, gap filling) and
+frame_losses.py (track and silhouette terms), mixed into Trainer, and
+checkpoint.py (the checkpoint files and the training curve).
 """
 
 from __future__ import annotations
@@ -20,63 +24,25 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from ..camera import camera_centers
 from ..errors import MogafError
 from ..rendering import rasterize
+from .checkpoint import CHECKPOINT_VERSION, Curve, load_checkpoint, save_checkpoint  # noqa: F401  (load_checkpoint re-exported)
 from .data import TrainData
 from .densify import DensifyRules, DensityStats, control_step
+from .frame_losses import FrameLosses
 from .init_common import InitResult
 from .interpolation import gap_interpolation
 from .losses import basis_smoothness, gradient_loss, masked_l1, rgb_loss, z_velocity_loss
 from .model import ReconModel, gaussian_colors
-from .silhouette import SilhouetteTargets, project_batch
-
-CHECKPOINT_VERSION = 1
-
-
-@dataclass
-class Curve:
-    iteration: list[int] = field(default_factory=list)
-    loss: list[float] = field(default_factory=list)
-    psnr: list[float] = field(default_factory=list)
-    num_gaussians: list[int] = field(default_factory=list)
-
-    def as_arrays(self) -> dict[str, np.ndarray]:
-        return {
-            "iteration": np.asarray(self.iteration, dtype=np.int64),
-            "loss": np.asarray(self.loss, dtype=np.float64),
-            "psnr": np.asarray(self.psnr, dtype=np.float64),
-            "num_gaussians": np.asarray(self.num_gaussians, dtype=np.int64),
-        }
-
-
-def _lr_names(params: dict, scale: float) -> dict[str, float]:
-    s = scale if params["lr_scene_scaled"] else 1.0
-    b = params["lr_boost"]
-    lr = {
-        "means": params["lr_means"] * s,
-        "quats": params["lr_quats"],
-        "log_scales": params["lr_scales"],
-        "color_logits": params["lr_colors"],
-        "sh_rest": params["lr_colors"] / 20.0,
-        "motion_coef_logits": params["lr_motion_coefs"],
-    }
-    out = {}
-    for part in ("fg", "bg"):
-        for k, v in lr.items():
-            out[f"{part}.{k}"] = v * b
-        out[f"{part}.opacity_logits"] = params[f"lr_opacities_{part}"] * b
-    out["motion.rot6d"] = params["lr_rots"] * b
-    out["motion.transl"] = params["lr_transls"] * s * b
-    return out
+from .schedule import TrainerSchedule, _lr_names
+from .silhouette import SilhouetteTargets
 
 
 def resolve_device(name: str) -> torch.device:
@@ -87,7 +53,7 @@ def resolve_device(name: str) -> torch.device:
     return torch.device("cpu")
 
 
-class Trainer:
+class Trainer(TrainerSchedule, FrameLosses):
     def __init__(
         self,
         data: TrainData,
@@ -219,69 +185,6 @@ class Trainer:
         self.H, self.W = lv["H"], lv["W"]
         for k in ("images", "masks", "K", "depth", "depth_valid", "tracks_xy", "sil"):
             setattr(self, k, lv[k])
-
-    def silhouette_loss(self, f: int, means: torch.Tensor) -> torch.Tensor:
-        frames = torch.tensor([f], device=self.dev)
-        uv, front = project_batch(means[:, None], self.K[frames], self.w2c[frames], 1e-3 * self.scale)
-        labels = self.model.fg.aux.get("labels")
-        fwd, cov = self.sil.terms(frames, uv, front, self.model.fg.opacities().detach(), labels)
-        return fwd + cov
-
-    # -------------------------------------------------------------- schedule
-    def set_lrs(self, it: int) -> None:
-        frac = min(1.0, it / max(1, self.p["iterations"]))
-        for name, opt in self.optimizers.items():
-            lr = self.base_lr[name]
-            if name.endswith("log_scales"):
-                lr = lr * math.exp(math.log(0.1) * frac)  # SoM: x0.1 exponential decay
-            for g in opt.param_groups:
-                g["lr"] = lr
-
-    def window(self, it: int) -> int:
-        T = self.data.num_timesteps
-        if not self.curriculum:
-            return T
-        n = max(1, int(self.p["curriculum_fraction"] * self.p["iterations"]))
-        start = self.p["curriculum_start"]
-        return int(min(T, start + (T - start) * it / n))
-
-    def allowed_frames(self, it: int) -> torch.Tensor:
-        if not self.curriculum:
-            return torch.arange(self.data.num_frames)
-        c = int(self.tidx[self.canonical_frame])
-        w = self.window(it)
-        ok = (self.tidx - c).abs() <= w
-        return torch.nonzero(ok, as_tuple=False).squeeze(1)
-
-    @torch.no_grad()
-    def fill_gaps(self) -> None:
-        """Steps without a training frame take the cubic-spline interpolation of the steps with one."""
-        if self.gap_fill is None:
-            return
-        gaps, knots, M = self.gap_fill
-        for key in ("rot6d", "transl"):
-            x = self.model.motion[key].data
-            x[:, gaps] = torch.einsum("gk,bkd->bgd", M, x[:, knots])
-
-    @torch.no_grad()
-    def extrapolate_bases(self, it: int) -> None:
-        """Curriculum: steps outside the window follow the nearest in-window steps linearly."""
-        if not self.curriculum:
-            return
-        T = self.data.num_timesteps
-        c = int(self.tidx[self.canonical_frame])
-        w = self.window(it)
-        lo, hi = max(0, c - w), min(T - 1, c + w)
-        for key in ("rot6d", "transl"):
-            x = self.model.motion[key].data
-            if hi < T - 1:
-                v = x[:, hi] - x[:, hi - 1] if hi >= 1 and hi - 1 >= lo else torch.zeros_like(x[:, hi])
-                k = torch.arange(1, T - hi, dtype=x.dtype).reshape(1, -1, 1)
-                x[:, hi + 1 :] = x[:, hi : hi + 1] + k * v[:, None]
-            if lo > 0:
-                v = x[:, lo] - x[:, lo + 1] if lo + 1 <= hi else torch.zeros_like(x[:, lo])
-                k = torch.arange(lo, 0, -1, dtype=x.dtype).reshape(1, -1, 1)
-                x[:, :lo] = x[:, lo : lo + 1] + k * v[:, None]
 
     # -------------------------------------------------------------- rendering
     def render_frame(
@@ -449,47 +352,6 @@ class Trainer:
         self.control()
         return float(total.detach()), float(np.mean(psnrs))
 
-    def track_loss(
-        self, f: int, targets: torch.Tensor, feats: torch.Tensor, acc: torch.Tensor, q: float
-    ) -> torch.Tensor:
-        off = 4 if self.has_bg else 3
-        vis_f = self.tracks_vis[:, f]
-        xy_f = self.tracks_xy[:, f]
-        inb = vis_f & (xy_f[:, 0] >= 0) & (xy_f[:, 1] >= 0) & (xy_f[:, 0] < self.W) & (xy_f[:, 1] < self.H)
-        # fg tracks only (the points the dynamic Gaussians must follow)
-        idx = torch.nonzero(inb, as_tuple=False).squeeze(1)
-        if idx.numel() == 0:
-            return feats.sum() * 0.0
-        px = xy_f[idx]
-        fgv = self.masks[f][px[:, 1].long().clamp(0, self.H - 1), px[:, 0].long().clamp(0, self.W - 1)]
-        idx, px = idx[fgv > 0.5], px[fgv > 0.5]
-        if idx.numel() == 0:
-            return feats.sum() * 0.0
-        grid = torch.stack([px[:, 0] / self.W * 2 - 1, px[:, 1] / self.H * 2 - 1], -1).reshape(1, 1, -1, 2)
-        k = len(targets)
-        maps = torch.cat([feats[..., off : off + 3 * k], acc], -1).permute(2, 0, 1)[None]
-        s = F.grid_sample(maps, grid, mode="bilinear", align_corners=False)[0, :, 0].T  # (M, 3k+1)
-        pts = s[:, : 3 * k].reshape(-1, k, 3) / s[:, -1:].clamp_min(1e-4)[:, None]
-        losses = []
-        weights = []
-        T = self.data.num_timesteps
-        preds, gts, ws = [], [], []
-        for j, g in enumerate(targets.tolist()):
-            P = pts[:, j]
-            cam = P @ self.w2c[g][:3, :3].T + self.w2c[g][:3, 3]
-            uvw = cam @ self.K[g].T
-            uv = uvw[:, :2] / uvw[:, 2:3].clamp_min(1e-6)
-            vis_g = self.tracks_vis[idx, g].float()
-            wint = math.exp(-2.0 * abs(int(self.tidx[f]) - int(self.tidx[g])) / T)
-            preds.append(uv)
-            gts.append(self.tracks_xy[idx, g])
-            ws.append(vis_g * wint)
-        del losses, weights
-        pred = torch.cat(preds)
-        gt = torch.cat(gts)
-        w = torch.cat(ws)[:, None]
-        return masked_l1(pred, gt, w, q) / max(self.H, self.W)
-
     # -------------------------------------------------------------- density control
     def control(self) -> dict | None:
         p = self.p
@@ -592,34 +454,6 @@ class Trainer:
                     save_checkpoint(checkpoint, self.checkpoint_state(digest))
         finally:
             bar.close()
-
-
-def save_checkpoint(path: str | os.PathLike, state: dict[str, Any]) -> None:
-    """torch.save to a temporary name in the same folder, then rename (atomic)."""
-    final = Path(path)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
-    try:
-        torch.save(state, tmp)
-        os.replace(tmp, final)
-    except BaseException:
-        if tmp.exists():
-            tmp.unlink()
-        raise
-
-
-def load_checkpoint(path: str | os.PathLike, digest: str) -> dict[str, Any] | None:
-    """The checkpoint's state if it exists, is readable and matches `digest`; else None."""
-    p = Path(path)
-    if not p.exists():
-        return None
-    try:
-        state = torch.load(p, map_location="cpu", weights_only=True)
-    except Exception:
-        return None
-    if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION or state.get("digest") != digest:
-        return None
-    return state
 
 
 def run_resumable(

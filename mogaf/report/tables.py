@@ -227,7 +227,15 @@ def budget_differences(result: dict[str, Any], method: str) -> dict[str, tuple[A
     ref = defaults(method)
     # the mode is in the label (method_label); the paper mode ignores the structured settings
     skip = {"num_threads", "mode"} | ({"structured"} if params.get("mode") == "paper" else set())
-    return {k: (v, ref[k]) for k, v in sorted(params.items()) if k in ref and ref[k] != v and k not in skip}
+    return {k: (v, ref[k]) for k, v in sorted(params.items()) if k in ref and _differs(v, ref[k]) and k not in skip}
+
+
+def _differs(used: Any, ref: Any) -> bool:
+    """Whether a recorded setting is off its default; a nested mapping only by
+    the keys it records (a setting added since a run does not mark it)."""
+    if isinstance(used, dict) and isinstance(ref, dict):
+        return any(k in ref and _differs(v, ref[k]) for k, v in used.items())
+    return used != ref
 
 
 def _mark_budgets(t: Table, results: list[dict[str, Any]], methods: list[str]) -> dict[str, str]:

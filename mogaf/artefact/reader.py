@@ -1,0 +1,219 @@
+"""Reading artefacts: whole (`read_artefact`) or opened for partial reads
+(`open_artefact`, `read_rows`, `time_steps_index`), header checked, every
+array read checked finite, a failure one line naming the file."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from ..errors import MogafError, input_error
+from .header import (
+    ATTR_CREATED,
+    ATTR_DIGEST,
+    ATTR_PACKAGE,
+    ATTR_STAGE,
+    RESERVED_ATTRS,
+    _check_header,
+    _decode_attr,
+    _normalise_stages,
+    _open,
+)
+
+
+class ArtefactAttrs(dict):
+    """An artefact's attrs; a missing one is an input error naming the file."""
+
+    def __init__(self, path: Path, stage: str, items: Mapping[str, Any]) -> None:
+        super().__init__(items)
+        self._where = (path, stage)
+
+    def __missing__(self, key: str) -> Any:
+        path, stage = self._where
+        raise input_error(path, f"has no attribute '{key}' (stage {stage})")
+
+
+@dataclass
+class Artefact:
+    """An artefact read into memory: nested dict of arrays plus attrs."""
+
+    path: Path
+    stage: str
+    config_digest: str
+    package_version: str
+    created_utc: str
+    attrs: dict[str, Any]
+    data: dict[str, Any] = field(repr=False)
+
+    def _lookup(self, key: str) -> Any:
+        node: Any = self.data
+        for part in key.split("/"):
+            node = node[part]
+        return node
+
+    def __getitem__(self, key: str) -> Any:
+        try:
+            return self._lookup(key)
+        except KeyError:
+            raise input_error(self.path, f"has no entry '{key}' (stage {self.stage})") from None
+
+    def __contains__(self, key: str) -> bool:
+        try:
+            self._lookup(key)
+        except KeyError:
+            return False
+        return True
+
+    def get(self, key: str, default: Any = None) -> Any:
+        try:
+            return self._lookup(key)
+        except KeyError:
+            return default
+
+
+def read_dataset(ds: h5py.Dataset, path: Path, name: str | None = None, sel: Any = None) -> Any:
+    """One dataset (or the part `sel` indexes), finite-checked; strings decoded."""
+    name = name or ds.name.lstrip("/")
+    try:
+        if h5py.check_string_dtype(ds.dtype) is not None:
+            arr = ds.asstr()[()] if sel is None else ds.asstr()[sel]
+            return arr.tolist() if isinstance(arr, np.ndarray) else arr
+        arr = ds[()] if sel is None else ds[sel]
+    except (OSError, RuntimeError) as exc:
+        raise input_error(
+            path, f"entry '{name}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})"
+        ) from None
+    if isinstance(arr, np.ndarray) and arr.dtype.kind in "fc" and not np.all(np.isfinite(arr)):
+        raise input_error(path, f"entry '{name}' contains non-finite values (corrupted artefact); rerun the stage")
+    return arr
+
+
+def read_tree(
+    group: h5py.Group, path: Path, prefix: str = "", selection: Callable[[str, h5py.Dataset], Any] | None = None
+) -> dict[str, Any]:
+    """Every dataset under `group`, finite-checked. `selection(key, dataset)`
+    may return an index to read only part of a dataset (None: all of it)."""
+    out: dict[str, Any] = {}
+    for key, item in group.items():
+        name = f"{prefix}{key}"
+        if isinstance(item, h5py.Group):
+            out[key] = read_tree(item, path, prefix=f"{name}/", selection=selection)
+            continue
+        out[key] = read_dataset(item, path, name, None if selection is None else selection(key, item))
+    return out
+
+
+def time_steps_index(steps: np.ndarray, num_steps: int | None = None) -> slice | np.ndarray:
+    """Index for a time axis (of `num_steps` steps, if given) that reads only
+    `steps` off disk: a contiguous range is one slice (fast in HDF5), any
+    other set an increasing index."""
+    steps = np.asarray(steps, np.int64)
+    if not steps.size:
+        return slice(0, 0)
+    if steps.min() < 0 or (num_steps is not None and steps.max() >= num_steps):
+        upper = "" if num_steps is None else f" of {num_steps}"
+        raise MogafError(f"time steps {int(steps.min())}..{int(steps.max())} lie outside the time axis{upper}")
+    if np.array_equal(steps, np.arange(steps[0], steps[-1] + 1)):
+        return slice(int(steps[0]), int(steps[-1]) + 1)
+    if steps.size > 1 and np.any(np.diff(steps) <= 0):
+        raise MogafError("time steps to read are not increasing")
+    return steps
+
+
+def read_artefact(
+    path: str | os.PathLike,
+    stage: str | Iterable[str] | None = None,
+    *,
+    expected_config_digest: str | None = None,
+    required: Iterable[str] = (),
+) -> Artefact:
+    """Read a whole artefact, checking attrs, required entries and finiteness."""
+    p = Path(path)
+    with _open(p) as fh:
+        _check_header(fh, p, _normalise_stages(stage), expected_config_digest)
+        stage_name = _decode_attr(fh.attrs[ATTR_STAGE])
+        attrs = ArtefactAttrs(
+            p, stage_name, {k: _decode_attr(v) for k, v in fh.attrs.items() if k not in RESERVED_ATTRS}
+        )
+        data = read_tree(fh, p)
+        art = Artefact(
+            path=p,
+            stage=stage_name,
+            config_digest=_decode_attr(fh.attrs.get(ATTR_DIGEST, "")),
+            package_version=_decode_attr(fh.attrs.get(ATTR_PACKAGE, "")),
+            created_utc=_decode_attr(fh.attrs.get(ATTR_CREATED, "")),
+            attrs=attrs,
+            data=data,
+        )
+    for key in required:
+        if key not in art:
+            raise input_error(p, f"has no entry '{key}' (stage {art.stage})")
+    return art
+
+
+@contextlib.contextmanager
+def open_artefact(
+    path: str | os.PathLike,
+    stage: str | Iterable[str] | None = None,
+    *,
+    expected_config_digest: str | None = None,
+) -> Iterator[h5py.File]:
+    """Open an artefact read-only for partial reads (e.g. selected frames).
+
+    The header is checked; finiteness is the caller's job (see `read_rows`).
+    """
+    p = Path(path)
+    fh = _open(p)
+    try:
+        _check_header(fh, p, _normalise_stages(stage), expected_config_digest)
+        yield fh
+    except KeyError as exc:
+        # h5py's KeyError for an absent entry or attribute: one line naming the file
+        # (a KeyError of the caller's own code is left alone: it is not the file's fault)
+        tb = exc.__traceback__
+        while tb is not None and tb.tb_next is not None:
+            tb = tb.tb_next
+        if tb is None or "h5py" not in tb.tb_frame.f_code.co_filename:
+            raise
+        detail = exc.args[0] if exc.args else exc
+        raise input_error(p, f"lacks an entry or attribute its reader needs ({detail})") from None
+    finally:
+        fh.close()
+
+
+def read_rows(fh: h5py.File, key: str, rows: np.ndarray) -> np.ndarray:
+    """Read only `rows` (first axis) of dataset `key`, checking finiteness."""
+    path = Path(fh.filename)
+    if key not in fh:
+        raise input_error(path, f"has no entry '{key}'")
+    rows = np.asarray(rows, dtype=np.int64)
+    ds = fh[key]
+    if rows.size and (rows.min() < 0 or rows.max() >= ds.shape[0]):
+        raise input_error(path, f"entry '{key}' has {ds.shape[0]} rows, asked for row {int(rows.max())}")
+    try:
+        order = np.argsort(rows, kind="stable")
+        sorted_rows = rows[order]
+        unique_rows, inverse = np.unique(sorted_rows, return_inverse=True)
+        block = ds[unique_rows] if unique_rows.size else np.empty((0,) + ds.shape[1:], ds.dtype)
+    except (OSError, RuntimeError) as exc:
+        raise input_error(
+            path, f"entry '{key}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})"
+        ) from None
+    out = np.empty((rows.size,) + ds.shape[1:], dtype=ds.dtype)
+    out[order] = block[inverse]
+    if out.dtype.kind in "fc" and not np.all(np.isfinite(out)):
+        raise input_error(path, f"entry '{key}' contains non-finite values in the requested rows (corrupted artefact)")
+    return out
+
+
+def read_attrs(path: str | os.PathLike, stage: str | Iterable[str] | None = None) -> dict[str, Any]:
+    """Read only the attrs (header checked)."""
+    with open_artefact(path, stage) as fh:
+        return {k: _decode_attr(v) for k, v in fh.attrs.items()}

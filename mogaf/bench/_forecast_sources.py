@@ -1,0 +1,108 @@
+"""Ground-truth trajectory sources of `python -m mogaf.bench forecast`.
+
+The embedded synthetic scenes, one set per object (synthetic_default,
+synthetic_hard, synthetic_articulated, synthetic_bounce: use them as
+`--source mogaf.bench.forecast:synthetic_default`), and the loader of a
+--source MODULE:FUNCTION.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from mogaf.errors import MogafError
+from mogaf.forecast import quat
+from mogaf.paths import cache_dir
+
+
+def _local_rotations(points: np.ndarray, k: int = 8) -> np.ndarray:
+    """(P, T, 4) wxyz rotation of each point's k-neighbourhood (nearest at
+    frame 0) from frame 0 to every frame: the best rigid fit, det = +1."""
+    from scipy.spatial import cKDTree
+
+    from mogaf.rigid import procrustes_numpy  # local: mogaf.rigid imports torch, which only this path needs
+
+    k = min(k + 1, points.shape[0])
+    _, nn = cKDTree(points[:, 0]).query(points[:, 0], k=k)
+    src = points[nn, 0][:, None]  # (P, 1, k, 3)
+    dst = points[nn].transpose(0, 2, 1, 3)  # (P, T, k, 3)
+    R, _ = procrustes_numpy(src, dst)
+    return quat.make_continuous(_matrix_to_quat(R), axis=1)
+
+
+def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    import torch
+
+    from mogaf.representation import (
+        matrix_to_quat,  # local: mogaf.representation imports torch, which only this path needs
+    )
+
+    return matrix_to_quat(torch.from_numpy(np.ascontiguousarray(R, dtype=np.float64))).numpy()
+
+
+def synthetic_scene_sets(preset: str = "default") -> dict[str, np.ndarray]:
+    """Ground-truth trajectories of the embedded synthetic scene, one set per
+    object (the group-wise setting): (P_obj, T, 7) [surface point, rotation].
+    Rotations: the object pose for rigid objects, the local best rigid fit of
+    the point's neighbourhood for non-rigid ones. The scene is generated into
+    the cache once."""
+    import json as _json
+
+    from mogaf.synth import generate_scene  # local: mogaf.synth imports cv2, which only this path needs
+
+    root = cache_dir("bench_forecast", f"synthetic_{preset}")
+    if not (root / "mogaf_gt" / "points3d.npy").exists():
+        generate_scene(root, {"preset": preset})
+    gt = root / "mogaf_gt"
+    points = np.load(gt / "points3d.npy").astype(np.float64)
+    inst = np.load(gt / "points_instance.npy")
+    poses = np.load(gt / "object_poses.npy")
+    objects = _json.loads((gt / "instances.json").read_text())["instances"]
+    out = {}
+    for obj in objects:
+        oid = int(obj["id"])
+        if oid == 0:
+            continue
+        sel = np.flatnonzero(inst == oid)
+        if sel.size < 2:
+            continue
+        if int(obj.get("pose_index", -1)) >= 0:
+            R = poses[int(obj["pose_index"])][:, :3, :3]  # (T, 3, 3)
+            q = quat.make_continuous(np.repeat(_matrix_to_quat(R)[None], sel.size, axis=0), axis=1)
+        else:
+            q = _local_rotations(points[sel])
+        out[f"{preset}/{obj['name']}"] = np.concatenate([points[sel], q], axis=-1)
+    return out
+
+
+def synthetic_default() -> dict[str, np.ndarray]:
+    return synthetic_scene_sets("default")
+
+
+def synthetic_hard() -> dict[str, np.ndarray]:
+    return synthetic_scene_sets("hard")
+
+
+def synthetic_articulated() -> dict[str, np.ndarray]:
+    return synthetic_scene_sets("articulated")
+
+
+def synthetic_bounce() -> dict[str, np.ndarray]:
+    return synthetic_scene_sets("bounce")
+
+
+def _load_source(spec: str) -> dict[str, Any]:
+    mod_name, _, func_name = spec.partition(":")
+    if not func_name:
+        raise MogafError(f"bench forecast: --source must be MODULE:FUNCTION, got '{spec}'")
+    try:
+        obj = getattr(importlib.import_module(mod_name), func_name)()
+    except (ImportError, AttributeError) as exc:
+        raise MogafError(f"bench forecast: cannot load --source {spec} ({exc})") from None
+    if isinstance(obj, Mapping):
+        return dict(obj)
+    return {func_name: obj}

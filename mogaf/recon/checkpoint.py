@@ -1,0 +1,63 @@
+"""Training curve and checkpoint files of the reconstruction trainer.
+
+A checkpoint (CHECKPOINT_VERSION, tagged with the run's config digest) is
+written atomically by save_checkpoint and read back by load_checkpoint only
+when its version and digest match; the Curve it carries is the logged loss,
+PSNR and Gaussian count.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+CHECKPOINT_VERSION = 1
+
+
+@dataclass
+class Curve:
+    iteration: list[int] = field(default_factory=list)
+    loss: list[float] = field(default_factory=list)
+    psnr: list[float] = field(default_factory=list)
+    num_gaussians: list[int] = field(default_factory=list)
+
+    def as_arrays(self) -> dict[str, np.ndarray]:
+        return {
+            "iteration": np.asarray(self.iteration, dtype=np.int64),
+            "loss": np.asarray(self.loss, dtype=np.float64),
+            "psnr": np.asarray(self.psnr, dtype=np.float64),
+            "num_gaussians": np.asarray(self.num_gaussians, dtype=np.int64),
+        }
+
+
+def save_checkpoint(path: str | os.PathLike, state: dict[str, Any]) -> None:
+    """torch.save to a temporary name in the same folder, then rename (atomic)."""
+    final = Path(path)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, final)
+    except BaseException:
+        if tmp.exists():
+            tmp.unlink()
+        raise
+
+
+def load_checkpoint(path: str | os.PathLike, digest: str) -> dict[str, Any] | None:
+    """The checkpoint's state if it exists, is readable and matches `digest`; else None."""
+    p = Path(path)
+    if not p.exists():
+        return None
+    try:
+        state = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception:
+        return None
+    if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION or state.get("digest") != digest:
+        return None
+    return state

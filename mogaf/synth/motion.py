@@ -1,0 +1,66 @@
+"""Motions of the synthetic objects, as functions of motion time tau.
+
+Rotation about an axis (Rodrigues; also used to aim the cameras), a uniform
+drift centred on the sequence (_linear, its speed clamped by
+_clamped_velocity) and the ballistic arc of a thrown sphere bouncing on the
+ground (Ballistic).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def rotation(axis, angle) -> np.ndarray:
+    """Rodrigues rotation matrix about `axis` by `angle` (radians)."""
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * (K @ K)
+
+
+def _clamped_velocity(v: np.ndarray, tau_max: float, max_travel: float) -> np.ndarray:
+    travel = float(np.linalg.norm(v)) * tau_max
+    return v * min(1.0, max_travel / travel) if travel > 0 else v
+
+
+class Ballistic:
+    """Centre of a sphere thrown at tau = 0: parabola under gravity, bouncing on the ground.
+
+    Horizontal motion is uniform and centred on the sequence (the middle frame
+    is at xy_mid); vertical motion starts at z0 with vz0 and loses a factor
+    `restitution` of its speed at every bounce (where z = radius).
+    """
+
+    def __init__(self, xy_mid, v_xy, tau_mid, z0, vz0, gravity, restitution, radius, tau_max):
+        self.xy_mid, self.v_xy, self.tau_mid = np.asarray(xy_mid, float), np.asarray(v_xy, float), float(tau_mid)
+        self.g, self.floor = float(gravity), float(radius)
+        # segments: (start tau, start z, start vz)
+        segs = [(0.0, float(z0), float(vz0))]
+        while True:
+            t0, z, vz = segs[-1]
+            land = t0 + (vz + np.sqrt(vz * vz + 2 * self.g * (z - self.floor))) / self.g
+            if land > tau_max + 1.0:
+                break
+            v_after = -restitution * (vz - self.g * (land - t0))
+            if v_after < 0.05 or len(segs) > 64:
+                segs.append((land, self.floor, 0.0))
+                break
+            segs.append((land, self.floor, v_after))
+        self.segments = segs
+        self.bounces = [s[0] for s in segs[1:]]
+
+    def __call__(self, tau: float) -> np.ndarray:
+        t0, z, vz = [s for s in self.segments if s[0] <= tau][-1]
+        dt = tau - t0
+        if vz == 0.0 and z == self.floor and t0 > 0:
+            zt = self.floor
+        else:
+            zt = z + vz * dt - 0.5 * self.g * dt * dt
+        xy = self.xy_mid + self.v_xy * (tau - self.tau_mid)
+        return np.array([xy[0], xy[1], max(zt, self.floor)])
+
+
+def _linear(mid, v, tau_mid):
+    mid, v = np.asarray(mid, float), np.asarray(v, float)
+    return lambda tau: mid + v * (tau - tau_mid)
