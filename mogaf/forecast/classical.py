@@ -36,28 +36,8 @@ def constant_twist_rollout(prev: np.ndarray, last: np.ndarray, n_steps: int) -> 
     # D in the body frame of the previous pose.
     q_d = quat.normalize(quat.mul(quat.conj(q_prev), q_last))
     p_d = quat.rotate(quat.conj(q_prev), last[:, :3] - prev[:, :3])
-    return twist_rollout(last[:, :3], q_last, q_d, p_d, n_steps)
-
-
-def mean_twist(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The body-frame increment (q_d (G, 4), p_d (G, 3)) averaged over the
-    k steps of poses (G, k + 1, 7): rotation vectors and translations are
-    averaged, so a screw motion keeps its exact twist and noise in one step's
-    fit weighs 1/k."""
-    q = quat.make_continuous(quat.normalize(poses[..., 3:]), axis=-2)
-    q_prev, q_next = q[:, :-1], q[:, 1:]
-    inc = quat.normalize(quat.mul(quat.conj(q_prev), q_next))
-    p_d = quat.rotate(quat.conj(q_prev), poses[:, 1:, :3] - poses[:, :-1, :3]).mean(axis=1)
-    q_d = quat.normalize(quat.from_rotvec(quat.to_rotvec(inc).mean(axis=1)))
-    return q_d, p_d
-
-
-def twist_rollout(
-    mu_last: np.ndarray, q_last: np.ndarray, q_d: np.ndarray, p_d: np.ndarray, n_steps: int
-) -> np.ndarray:
-    """T_{t+1} = T_t D from the last pose (mu_last (G, 3), q_last (G, 4)), D = (q_d, p_d) in the body frame."""
-    out = np.empty((mu_last.shape[0], n_steps, 7))
-    mu, q = mu_last.copy(), q_last.copy()
+    out = np.empty((last.shape[0], n_steps, 7))
+    mu, q = last[:, :3].copy(), q_last.copy()
     for k in range(n_steps):
         mu = mu + quat.rotate(q, p_d)
         q = quat.normalize(quat.mul(q, q_d))

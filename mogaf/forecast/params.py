@@ -43,9 +43,6 @@ class StructuredSettings:
     max_train_windows: int = setting(
         65536, "training windows kept per fit (random, seeded): bounds memory for big groups", minimum=1
     )
-    twist_frames: int = setting(
-        1, "rigid groups: steps the constant-twist candidate averages its increment over (1 = the last step)", minimum=1
-    )
 
 
 STRUCTURED_DEFAULTS: dict[str, Any] = defaults(StructuredSettings)

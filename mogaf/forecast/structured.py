@@ -61,7 +61,7 @@ import numpy as np
 from mogaf.errors import MogafError
 from mogaf.forecast import quat
 from mogaf.forecast.base import torch_determinism
-from mogaf.forecast.classical import constant_twist_rollout, mean_twist, twist_rollout
+from mogaf.forecast.classical import constant_twist_rollout
 from mogaf.forecast.params import STRUCTURED_DEFAULTS as _STRUCTURED_DEFAULTS
 from mogaf.forecast.params import StructuredSettings
 from mogaf.forecast.transformer_net import _build_model, mask_ratio, minibatches, optimiser_step
@@ -287,13 +287,10 @@ class GroupMotion:
         rigid: bool,
         still_factor: float,
         decomposition: tuple[np.ndarray, np.ndarray, float] | None = None,
-        twist_frames: int = 1,
     ) -> None:
-        """`decomposition`: rigid_decomposition(obs[..., :3]) when already computed;
-        `twist_frames`: steps a rigid group's constant twist is averaged over."""
+        """`decomposition`: rigid_decomposition(obs[..., :3]) when already computed."""
         self.obs = obs
         self.rigid = rigid
-        self.twist_frames = int(twist_frames)
         self.last = obs[:, -1]
         pos = obs[..., :3]
         if rigid:
@@ -343,12 +340,9 @@ class GroupMotion:
         out = np.repeat(self.last[:, None, :], n, axis=1)
         if self.rigid:
             # the group pose maps last-frame coordinates: x_t = g_t (x - c_T) + c_t
-            k = min(self.twist_frames, len(self.centroids) - 1)
-            poses = np.concatenate([self.centroids[-k - 1 :], self.rotations[-k - 1 :]], axis=-1)[None]
-            if k == 1:
-                g = constant_twist_rollout(poses[:, 0], poses[:, 1], n)[0]
-            else:  # the increment averaged over the last k steps (a noisy last fit weighs 1/k)
-                g = twist_rollout(poses[:, -1, :3], quat.normalize(poses[:, -1, 3:]), *mean_twist(poses), n)[0]
+            prev = np.concatenate([self.centroids[-2], self.rotations[-2]])[None]
+            last = np.concatenate([self.centroids[-1], self.rotations[-1]])[None]
+            g = constant_twist_rollout(prev, last, n)[0]
             rel = self.last[:, :3] - self.centroids[-1]
             out[..., :3] = quat.rotate(g[None, :, 3:], rel[:, None, :]) + g[None, :, :3]
             out[..., 3:] = quat.mul(g[None, :, 3:], self.last[:, None, 3:])
@@ -420,14 +414,14 @@ def fit_structured(
         # On short observations the backtested network reads a shorter context
         # (window_sizes) than the one refitted on all T frames; deploying the
         # backtest's size instead measured worse (GT cloth at 0.6: 0.0059 -> 0.0135 m).
-        past = GroupMotion(obs[:, : T - h], rigid, p["still_factor"], twist_frames=p["twist_frames"])
+        past = GroupMotion(obs[:, : T - h], rigid, p["still_factor"])
         scores = {}
         for name in CANDIDATES:
             scores[name] = _score(FittedCandidate(name, past, p, seed).rollout(h), obs[:, T - h :])
             info[f"backtest_epe_{name}"] = scores[name]
         choice = min(CANDIDATES, key=lambda c: (scores[c], CANDIDATES.index(c)))
         info["backtest_frames"] = h
-    motion = GroupMotion(obs, rigid, p["still_factor"], decomposition, twist_frames=p["twist_frames"])
+    motion = GroupMotion(obs, rigid, p["still_factor"], decomposition)
     info["still_fraction"] = float(motion.still.mean())
     fitted = FittedCandidate(choice, motion, p, seed)
     info.update(fitted.info)
