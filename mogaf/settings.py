@@ -207,9 +207,16 @@ def check(
     return out
 
 
-def load(cls: type, section: str, params: Mapping[str, Any] | None):
-    """check(), as a frozen `cls` instance."""
+def load(cls: type, section: str, params: Any):
+    """check(), as a frozen `cls` instance (an instance of `cls` is returned as it is)."""
+    if isinstance(params, cls):
+        return params
     return cls(**check(cls, section, params))
+
+
+def as_dict(settings: Any) -> dict[str, Any]:
+    """A settings instance as the plain dict artefacts record and hash."""
+    return {f.name: getattr(settings, f.name) for f in _fields(type(settings))}
 
 
 def describe(cls: type) -> list[tuple[str, Any, str]]:

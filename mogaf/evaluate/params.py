@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from ..settings import check, defaults, setting
+from ..settings import check, defaults, load, setting
 
 
 @dataclass(frozen=True)
@@ -35,3 +35,8 @@ DEFAULT_PARAMS: dict[str, Any] = defaults(EvaluateSettings)
 def resolve_params(params: Mapping[str, Any] | None) -> dict[str, Any]:
     """Defaults <- params, checked (EvaluateSettings); unknown keys are refused."""
     return check(EvaluateSettings, "evaluate", params)
+
+
+def load_settings(params: Mapping[str, Any] | EvaluateSettings | None) -> EvaluateSettings:
+    """resolve_params as a frozen EvaluateSettings (what the stage reads)."""
+    return load(EvaluateSettings, "evaluate", params)

@@ -28,7 +28,7 @@ from ..split import load_frames, read_split
 from ..video import labelled_row, to_uint8
 from .images import _save_png, _write_video, render_forecast_views
 from .inputs import _check_forecast, forecast_summary, read_forecast, runtime_section
-from .params import resolve_params
+from .params import load_settings
 from .tracking import tracking_section
 
 log = logging.getLogger(__name__)
@@ -68,9 +68,9 @@ def run_evaluate_stage(
     forecasts start from (refined.h5, or recon.h5 without refinement);
     `reconstruction_quality`: reconstruction_quality/{refined,recon}.h5 of that model;
     `grouping_quality`: grouping_quality.h5 of the grouping the forecasts used."""
-    p = resolve_params(params)
+    p = load_settings(params)
     start = time.perf_counter()
-    if p["lpips"]:
+    if p.lpips:
         load_lpips_weights()  # fail before rendering anything when the weights are missing
     # the sections copied from their own stages: a bad file fails before any render
     reconstruction = read_reconstruction_quality(reconstruction_quality)
@@ -104,7 +104,7 @@ def run_evaluate_stage(
             _check_forecast(fc, m4, sp)
             renders = render_forecast_views(m4, fc, frames, p)
             per = [
-                image_metrics(renders[f], gts[f], None if masks is None else masks[f], masked, bool(p["lpips"]))
+                image_metrics(renders[f], gts[f], None if masks is None else masks[f], masked, bool(p.lpips))
                 for f in range(frames.num_frames)
             ]
             section: dict[str, Any] = {
@@ -119,10 +119,10 @@ def run_evaluate_stage(
             if epe_3d_quick is not None:
                 section["forecast"]["epe_3d_quick"] = epe_3d_quick
             result["methods"][method] = section
-            if p["save_renders"]:
+            if p.save_renders:
                 for f in range(frames.num_frames):
                     _save_png(renders_tmp / method / f"{frames.frame_names[f]}.png", renders[f])
-            if p["video"]:
+            if p.video:
                 label = method_label({"methods": {method: section}}, method)
                 labels[method] = label
                 panels = [
@@ -133,9 +133,9 @@ def run_evaluate_stage(
                     )
                     for f in range(frames.num_frames)
                 ]
-                _write_video(renders_tmp / f"{method}.mp4", panels, int(p["video_fps"]))
+                _write_video(renders_tmp / f"{method}.mp4", panels, int(p.video_fps))
                 side_by_side[method] = [to_uint8(r) for r in renders]
-        if p["video"] and len(methods) > 1:
+        if p.video and len(methods) > 1:
             # one video of every method beside the GT, in the tables' order
             order = sorted(methods, key=lambda m: METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER))
             panels = [
@@ -146,10 +146,10 @@ def run_evaluate_stage(
                 )
                 for f in range(frames.num_frames)
             ]
-            _write_video(renders_tmp / "all_methods.mp4", panels, int(p["video_fps"]))
+            _write_video(renders_tmp / "all_methods.mp4", panels, int(p.video_fps))
         result["reconstruction"] = reconstruction
         result["grouping"] = grouping
-        if p["runtime_in_metrics"]:
+        if p.runtime_in_metrics:
             rt = runtime_section(benchmarks, methods)
             rt["stages"]["evaluate"] = {"wall_s": round(time.perf_counter() - start, 3), "max_rss_mb": None}
             result["runtime"] = rt

@@ -19,6 +19,7 @@ from ..camera import project
 from ..rendering import render_poses
 from ..representation import Model4D, quat_to_matrix
 from ..split import Split, load_frames, load_ground_truth
+from .params import EvaluateSettings, load_settings
 
 
 def attach_points(
@@ -69,16 +70,17 @@ def predicted_gt_tracks(model: Model4D, fc: dict[str, Any], gt_observed: Mapping
 
 
 def tracking_section(
-    model: Model4D, fc: dict[str, Any], scene_h5: str, split: Split, params: Mapping[str, Any]
+    model: Model4D, fc: dict[str, Any], scene_h5: str, split: Split, params: Mapping[str, Any] | EvaluateSettings
 ) -> tuple[dict[str, Any] | None, float | None]:
     """Tracking metrics of the GT surface points carried by the forecast, and
     the quick 3D check: their mean distance from the GT over every point and
     forecast step (no visibility, no unit scaling). (None, None) without GT."""
+    settings = load_settings(params)
     gt_obs = load_ground_truth(scene_h5, split, "observed")
     if "points3d" not in gt_obs:
         return None, None
     gt_fc = load_ground_truth(scene_h5, split, "forecast")
-    pred3d = predicted_gt_tracks(model, fc, gt_obs, int(params["tracking_neighbors"]))
+    pred3d = predicted_gt_tracks(model, fc, gt_obs, int(settings.tracking_neighbors))
     gt3d = np.asarray(gt_fc["points3d"], np.float64)
     epe_3d_quick = float(np.mean(np.linalg.norm(pred3d - gt3d, axis=-1)))
     P, T = gt3d.shape[:2]
@@ -105,7 +107,7 @@ def tracking_section(
                 (uv[:, 0] >= 0) & (uv[:, 0] < frames.width) & (uv[:, 1] >= 0) & (uv[:, 1] < frames.height) & (z > 0)
             )
             surface = depth[row, col]
-            pred_vis[:, i] = inside & (z <= surface * (1.0 + float(params["visibility_tolerance"])))
+            pred_vis[:, i] = inside & (z <= surface * (1.0 + float(settings.visibility_tolerance)))
         gt2d = np.asarray(gt_fc["tracks2d"], np.float64)
     res = M.tracking_metrics(
         gt_vis=gt_vis,
@@ -114,9 +116,9 @@ def tracking_section(
         gt_3d=gt3d,
         pred_2d=pred2d,
         gt_2d=gt2d,
-        scale=float(params["tracking_scale"]),
-        aj_thresholds=tuple(params["aj_thresholds"]),
-        pck_thresholds=tuple(params["delta_thresholds"]),
+        scale=float(settings.tracking_scale),
+        aj_thresholds=tuple(settings.aj_thresholds),
+        pck_thresholds=tuple(settings.delta_thresholds),
         strict=False,
     )
     return {k: (None if v is None else float(v)) for k, v in res.items()}, epe_3d_quick

@@ -115,11 +115,6 @@ class RigidInitSettings:
 RIGID_INIT_DEFAULTS: dict[str, Any] = defaults(RigidInitSettings)
 
 
-def resolve_rigid_init_params(params: dict[str, Any] | None) -> dict[str, Any]:
-    """Defaults <- params, checked (RigidInitSettings); unknown keys are refused."""
-    return check(RigidInitSettings, "rigid_init", params)
-
-
 def _typed_params(raw: dict[str, Any]) -> dict[str, Any]:
     """Params read back from JSON attrs (floats are stored as text)."""
     out: dict[str, Any] = {}

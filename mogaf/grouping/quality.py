@@ -30,7 +30,7 @@ from ..artefact import config_digest, open_artefact, read_artefact, write_artefa
 from ..errors import input_error
 from ..representation import load_model
 from ..scene import SCENE_STAGE
-from ..settings import check, defaults, setting
+from ..settings import as_dict, defaults, load, setting
 from ..split import Split, load_evenly_spaced_frames, read_split
 from .metrics import grouping_quality
 from .stage import load_groups
@@ -54,8 +54,8 @@ class GroupingQualitySettings:
 DEFAULT_PARAMS: dict[str, Any] = defaults(GroupingQualitySettings)
 
 
-def _resolve(params: Mapping[str, Any] | None) -> dict[str, Any]:
-    return check(GroupingQualitySettings, "grouping_quality", params)
+def _settings(params: Mapping[str, Any] | GroupingQualitySettings | None) -> GroupingQualitySettings:
+    return load(GroupingQualitySettings, "grouping_quality", params)
 
 
 def measure_grouping_quality(
@@ -63,12 +63,12 @@ def measure_grouping_quality(
     groups_h5: str | os.PathLike,
     scene_h5: str | os.PathLike,
     split: Split,
-    params: Mapping[str, Any] | None = None,
+    params: Mapping[str, Any] | GroupingQualitySettings | None = None,
 ) -> dict[str, Any]:
     """The grouping's method and size, and where the scene has GT instance
     masks and held-out views at observed times, its per-object IoU and ARI,
     rendered with the model that was grouped."""
-    p = _resolve(params)
+    p = _settings(params)
     groups = load_groups(groups_h5)
     out: dict[str, Any] = {"method": groups.method, "num_groups": groups.num_groups}
     ids = split.frame_ids.get("evaluation_observed", np.zeros(0, np.int64))
@@ -76,10 +76,8 @@ def measure_grouping_quality(
         has_masks = "frames/instance_mask" in fh
     if ids.size == 0 or groups.num_groups == 0 or not has_masks:
         return out
-    frames = load_evenly_spaced_frames(scene_h5, split, "evaluation_observed", int(p["max_frames"]))
-    quality = grouping_quality(
-        load_model(grouped_model_h5), groups, frames, alpha=float(p["alpha"]), pixels=str(p["pixels"])
-    )
+    frames = load_evenly_spaced_frames(scene_h5, split, "evaluation_observed", int(p.max_frames))
+    quality = grouping_quality(load_model(grouped_model_h5), groups, frames, alpha=float(p.alpha), pixels=str(p.pixels))
     return {**out, **quality}
 
 
@@ -91,14 +89,19 @@ def run_grouping_quality_stage(
     out: str | os.PathLike,
     params: Mapping[str, Any] | None = None,
 ) -> Path:
-    p = _resolve(params)
+    p = _settings(params)
     quality = measure_grouping_quality(grouped_model_h5, groups_h5, scene_h5, read_split(split_h5), p)
     # The per-object arrays are entries; the section's other keys an attribute.
     arrays = {"per_object_iou": np.float64, "object_ids": np.int64}
     data = {key: np.asarray(quality.get(key, []), dtype) for key, dtype in arrays.items()}
     section = {k: v for k, v in quality.items() if k not in arrays}
-    attrs = {"method": quality["method"], "num_groups": int(quality["num_groups"]), "params": p, "quality": section}
-    return write_artefact(out, GROUPING_QUALITY_STAGE, data, config_digest=config_digest(p), attrs=attrs)
+    attrs = {
+        "method": quality["method"],
+        "num_groups": int(quality["num_groups"]),
+        "params": as_dict(p),
+        "quality": section,
+    }
+    return write_artefact(out, GROUPING_QUALITY_STAGE, data, config_digest=config_digest(as_dict(p)), attrs=attrs)
 
 
 def read_grouping_quality(path: str | os.PathLike) -> dict[str, Any]:

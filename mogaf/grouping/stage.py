@@ -42,10 +42,11 @@ from ..errors import MogafError, input_error
 from ..representation import load_model
 from ..rigid import rigid_fit_residual, weighted_procrustes
 from ..scene import SCENE_STAGE, Instances
+from ..settings import as_dict, load
 from .api import group_gaussians
 from .core import Groups, MaskFrames, frames_in_time_order
 from .ours import keyframe_order
-from .params import _typed_params, resolve_params, resolve_rigid_init_params
+from .params import RigidInitSettings, _typed_params, resolve_params
 
 log = logging.getLogger("mogaf.grouping")
 
@@ -196,7 +197,7 @@ def run_group_stage(recon_h5, priors_h5, scene_h5, out_h5, params: dict[str, Any
 # ---------------------------------------------------------------- rigid_init stage
 def rigid_init(model, groups: Groups, params: dict[str, Any] | None = None) -> dict[str, np.ndarray]:
     """Per rigid group and observed step: (R, t) canonical -> deformed means."""
-    p = resolve_rigid_init_params(params)
+    p = load(RigidInitSettings, "rigid_init", params)
     N, T = model.trajectory_means.shape[:2]
     if groups.group_id.size != N:
         raise MogafError(f"rigid_init: groups cover {groups.group_id.size} Gaussians, the model has {N}")
@@ -205,7 +206,7 @@ def rigid_init(model, groups: Groups, params: dict[str, Any] | None = None) -> d
     rot = np.tile(np.eye(3), (Kr, T, 1, 1))
     trans = np.zeros((Kr, T, 3))
     res = np.zeros((Kr, T))
-    chunk = max(int(p["time_chunk"]), 1)
+    chunk = max(int(p.time_chunk), 1)
     canonical = np.asarray(model.fg.means, dtype=np.float64)
     for i, k in enumerate(rigid_ids):
         members = groups.members(int(k))
@@ -213,7 +214,7 @@ def rigid_init(model, groups: Groups, params: dict[str, Any] | None = None) -> d
             continue
         src = torch.from_numpy(canonical[members])
         w = None
-        if p["weights"] == "opacity":
+        if p.weights == "opacity":
             w = torch.from_numpy(1.0 / (1.0 + np.exp(-np.asarray(model.fg.opacity_logits, np.float64)[members])))
         for t0 in range(0, T, chunk):
             dst = torch.from_numpy(
@@ -239,7 +240,7 @@ def rigid_init(model, groups: Groups, params: dict[str, Any] | None = None) -> d
 
 
 def run_rigid_init_stage(model_h5, groups_h5, out_h5, params: dict[str, Any] | None = None) -> Path:
-    p = resolve_rigid_init_params(params)
+    p = load(RigidInitSettings, "rigid_init", params)
     model = load_model(model_h5)
     groups = load_groups(groups_h5)
     data = rigid_init(model, groups, p)
@@ -252,7 +253,11 @@ def run_rigid_init_stage(model_h5, groups_h5, out_h5, params: dict[str, Any] | N
             float(data["residual_rms"].mean()),
         )
     return write_artefact(
-        out_h5, RIGID_STAGE, data, config_digest=config_digest(p), attrs={"params": p, "weights": p["weights"]}
+        out_h5,
+        RIGID_STAGE,
+        data,
+        config_digest=config_digest(as_dict(p)),
+        attrs={"params": as_dict(p), "weights": p.weights},
     )
 
 

@@ -12,7 +12,7 @@ from ..metrics import image_metrics
 from ..rendering import render_model
 from ..representation import load_model
 from ..split import Split, evenly_spaced_frame_ids, load_evenly_spaced_frames
-from .params import _resolve
+from .params import load_settings
 
 
 def measure_reconstruction_quality(
@@ -21,11 +21,11 @@ def measure_reconstruction_quality(
     """Image metrics of the model rendered at held-out views at observed
     times: {"frame_ids", "timesteps", "per_frame"} (no frame when the split
     has none)."""
-    p = _resolve(params)
+    p = load_settings(params)
     if split.frame_ids.get("evaluation_observed", np.zeros(0)).size == 0:
         return {"frame_ids": np.zeros(0, np.int64), "timesteps": np.zeros(0, np.int64), "per_frame": []}
-    frame_ids = evenly_spaced_frame_ids(split, "evaluation_observed", int(p["max_frames"]))
-    frames = load_evenly_spaced_frames(scene_h5, split, "evaluation_observed", int(p["max_frames"]))
+    frame_ids = evenly_spaced_frame_ids(split, "evaluation_observed", int(p.max_frames))
+    frames = load_evenly_spaced_frames(scene_h5, split, "evaluation_observed", int(p.max_frames))
     model = load_model(model_h5)
     masked = split.protocol == "iphone"
     masks = frames.covisibility_masks()

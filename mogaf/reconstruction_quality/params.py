@@ -1,4 +1,4 @@
-"""Parameters of the reconstruction_quality stage (DEFAULT_PARAMS, _resolve) and its stage name."""
+"""Parameters of the reconstruction_quality stage (ReconstructionQualitySettings, load_settings) and its stage name."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from ..settings import check, defaults, setting
+from ..settings import defaults, load, setting
 
 RECONSTRUCTION_QUALITY_STAGE = "reconstruction_quality"
 
@@ -21,5 +21,8 @@ class ReconstructionQualitySettings:
 DEFAULT_PARAMS: dict[str, Any] = defaults(ReconstructionQualitySettings)
 
 
-def _resolve(params: Mapping[str, Any] | None) -> dict[str, Any]:
-    return check(ReconstructionQualitySettings, RECONSTRUCTION_QUALITY_STAGE, params)
+def load_settings(
+    params: Mapping[str, Any] | ReconstructionQualitySettings | None,
+) -> ReconstructionQualitySettings:
+    """Defaults <- params, checked, as a frozen ReconstructionQualitySettings; unknown keys are refused."""
+    return load(ReconstructionQualitySettings, RECONSTRUCTION_QUALITY_STAGE, params)

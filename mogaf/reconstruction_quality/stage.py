@@ -12,9 +12,10 @@ import numpy as np
 from ..artefact import config_digest, read_artefact, write_artefact
 from ..errors import input_error
 from ..metrics import mean_metrics
+from ..settings import as_dict
 from ..split import read_split
 from .measure import measure_reconstruction_quality
-from .params import RECONSTRUCTION_QUALITY_STAGE, _resolve
+from .params import RECONSTRUCTION_QUALITY_STAGE, load_settings
 
 
 def run_reconstruction_quality_stage(
@@ -24,11 +25,11 @@ def run_reconstruction_quality_stage(
     out: str | os.PathLike,
     params: Mapping[str, Any] | None = None,
 ) -> Path:
-    p = _resolve(params)
+    p = load_settings(params)
     measured = measure_reconstruction_quality(model_h5, scene_h5, read_split(split_h5), p)
     data = {"frame_ids": measured["frame_ids"], "timesteps": measured["timesteps"]}
-    attrs = {"params": p, "heldout_observed": mean_metrics(measured["per_frame"])}
-    return write_artefact(out, RECONSTRUCTION_QUALITY_STAGE, data, config_digest=config_digest(p), attrs=attrs)
+    attrs = {"params": as_dict(p), "heldout_observed": mean_metrics(measured["per_frame"])}
+    return write_artefact(out, RECONSTRUCTION_QUALITY_STAGE, data, config_digest=config_digest(as_dict(p)), attrs=attrs)
 
 
 def read_reconstruction_quality(path: str | os.PathLike) -> dict[str, Any]:
