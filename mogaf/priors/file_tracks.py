@@ -24,7 +24,7 @@ def _finish_tracks(
 ) -> Tracks:
     """Tracks over the observed frames from file data: fill, filter, cap."""
     P, F = vis.shape
-    keep = vis.sum(1) >= int(p["min_track_length"])
+    keep = vis.sum(1) >= int(p.min_track_length)
     if query_index is None:
         query_index = np.where(vis.any(1), vis.argmax(1), 0).astype(np.int64)
     xy = _fill_invisible(np.asarray(xy, np.float32), vis)
@@ -33,9 +33,9 @@ def _finish_tracks(
     tr = Tracks(
         query_index=np.asarray(query_index, np.int64), xy=xy, visible=vis, confidence=conf, fb_error=None
     ).subset(keep)
-    cap = int(p["max_tracks"])
+    cap = int(p.max_tracks)
     if cap > 0 and tr.num_tracks > cap:
-        rng = np.random.default_rng(int(p["seed"]))
+        rng = np.random.default_rng(int(p.seed))
         tr = tr.subset(np.sort(rng.choice(tr.num_tracks, cap, replace=False)))
     return tr
 

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from ..errors import MogafError
+from .params import load_settings
 
 DIS_PRESETS = {
     "ultrafast": cv2.DISOpticalFlow_PRESET_ULTRAFAST,
@@ -28,16 +29,17 @@ class FlowEstimator:
     """Callable `(frame_a, frame_b) -> flow a->b` for uint8 RGB frames."""
 
     def __init__(self, params: Mapping[str, Any]):
-        self.method = str(params.get("flow_method", "dis")).lower()
+        params = load_settings(params)
+        self.method = str(params.flow_method).lower()
         if self.method not in FLOW_METHODS:
             raise MogafError(f"priors: flow_method {self.method!r} is not one of {FLOW_METHODS}")
         if self.method == "dis":
-            preset = str(params.get("dis_preset", "medium")).lower()
+            preset = str(params.dis_preset).lower()
             if preset not in DIS_PRESETS:
                 raise MogafError(f"priors: dis_preset {preset!r} is not one of {tuple(DIS_PRESETS)}")
             self._dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])
             # Finest pyramid level: 0 = full resolution (presets stop at 1 or 2).
-            self._dis.setFinestScale(int(params.get("dis_finest_scale", 0)))
+            self._dis.setFinestScale(int(params.dis_finest_scale))
             # Variational refinement keeps sub-pixel accuracy on smooth motion.
             self._dis.setUseSpatialPropagation(True)
         elif not hasattr(cv2, "optflow") or not hasattr(cv2.optflow, "calcOpticalFlowDenseRLOF"):

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .params import load_settings
 from .tracks import Tracks
 
 MAX_TIME_SAMPLES = 64  # the stride grows on long videos to bound the pairwise cost
@@ -164,22 +165,21 @@ def _merge_small(labels: np.ndarray, dm: np.ndarray, min_size: int, max_groups: 
 
 def cluster_tracks(tracks: Tracks, image_hw: tuple[int, int], params: Mapping[str, Any]) -> np.ndarray:
     """Instance ids 1..K (P,) int64 for the tracks; empty input -> empty output."""
+    params = load_settings(params)
     P = tracks.num_tracks
     if P == 0:
         return np.zeros(0, np.int64)
-    thr = max(float(params["cluster_motion_threshold_px"]), 1e-6)
-    feats = _features(tracks, int(params["cluster_time_stride"]))
-    rng = np.random.default_rng(int(params["seed"]))
-    cap = max(2, int(params["cluster_max_tracks"]))
+    thr = max(float(params.cluster_motion_threshold_px), 1e-6)
+    feats = _features(tracks, int(params.cluster_time_stride))
+    rng = np.random.default_rng(int(params.seed))
+    cap = max(2, int(params.cluster_max_tracks))
     core = np.sort(rng.choice(P, cap, replace=False)) if cap < P else np.arange(P)
     dm, ds = _distances(core, core, feats)
     core_lab = _agglomerate(
-        dm, ds, int(params["cluster_knn"]), float(params["cluster_link_radius_px"]), thr, int(params["num_instances"])
+        dm, ds, int(params.cluster_knn), float(params.cluster_link_radius_px), thr, int(params.num_instances)
     )
-    min_size = max(1, int(np.ceil(float(params["cluster_min_fraction"]) * len(core))))
-    max_groups = (
-        int(params["num_instances"]) if int(params["num_instances"]) > 0 else max(1, int(params["max_instances"]))
-    )
+    min_size = max(1, int(np.ceil(float(params.cluster_min_fraction) * len(core))))
+    max_groups = int(params.num_instances) if int(params.num_instances) > 0 else max(1, int(params.max_instances))
     core_lab = _merge_small(core_lab, dm, min_size, max_groups)
     labels = np.zeros(P, np.int64)
     labels[core] = core_lab

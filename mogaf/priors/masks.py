@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from ..errors import MogafError
+from .params import load_settings
 
 CAMERA_MODELS = ("homography", "fundamental", "none")
 
@@ -109,12 +110,13 @@ def motion_segmentation(
 ) -> tuple[np.ndarray, list[CameraMotion]]:
     """(T, H, W) bool moving-pixel masks from consecutive flows (T-1, H, W, 2),
     and the camera motion fitted to each forward flow t -> t+1."""
-    model = str(params["motion_camera_model"]).lower()
+    params = load_settings(params)
+    model = str(params.motion_camera_model).lower()
     if model not in CAMERA_MODELS:
         raise MogafError(f"priors: motion_camera_model {model!r} is not one of {CAMERA_MODELS}")
     T = fwd.shape[0] + 1
     H, W = fwd.shape[1:3]
-    thr = float(params["motion_threshold_px"])
+    thr = float(params.motion_threshold_px)
     out = np.zeros((T, H, W), bool)
     if T < 2:
         return out, []
@@ -128,7 +130,7 @@ def motion_segmentation(
         if t > 0:
             rs.append(res_prev[t - 1])
         moving = np.minimum.reduce(rs) > thr
-        out[t] = clean_mask(moving, float(params["motion_min_area"]), int(params["motion_dilate_px"]))
+        out[t] = clean_mask(moving, float(params.motion_min_area), int(params.motion_dilate_px))
     return out, cams
 
 

@@ -89,3 +89,10 @@ def resolve_params(params: Mapping[str, Any] | None) -> dict[str, Any]:
     out = check(PriorsSettings, "priors", params)
     out["depth_sources"] = list(out["depth_sources"])
     return out
+
+
+def load_settings(params: Mapping[str, Any] | PriorsSettings | None) -> PriorsSettings:
+    """resolve_params as a frozen PriorsSettings (what the stage's modules read)."""
+    if isinstance(params, PriorsSettings):
+        return params
+    return PriorsSettings(**resolve_params(params))

@@ -24,7 +24,7 @@ from .file_tracks import _composite_tracks, _ground_truth_tracks, _shipped_track
 from .flow import consecutive_flows
 from .instances import cluster_tracks, label_pixels
 from .masks import background_colour_mask, motion_segmentation, static_tracks
-from .params import resolve_params
+from .params import load_settings, resolve_params
 from .shipped import load_observed_ground_truth_tracks, load_observed_shipped
 from .tracks import Tracks, compute_flow_tracks, track_statistics
 
@@ -131,7 +131,7 @@ def build_priors(
 ) -> PriorsResult:
     """Priors of the split's observed frames (pure: reads, writes nothing)."""
     t0 = time.perf_counter()
-    p = resolve_params(params)
+    p = load_settings(params)
     split = split_h5 if isinstance(split_h5, Split) else read_split(split_h5)
     scene = load_frames(scene_h5, split, "observed")
     layout = scene.layout
@@ -153,15 +153,13 @@ def build_priors(
     depth = depth_valid = None
     depth_kind = "none"
     if layout == "iphone":
-        depth, depth_valid, depth_kind, sources["depth"] = select_depth(
-            scene_h5, scene, shipped.data, p["depth_sources"]
-        )
+        depth, depth_valid, depth_kind, sources["depth"] = select_depth(scene_h5, scene, shipped.data, p.depth_sources)
     else:
         sources["depth"] = "none (layout dnerf: multi-view, no depth prior)"
 
     # Tracks from files, if any (iphone only).
     tracks: Tracks | None = None
-    if layout == "iphone" and p["tracks_source"] == "auto":
+    if layout == "iphone" and p.tracks_source == "auto":
         tracks = _shipped_tracks(shipped.data, p)
         if tracks is not None:
             sources["tracks"] = "shipped"
@@ -177,7 +175,7 @@ def build_priors(
     # iPhone reader's Shape-of-Motion track_anything mask) is a foreground
     # mask: instances then come from clustering the tracks inside it.
     single_fg = bool(
-        p["cluster_single_foreground"]
+        p.cluster_single_foreground
         and layout == "iphone"
         and scene.instance_mask is not None
         and scene.instances is not None
@@ -208,7 +206,7 @@ def build_priors(
             fg_sorted, cams = motion_segmentation(*flows, p)
             fg = np.empty_like(fg_sorted)
             fg[order] = fg_sorted
-            sources["masks"] = f"motion_segmentation ({p['flow_method']} flow, {p['motion_camera_model']} camera)"
+            sources["masks"] = f"motion_segmentation ({p.flow_method} flow, {p.motion_camera_model} camera)"
         elif scene.meta.get("background") is not None:
             fg, sources["masks"] = background_colour_mask(scene.images, scene.meta["background"]), "background_colour"
         else:
@@ -217,10 +215,10 @@ def build_priors(
     static = None  # computed tracks that do not move beyond the camera (motion-segmented scenes)
     if need_flow_tracks:
         tr_sorted = compute_flow_tracks(frames_sorted, fg[order], p, flows=flows)
-        if cams is not None and p["motion_drop_static_tracks"]:
-            static = static_tracks(tr_sorted.xy, tr_sorted.visible, cams, float(p["motion_threshold_px"]))
+        if cams is not None and p.motion_drop_static_tracks:
+            static = static_tracks(tr_sorted.xy, tr_sorted.visible, cams, float(p.motion_threshold_px))
         tracks = _composite_tracks(tr_sorted, order)
-        sources["tracks"] = f"optical_flow ({p['flow_method']}, forward-backward {p['fb_threshold_px']} px)"
+        sources["tracks"] = f"optical_flow ({p.flow_method}, forward-backward {p.fb_threshold_px} px)"
         track_stats = dict(tr_sorted.stats)
         track_stats["flow_seconds"] = round(flow_seconds, 3)
     elif tracks is not None:

@@ -42,7 +42,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .flow import consecutive_flows, sample, sample_patches
-from .params import DEFAULT_PARAMS  # the single documented source of defaults
+from .params import load_settings  # the single documented source of defaults
 
 
 @dataclass
@@ -114,13 +114,13 @@ def _chain(
 ) -> None:
     """Chain points from frame q in direction `step` (+1 or -1), writing in place."""
     T, H, W = blurred.shape[:3]
-    border = float(p["border_px"])
-    fb_thr = float(p["fb_threshold_px"])
-    fb_rel = float(p["fb_relative"])
-    photo = float(p["photometric_threshold"])
+    border = float(p.border_px)
+    fb_thr = float(p.fb_threshold_px)
+    fb_rel = float(p.fb_relative)
+    photo = float(p.photometric_threshold)
     pos = pos0.copy()
     alive = np.ones(len(pos), bool)
-    r = int(p["photometric_patch_radius"])
+    r = int(p.photometric_patch_radius)
     offs = np.stack(np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1)), -1).reshape(-1, 2).astype(np.float32)
     t = q
     while 0 <= t + step < T and alive.any():
@@ -167,7 +167,7 @@ def compute_flow_tracks(
     (query points only inside them) or None (whole frame). `flows` lets a
     caller reuse (forward, backward) flows from `consecutive_flows`.
     """
-    p = {**DEFAULT_PARAMS, **dict(params or {})}
+    p = load_settings(params)
     frames = np.asarray(frames)
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
         raise ValueError(f"frames must be (T, H, W, 3) uint8, got {frames.shape} {frames.dtype}")
@@ -183,10 +183,10 @@ def compute_flow_tracks(
     blurred = np.stack([cv2.GaussianBlur(f.astype(np.float32) / 255.0, (0, 0), sigma) for f in frames])
 
     parts: list[Tracks] = []
-    border = float(p["border_px"])
-    dedup = float(p["dedup_radius_px"])
-    for q in query_frames(T, int(p["num_query_frames"])):
-        pts = grid_points(H, W, int(p["grid_stride"]), None if fg_masks is None else fg_masks[q], border)
+    border = float(p.border_px)
+    dedup = float(p.dedup_radius_px)
+    for q in query_frames(T, int(p.num_query_frames)):
+        pts = grid_points(H, W, int(p.grid_stride), None if fg_masks is None else fg_masks[q], border)
         if dedup > 0 and parts and len(pts):
             have = np.concatenate([tr.xy[tr.visible[:, q], q] for tr in parts]) - 0.5
             if len(have):
@@ -215,18 +215,18 @@ def compute_flow_tracks(
             confidence=np.concatenate([t.confidence for t in parts]),
             fb_error=np.concatenate([t.fb_error for t in parts]),
         )
-    tracks.confidence = _confidence(tracks, float(p["fb_threshold_px"]))
-    keep = tracks.visible.sum(axis=1) >= int(p["min_track_length"])
+    tracks.confidence = _confidence(tracks, float(p.fb_threshold_px))
+    keep = tracks.visible.sum(axis=1) >= int(p.min_track_length)
     tracks = tracks.subset(keep)
-    cap = int(p["max_tracks"])
+    cap = int(p.max_tracks)
     if cap > 0 and tracks.num_tracks > cap:
-        rng = np.random.default_rng(int(p["seed"]))
+        rng = np.random.default_rng(int(p.seed))
         tracks = tracks.subset(np.sort(rng.choice(tracks.num_tracks, cap, replace=False)))
     tracks.stats = track_statistics(tracks)
     tracks.stats.update(
         flow_seconds=round(t_flow, 3),
         seconds=round(time.perf_counter() - t0, 3),
-        num_query_frames=int(len(query_frames(T, int(p["num_query_frames"])))),
+        num_query_frames=int(len(query_frames(T, int(p.num_query_frames)))),
     )
     return tracks
 
