@@ -26,7 +26,7 @@ from ..scene import Instances
 from .core import Groups, InstanceTable, MaskFrames
 from .gaga4d import group_gaga4d
 from .ours import group_ours
-from .params import resolve_params
+from .params import load_settings, resolve_params
 from .rigidity import decide_rigidity, displacement, group_displacement, is_static_scene, scene_extent
 
 
@@ -62,6 +62,7 @@ def _single_group(
     N: int, name: str, static: bool | None, rigid: int | None, p: dict, model, table, disp, extent
 ) -> Groups:
     """Every Gaussian in one group; static/rigid computed when None."""
+    s = load_settings(p)
     group_id = np.zeros(N, dtype=np.int64)
     gi = np.array([-1], dtype=np.int64)
     if rigid is None:
@@ -75,9 +76,9 @@ def _single_group(
         )
     else:
         flags, sources, residual = np.array([rigid], np.int8), ["estimated"], np.array([0.0])
-    gdisp = group_displacement(disp, group_id, 1, float(p["static_quantile"]))
+    gdisp = group_displacement(disp, group_id, 1, float(s.static_quantile))
     if static is None:
-        static = bool(gdisp[0] <= float(p["static_threshold"]) * extent)
+        static = bool(gdisp[0] <= float(s.static_threshold) * extent)
     return Groups(
         group_id=group_id,
         rigid=flags,
@@ -85,7 +86,7 @@ def _single_group(
         instance_id=gi,
         names=[name],
         rigid_source=sources,
-        method=p["method"],
+        method=s.method,
         params=p,
         diagnostics={
             "group_size": np.array([N], np.int64),
@@ -116,13 +117,14 @@ def group_gaussians(
     in order; keyframes for ours, every frame for Gaga-4D).
     """
     p = resolve_params(params)
+    s = load_settings(p)
     frames = mask_frames if isinstance(mask_frames, MaskFrames) else MaskFrames(**mask_frames)
     masks = np.asarray(masks)
     if masks.ndim != 3 or masks.shape[0] != len(frames):
         raise ValueError(f"masks must be (F,H,W) with F = {len(frames)} frames, got {masks.shape}")
     N = len(model.fg)
     traj = np.asarray(model.trajectory_means, dtype=np.float64)
-    extent = scene_extent(traj, seed=int(p["seed"]))
+    extent = scene_extent(traj, seed=int(s.seed))
     disp = displacement(traj)
     table = instance_table(instances, masks, rigid_source)
     if N == 0:
@@ -134,7 +136,7 @@ def group_gaussians(
             instance_id=e,
             names=[],
             rigid_source=[],
-            method=p["method"],
+            method=s.method,
             params=p,
             diagnostics={
                 "group_size": e,
@@ -147,7 +149,7 @@ def group_gaussians(
     if is_static_scene(disp, extent, p):
         return _single_group(N, "static", True, 1, p, model, table, disp, extent)
 
-    if p["method"] == "ours":
+    if s.method == "ours":
         labels, stage, diag = group_ours(model, masks, frames, table.ids, p, frame_order)
         group_inst = np.arange(len(table.ids), dtype=np.int64)
     else:
@@ -174,8 +176,8 @@ def group_gaussians(
     rigid, sources, residual = decide_rigidity(
         group_inst, table, np.asarray(model.fg.means, np.float64), traj, group_id, p
     )
-    gdisp = group_displacement(disp, group_id, Kg, float(p["static_quantile"]))
-    static = (gdisp <= float(p["static_threshold"]) * extent).astype(np.int8)
+    gdisp = group_displacement(disp, group_id, Kg, float(s.static_quantile))
+    static = (gdisp <= float(s.static_threshold) * extent).astype(np.int8)
     return Groups(
         group_id=group_id,
         rigid=rigid,
@@ -183,7 +185,7 @@ def group_gaussians(
         instance_id=table.ids[group_inst].astype(np.int64),
         names=names,
         rigid_source=sources,
-        method=p["method"],
+        method=s.method,
         params=p,
         diagnostics={
             "group_size": np.bincount(group_id, minlength=Kg).astype(np.int64),

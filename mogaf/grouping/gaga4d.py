@@ -29,6 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from .core import MaskFrames, frames_in_time_order, mask_gaussians
+from .params import load_settings
 from .voting import knn_vote
 
 SEED, VOTE = 0, 2
@@ -44,14 +45,15 @@ def group_gaga4d(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Returns labels (N,) indexing groups, group_instance (G,) indexing
     instance_ids, assignment stage per Gaussian and diagnostics."""
+    params = load_settings(params)
     N = len(model.fg)
     labels = np.full(N, -1, dtype=np.int64)
     stage = np.full(N, -1, dtype=np.int8)
     group_instance: list[int] = []
     group_size: list[int] = []
-    theta = float(params["overlap_threshold"])
+    theta = float(params.overlap_threshold)
     if frame_order is None:
-        frame_order = frames_in_time_order(frames.time_index)[:: int(params["gaga_frame_stride"])]
+        frame_order = frames_in_time_order(frames.time_index)[:: int(params.gaga_frame_stride)]
     traj = model.trajectory_means
     merges = new_groups = 0
     for f in np.asarray(frame_order, dtype=np.int64):
@@ -61,8 +63,8 @@ def group_gaga4d(
             frames.K[f],
             frames.w2c[f],
             instance_ids,
-            float(params["gaga_front_fraction"]),
-            int(params["front_patches"]),
+            float(params.gaga_front_fraction),
+            int(params.front_patches),
         )
         if idx.size == 0:
             continue
@@ -90,7 +92,7 @@ def group_gaga4d(
             group_size[target] += free.size
     means = np.asarray(model.fg.means, dtype=np.float64)
     before = labels < 0
-    labels, rounds = knn_vote(means, labels, int(params["vote_knn"]), float(params["vote_fraction"]))
+    labels, rounds = knn_vote(means, labels, int(params.vote_knn), float(params.vote_fraction))
     stage[before & (labels >= 0)] = VOTE
     diag = {"frames": int(len(frame_order)), "merges": merges, "groups_opened": new_groups, "vote_rounds": rounds}
     return labels, np.asarray(group_instance, dtype=np.int64), stage, diag

@@ -45,6 +45,7 @@ from scipy.spatial import cKDTree
 from sklearn.decomposition import PCA
 
 from .core import MaskFrames, frames_in_time_order, mask_gaussians
+from .params import load_settings
 from .voting import knn_vote
 
 SEED, GROW, VOTE = 0, 1, 2
@@ -52,6 +53,7 @@ SEED, GROW, VOTE = 0, 1, 2
 
 def motion_features(model, params: dict) -> tuple[np.ndarray, dict]:
     """f_g = [canonical mean, scale * PCA-reduced motion coefficients]."""
+    params = load_settings(params)
     means = np.asarray(model.fg.means, dtype=np.float64)
     N = means.shape[0]
     info: dict = {"pca_components": 0, "pca_explained_variance": 0.0}
@@ -62,17 +64,17 @@ def motion_features(model, params: dict) -> tuple[np.ndarray, dict]:
     if not np.isfinite(var) or var <= 1e-20:
         return means.copy(), info
     max_c = min(coefs.shape[1], N)
-    pca = PCA(n_components=max_c, svd_solver="full", random_state=int(params["seed"]))
+    pca = PCA(n_components=max_c, svd_solver="full", random_state=int(params.seed))
     reduced = pca.fit_transform(coefs)
     ratios = pca.explained_variance_ratio_
-    if params["pca_components"] is not None:
-        n = int(min(max(int(params["pca_components"]), 0), max_c))
+    if params.pca_components is not None:
+        n = int(min(max(int(params.pca_components), 0), max_c))
     else:
         cum = np.cumsum(ratios)
-        n = int(np.searchsorted(cum, float(params["pca_explained_variance"]) - 1e-12) + 1)
+        n = int(np.searchsorted(cum, float(params.pca_explained_variance) - 1e-12) + 1)
         n = min(n, max_c)
     info = {"pca_components": n, "pca_explained_variance": float(ratios[:n].sum())}
-    feats = np.concatenate([means, float(params["pca_scale"]) * reduced[:, :n]], axis=1)
+    feats = np.concatenate([means, float(params.pca_scale) * reduced[:, :n]], axis=1)
     return feats, info
 
 
@@ -80,13 +82,14 @@ class _Radius:
     """eps_k = alpha * mean over members of the mean distance to KNN_K members."""
 
     def __init__(self, features: np.ndarray, params: dict):
+        params = load_settings(params)
         self.features = features
-        self.alpha = float(params["grow_alpha"])
-        self.k = int(params["grow_knn"])
-        self.max_sample = int(params["grow_radius_sample"])
+        self.alpha = float(params.grow_alpha)
+        self.k = int(params.grow_knn)
+        self.max_sample = int(params.grow_radius_sample)
         # A fixed random priority per Gaussian: the sampled members change
         # little as a group grows, so eps_k does not jitter.
-        self.priority = np.random.default_rng(int(params["seed"])).permutation(features.shape[0])
+        self.priority = np.random.default_rng(int(params.seed)).permutation(features.shape[0])
         self.fallback = self._radius(np.arange(features.shape[0]))
 
     def _radius(self, members: np.ndarray) -> float:
@@ -194,13 +197,14 @@ def group_ours(
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Labels (N,) indexing instance_ids (one group per identity), assignment
     stage per Gaussian (0 seed, 1 grow, 2 vote, -1 none) and diagnostics."""
+    params = load_settings(params)
     N = len(model.fg)
     J = len(instance_ids)
     labels = np.full(N, -1, dtype=np.int64)
     stage = np.full(N, -1, dtype=np.int8)
     feats, info = motion_features(model, params)
     order = (
-        keyframe_order(frames.time_index, params["keyframe_stride"]) if frame_order is None else np.asarray(frame_order)
+        keyframe_order(frames.time_index, params.keyframe_stride) if frame_order is None else np.asarray(frame_order)
     )
     traj = model.trajectory_means
     diag: dict = {**info, "keyframes": [int(f) for f in order], "grow_iterations": [], "seeded": []}
@@ -209,7 +213,7 @@ def group_ours(
     tree = cKDTree(feats)
     radius = _Radius(feats, params)
     queried = np.zeros(N)
-    max_iters = int(params["grow_max_iters"])
+    max_iters = int(params.grow_max_iters)
 
     def seed_at(f: int) -> None:
         idx, inst = mask_gaussians(
@@ -218,10 +222,10 @@ def group_ours(
             frames.K[f],
             frames.w2c[f],
             instance_ids,
-            float(params["front_fraction"]),
-            int(params["front_patches"]),
+            float(params.front_fraction),
+            int(params.front_patches),
         )
-        diag["seeded"].append(seed(labels, stage, idx, inst, queried if params["reseed_grown"] else None))
+        diag["seeded"].append(seed(labels, stage, idx, inst, queried if params.reseed_grown else None))
 
     seed_at(int(order[0]))
     for f in order[1:]:
@@ -229,7 +233,7 @@ def group_ours(
         seed_at(int(f))
     diag["grow_iterations"].append(region_grow(feats, tree, labels, J, radius, queried, stage, max_iters))
     before = labels < 0
-    labels, rounds = knn_vote(feats, labels, int(params["vote_knn"]), float(params["vote_fraction"]))
+    labels, rounds = knn_vote(feats, labels, int(params.vote_knn), float(params.vote_fraction))
     stage[before & (labels >= 0)] = VOTE
     diag["vote_rounds"] = rounds
     return labels, stage, diag

@@ -9,7 +9,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from ..settings import check, defaults, setting
+from ..settings import check, defaults, load, setting
 
 METHODS = ("ours", "gaga4d")
 
@@ -100,6 +100,11 @@ DEFAULT_PARAMS: dict[str, Any] = defaults(GroupingSettings)
 def resolve_params(params: dict[str, Any] | None) -> dict[str, Any]:
     """Defaults <- params, checked (GroupingSettings); unknown keys are refused."""
     return check(GroupingSettings, "grouping", params)
+
+
+def load_settings(params: dict[str, Any] | GroupingSettings | None) -> GroupingSettings:
+    """resolve_params as a frozen GroupingSettings (what the grouping's modules read)."""
+    return load(GroupingSettings, "grouping", params)
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from ..rigid import rigid_fit_residual
+from .params import load_settings
 
 VALID_SOURCES = ("label", "config", "estimated")
 
@@ -53,7 +54,7 @@ def displacement(trajectories: np.ndarray) -> np.ndarray:
 
 
 def static_threshold_abs(extent: float, params: dict) -> float:
-    return float(params["static_threshold"]) * max(float(extent), 0.0)
+    return float(load_settings(params).static_threshold) * max(float(extent), 0.0)
 
 
 def is_static_scene(disp: np.ndarray, extent: float, params: dict) -> bool:
@@ -131,7 +132,8 @@ def decide_rigidity(
     rigid = np.zeros(K, dtype=np.int8)
     source: list[str] = []
     residual = np.full(K, -1.0)
-    override = params.get("rigid_override") or {}
+    params = load_settings(params)
+    override = params.rigid_override or {}
     for k in range(K):
         j = int(group_instance[k])
         inst_id = int(table.ids[j]) if j >= 0 else -1
@@ -150,9 +152,9 @@ def decide_rigidity(
         ok, r = estimate_rigid(
             canonical[members],
             trajectories[members],
-            float(params["rigidity_threshold"]),
-            int(params["rigidity_max_points"]),
-            int(params["seed"]),
+            float(params.rigidity_threshold),
+            int(params.rigidity_max_points),
+            int(params.seed),
         )
         rigid[k] = int(ok)
         residual[k] = r

@@ -46,7 +46,7 @@ from ..settings import as_dict, load
 from .api import group_gaussians
 from .core import Groups, MaskFrames, frames_in_time_order
 from .ours import keyframe_order
-from .params import RigidInitSettings, _typed_params, resolve_params
+from .params import RigidInitSettings, _typed_params, load_settings, resolve_params
 
 log = logging.getLogger("mogaf.grouping")
 
@@ -160,6 +160,7 @@ def read_mask_rows(priors_h5: str | os.PathLike, rows: np.ndarray) -> tuple[np.n
 def run_group_stage(recon_h5, priors_h5, scene_h5, out_h5, params: dict[str, Any] | None = None) -> Path:
     """Group the reconstruction's Gaussians by the observed frames' masks; write groups.h5."""
     p = resolve_params(params)
+    s = load_settings(p)
     model = load_model(recon_h5)
     pri = read_priors_for_grouping(priors_h5)
     steps = np.asarray(model.timesteps, dtype=np.int64)
@@ -167,10 +168,10 @@ def run_group_stage(recon_h5, priors_h5, scene_h5, out_h5, params: dict[str, Any
     missing = sorted({int(t) for t in pri["timesteps"]} - set(col_of))
     if missing:
         raise input_error(priors_h5, f"mask frames at time steps {missing[:5]} are not observed steps of {recon_h5}")
-    if p["method"] == "ours":
-        order = keyframe_order(pri["timesteps"], p["keyframe_stride"])
+    if s.method == "ours":
+        order = keyframe_order(pri["timesteps"], s.keyframe_stride)
     else:
-        order = frames_in_time_order(pri["timesteps"])[:: int(p["gaga_frame_stride"])]
+        order = frames_in_time_order(pri["timesteps"])[:: int(s.gaga_frame_stride)]
     rows, inverse = np.unique(order, return_inverse=True)
     masks, from_instances = read_mask_rows(priors_h5, rows)
     instances = pri.get("instances") if from_instances else Instances(ids=[1], names=["foreground"], rigid=[-1])
@@ -185,7 +186,7 @@ def run_group_stage(recon_h5, priors_h5, scene_h5, out_h5, params: dict[str, Any
     del masks
     log.info(
         "grouping (%s): %d groups, sizes %s, rigid %s, static %s",
-        p["method"],
+        s.method,
         groups.num_groups,
         groups.sizes().tolist(),
         groups.rigid.tolist(),
