@@ -21,11 +21,13 @@ from .data import TrainData
 from .init_common import InitResult
 from .init_masks import _init_without_tracks
 from .init_tracks import _init_from_tracks
+from .params import load_settings
 
 __all__ = ["InitResult", "initialise"]
 
 
 def initialise(data: TrainData, params: dict, seed: int) -> InitResult:
+    params = load_settings(params)
     rng = np.random.default_rng(seed)
     if data.has_tracks and data.has_depth:
         return _init_from_tracks(data, params, rng, seed)

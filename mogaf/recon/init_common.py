@@ -19,6 +19,7 @@ import torch
 from ..camera import camera_centers
 from .data import TrainData
 from .model import num_sh_rest
+from .params import load_settings
 
 
 @dataclass
@@ -140,10 +141,11 @@ def pixel_labels(data: TrainData, f: int, rr: np.ndarray, cc: np.ndarray) -> np.
 
 
 def _use_bg(params: dict, data: TrainData) -> bool:
-    mode = params["background_gaussians"]
+    params = load_settings(params)
+    mode = params.background_gaussians
     if mode == "auto":
-        return data.layout == "iphone" and params["num_bg_init"] > 0
-    return mode == "yes" and params["num_bg_init"] > 0
+        return data.layout == "iphone" and params.num_bg_init > 0
+    return mode == "yes" and params.num_bg_init > 0
 
 
 def _bg_from_depth(data: TrainData, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

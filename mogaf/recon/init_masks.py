@@ -61,7 +61,7 @@ def carve_points(
     rr, cc = np.nonzero(fgm)
     if rr.size == 0:
         raise MogafError("reconstruction init: the canonical frame has no foreground pixel")
-    n_cand = params["carve_candidates"]
+    n_cand = params.carve_candidates
     pix = rng.integers(0, rr.size, size=n_cand)
     uv = np.stack([cc[pix] + rng.random(n_cand), rr[pix] + rng.random(n_cand)], axis=1)
     K, w2c = data.K[cano], data.w2c[cano]
@@ -80,7 +80,7 @@ def carve_points(
     z = tmin + rng.random(n_cand) * (tmax - tmin)
     pts = origin[None] + dirs * z[:, None]
     pts, pix = pts[hit], pix[hit]
-    frames = [f for f in _window_frames(data, cano, params["carve_window"]) if f != cano]
+    frames = [f for f in _window_frames(data, cano, params.carve_window) if f != cano]
     votes = np.zeros(pts.shape[0])
     seen = np.zeros(pts.shape[0])
     lab_img = data.instance_mask if data.instance_mask is not None else (data.fg_masks > 0.5).astype(np.int64)
@@ -88,7 +88,7 @@ def carve_points(
     label_votes = np.zeros((pts.shape[0], n_lab))
     label_votes[np.arange(pts.shape[0]), pixel_labels(data, cano, rr[pix], cc[pix])] += 1.0
     for f in frames:
-        m = _dilate(data.fg_masks[f] > 0.5, params["carve_dilate"])
+        m = _dilate(data.fg_masks[f] > 0.5, params.carve_dilate)
         uvf, zf = project(pts, data.K[f], data.w2c[f])
         inside = (zf > 0) & (uvf[:, 0] >= 0) & (uvf[:, 1] >= 0) & (uvf[:, 0] < data.width) & (uvf[:, 1] < data.height)
         seen += inside
@@ -97,7 +97,7 @@ def carve_points(
         lab = sample_pixels(lab_img[f], uvs)
         np.add.at(label_votes, (np.flatnonzero(inside), lab[inside]), 1.0)
     frac = votes / np.maximum(seen, 1)
-    keep = (seen > 0) & (frac >= params["carve_min_fraction"])
+    keep = (seen > 0) & (frac >= params.carve_min_fraction)
     if keep.sum() < 64:  # too strict for this motion: keep the best-supported half
         keep = frac >= np.quantile(frac, 0.5)
     colours = data.images[cano][rr[pix[keep]], cc[pix[keep]]]
@@ -188,8 +188,8 @@ def rank_canonical_frames(data: TrainData) -> np.ndarray:
 def _carved(data: TrainData, cano: int, params: dict, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rng = np.random.default_rng([seed, 7, cano])
     pts, cols, labels = carve_points(data, cano, params, rng)
-    if pts.shape[0] > params["num_fg_init"]:
-        sel = np.sort(rng.choice(pts.shape[0], params["num_fg_init"], replace=False))
+    if pts.shape[0] > params.num_fg_init:
+        sel = np.sort(rng.choice(pts.shape[0], params.num_fg_init, replace=False))
         pts, cols, labels = pts[sel], cols[sel], labels[sel]
     return pts, cols, labels
 
@@ -199,7 +199,7 @@ def _carve_and_fit(data: TrainData, cano: int, params: dict, seed: int, iters: i
     pts, _, labels = _carved(data, cano, params, seed)
     fg_extent = robust_extent(pts)
     logits = instance_aware_coefs(
-        pts, labels, params["num_bases"], params["init_coef_scale"], params["init_coef_length"] * 2 * fg_extent, seed
+        pts, labels, params.num_bases, params.init_coef_scale, params.init_coef_length * 2 * fg_extent, seed
     )
     B, T = logits.shape[1], data.num_timesteps
     rot = IDENTITY_6D.reshape(1, 1, 6).repeat(B, T, 1)
@@ -214,13 +214,13 @@ def _carve_and_fit(data: TrainData, cano: int, params: dict, seed: int, iters: i
         cano,
         _scale_without_depth(data, pts, fg_extent),
         iters=max(iters, 1),
-        max_points=params["silhouette_fit_points"],
-        frames_per_iter=params["silhouette_fit_frames"],
-        pool=params["silhouette_pixels"],
+        max_points=params.silhouette_fit_points,
+        frames_per_iter=params.silhouette_fit_frames,
+        pool=params.silhouette_pixels,
         seed=seed,
-        w_still=params["silhouette_fit_still"],
-        w_smooth=params["silhouette_fit_smooth"],
-        gap_fill=params["gap_interpolation"],
+        w_still=params.silhouette_fit_still,
+        w_smooth=params.silhouette_fit_smooth,
+        gap_fill=params.gap_interpolation,
     )
     return float(info["silhouette_fit_forward_px"] + info["silhouette_fit_coverage_px"])
 
@@ -246,32 +246,32 @@ def _init_without_tracks(data: TrainData, params: dict, rng: np.random.Generator
         rr, cc = np.nonzero(m)
         if rr.size == 0:
             raise MogafError("reconstruction init: no foreground pixel with valid depth")
-        sel = np.sort(rng.choice(rr.size, min(params["num_fg_init"], rr.size), replace=False))
+        sel = np.sort(rng.choice(rr.size, min(params.num_fg_init, rr.size), replace=False))
         uv = np.stack([cc[sel] + 0.5, rr[sel] + 0.5], axis=1)
         pts = unproject(uv, data.depth[cano][rr[sel], cc[sel]], data.K[cano], data.w2c[cano])
         cols = data.images[cano][rr[sel], cc[sel]]
         labels = pixel_labels(data, cano, rr[sel], cc[sel])
     else:
-        if params["canonical_frame"] >= 0:
-            cano = params["canonical_frame"]
+        if params.canonical_frame >= 0:
+            cano = params.canonical_frame
         else:
-            ranked = rank_canonical_frames(data)[: max(1, params["canonical_candidates"])]
+            ranked = rank_canonical_frames(data)[: max(1, params.canonical_candidates)]
             cano = int(ranked[0])
-            if len(ranked) > 1 and params["silhouette_fit_iters"] > 0 and data.num_timesteps > 1:
+            if len(ranked) > 1 and params.silhouette_fit_iters > 0 and data.num_timesteps > 1:
                 # the best-scored frame is not always the best start: keep the one whose short
                 # silhouette fit leaves the smallest residual
                 trials = []
                 for c in ranked:
-                    r = _carve_and_fit(data, int(c), params, seed, params["silhouette_fit_iters"] // 4)
+                    r = _carve_and_fit(data, int(c), params, seed, params.silhouette_fit_iters // 4)
                     trials.append(r)
                 cano = int(ranked[int(np.argmin(trials))])
         pts, cols, labels = _carved(data, cano, params, seed)
     fg_extent = robust_extent(pts)
     logits = instance_aware_coefs(
-        pts, labels, params["num_bases"], params["init_coef_scale"], params["init_coef_length"] * 2 * fg_extent, seed
+        pts, labels, params.num_bases, params.init_coef_scale, params.init_coef_length * 2 * fg_extent, seed
     )
     B = logits.shape[1]
-    fg = gaussian_tensors(pts, cols, rng, params["init_opacity"], params["sh_degree"], True, logits)
+    fg = gaussian_tensors(pts, cols, rng, params.init_opacity, params.sh_degree, True, logits)
     fg["labels"] = torch.tensor(labels, dtype=torch.int64)
     rot = IDENTITY_6D.reshape(1, 1, 6).repeat(B, T, 1)
     tr = torch.zeros(B, T, 3)
@@ -279,11 +279,11 @@ def _init_without_tracks(data: TrainData, params: dict, rng: np.random.Generator
     bg_pts = np.zeros((0, 3))
     if _use_bg(params, data):
         if data.has_depth:
-            bg_pts, bg_cols = _bg_from_depth(data, params["num_bg_init"], rng)
+            bg_pts, bg_cols = _bg_from_depth(data, params.num_bg_init, rng)
         else:
-            bg_pts, bg_cols = _bg_outside_masks(data, params["num_bg_init"], rng)
+            bg_pts, bg_cols = _bg_outside_masks(data, params.num_bg_init, rng)
         if bg_pts.shape[0] >= 4:
-            bg = gaussian_tensors(bg_pts, bg_cols, rng, params["init_opacity"], params["sh_degree"], False)
+            bg = gaussian_tensors(bg_pts, bg_cols, rng, params.init_opacity, params.sh_degree, False)
     if bg_pts.shape[0]:
         scene_scale = robust_extent(np.concatenate([pts, bg_pts]))
     elif data.has_depth:
@@ -292,7 +292,7 @@ def _init_without_tracks(data: TrainData, params: dict, rng: np.random.Generator
         scene_scale = _scale_without_depth(data, pts, fg_extent)
     info = {"canonical_frame": cano, "fg_extent": fg_extent, "num_clusters": B}
     source = "identity"
-    if params["silhouette_fit_iters"] > 0 and data.num_timesteps > 1:
+    if params.silhouette_fit_iters > 0 and data.num_timesteps > 1:
         rot, tr, sinfo = fit_bases_to_silhouettes(
             data,
             pts,
@@ -302,26 +302,26 @@ def _init_without_tracks(data: TrainData, params: dict, rng: np.random.Generator
             tr,
             cano,
             scene_scale,
-            iters=params["silhouette_fit_iters"],
-            max_points=params["silhouette_fit_points"],
-            frames_per_iter=params["silhouette_fit_frames"],
-            pool=params["silhouette_pixels"],
+            iters=params.silhouette_fit_iters,
+            max_points=params.silhouette_fit_points,
+            frames_per_iter=params.silhouette_fit_frames,
+            pool=params.silhouette_pixels,
             seed=seed,
-            w_still=params["silhouette_fit_still"],
-            w_smooth=params["silhouette_fit_smooth"],
-            gap_fill=params["gap_interpolation"],
+            w_still=params.silhouette_fit_still,
+            w_smooth=params.silhouette_fit_smooth,
+            gap_fill=params.gap_interpolation,
         )
         info.update(sinfo)
         source = "silhouette"
-        if params["hull_min_fraction"] > 0:
+        if params.hull_min_fraction > 0:
             keep = carve_with_motion(
-                data, pts, logits, rot, tr, dilate=params["carve_dilate"], min_fraction=params["hull_min_fraction"]
+                data, pts, logits, rot, tr, dilate=params.carve_dilate, min_fraction=params.hull_min_fraction
             )
             info["hull_kept_fraction"] = float(keep.mean())
             if keep.sum() >= 32:
                 pts, cols, labels, logits = pts[keep], cols[keep], labels[keep], logits[keep]
                 # refill the budget with jittered copies of the survivors
-                n_more = params["num_fg_init"] - pts.shape[0]
+                n_more = params.num_fg_init - pts.shape[0]
                 if n_more > 0:
                     src = rng.integers(0, pts.shape[0], size=n_more)
                     jitter = rng.normal(size=(n_more, 3)) * knn_scale(pts, 3)[src, None] * 0.5
@@ -331,7 +331,7 @@ def _init_without_tracks(data: TrainData, params: dict, rng: np.random.Generator
                         np.concatenate([labels, labels[src]]),
                         np.concatenate([logits, logits[src]]),
                     )
-                fg = gaussian_tensors(pts, cols, rng, params["init_opacity"], params["sh_degree"], True, logits)
+                fg = gaussian_tensors(pts, cols, rng, params.init_opacity, params.sh_degree, True, logits)
                 fg["labels"] = torch.tensor(labels, dtype=torch.int64)
     return InitResult(fg, rot, tr, bg, scene_scale, cano, source, info)
 

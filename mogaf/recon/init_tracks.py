@@ -246,30 +246,30 @@ def _init_from_tracks(data: TrainData, params: dict, rng: np.random.Generator, s
     track_ids = np.flatnonzero(good)
     times = data.tidx.astype(np.float64)
     xyz = fill_in_time(xyz, ok, times)
-    cano = int(np.argmax(ok.sum(axis=0))) if params["canonical_frame"] < 0 else params["canonical_frame"]
+    cano = int(np.argmax(ok.sum(axis=0))) if params.canonical_frame < 0 else params.canonical_frame
     can = xyz[:, cano]
     dist = np.linalg.norm(can - np.median(can, axis=0), axis=-1)
     inl = dist <= np.quantile(dist, 0.95) if len(dist) > 40 else np.ones(len(dist), bool)
     xyz, ok, can, track_ids = xyz[inl], ok[inl], can[inl], track_ids[inl]
 
-    labels, ids = velocity_clusters(xyz, times, params["num_bases"], seed, params["init_min_cluster_fraction"])
+    labels, ids = velocity_clusters(xyz, times, params.num_bases, seed, params.init_min_cluster_fraction)
     keep = np.isin(labels, ids)
     rot, tr, info = bases_from_clusters(xyz, ok, labels, ids, cano, data.tidx, T)
     fg_extent = robust_extent(can)
     centres = np.stack([np.median(can[labels == i], axis=0) for i in ids])
-    length = params["init_coef_length"] * 2 * fg_extent
-    logits = coef_logits_from_centres(can, centres, params["init_coef_scale"], length)
+    length = params.init_coef_length * 2 * fg_extent
+    logits = coef_logits_from_centres(can, centres, params.init_coef_scale, length)
     # fit tracks (SoM run_initial_optim)
     scale0 = max(fg_extent, 1e-3)
     m_fit, c_fit, rot, tr = fit_bases_to_tracks(
-        can[keep], logits[keep], rot, tr, xyz[keep], ok[keep], data.tidx, params["init_optim_iters"], scale0
+        can[keep], logits[keep], rot, tr, xyz[keep], ok[keep], data.tidx, params.init_optim_iters, scale0
     )
     info.update(num_tracks=int(keep.sum()), num_clusters=int(len(ids)))
     track_ids = track_ids[keep]
 
     # fg Gaussians: tracks + dense canonical fg pixels
-    n_fg = params["num_fg_init"]
-    n_dense = int(round(n_fg * params["init_fg_dense_fraction"]))
+    n_fg = params.num_fg_init
+    n_dense = int(round(n_fg * params.init_fg_dense_fraction))
     n_tr = min(n_fg - n_dense, m_fit.shape[0])
     pick = (
         np.sort(rng.choice(m_fit.shape[0], n_tr, replace=False)) if n_tr < m_fit.shape[0] else np.arange(m_fit.shape[0])
@@ -307,15 +307,15 @@ def _init_from_tracks(data: TrainData, params: dict, rng: np.random.Generator, s
     means = np.concatenate([tr_means, dense_means])
     cols = np.concatenate([colours, dense_cols])
     logits_all = np.concatenate([tr_logits, dense_logits]).astype(np.float32)
-    fg = gaussian_tensors(means, cols, rng, params["init_opacity"], params["sh_degree"], True, logits_all)
+    fg = gaussian_tensors(means, cols, rng, params.init_opacity, params.sh_degree, True, logits_all)
     fg["labels"] = torch.tensor(np.concatenate([tr_labels, dense_labels]), dtype=torch.int64)
 
     bg = None
     bg_pts = np.zeros((0, 3))
     if _use_bg(params, data):
-        bg_pts, bg_cols = _bg_from_depth(data, params["num_bg_init"], rng)
+        bg_pts, bg_cols = _bg_from_depth(data, params.num_bg_init, rng)
         if bg_pts.shape[0] >= 4:
-            bg = gaussian_tensors(bg_pts, bg_cols, rng, params["init_opacity"], params["sh_degree"], False)
+            bg = gaussian_tensors(bg_pts, bg_cols, rng, params.init_opacity, params.sh_degree, False)
     scene_scale = robust_extent(np.concatenate([means, bg_pts])) if bg_pts.shape[0] else robust_extent(means)
     info.update(canonical_frame=cano, fg_extent=fg_extent)
     return InitResult(

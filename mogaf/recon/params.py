@@ -19,7 +19,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from ..settings import check, defaults, setting
+from ..settings import check, defaults, load, setting
 
 
 @dataclass(frozen=True)
@@ -168,6 +168,12 @@ class ReconSettings:
 
 
 DEFAULT_PARAMS: dict[str, Any] = defaults(ReconSettings)
+
+
+def load_settings(params: Mapping[str, Any] | ReconSettings | None) -> ReconSettings:
+    """Resolved parameters (resolve_params' dict) as a frozen ReconSettings, what
+    the stage's modules read; a ReconSettings is returned as it is."""
+    return load(ReconSettings, "recon", params)
 
 
 def resolve_params(params: Mapping[str, Any] | None = None) -> dict[str, Any]:

@@ -14,23 +14,23 @@ import torch
 
 
 def _lr_names(params: dict, scale: float) -> dict[str, float]:
-    s = scale if params["lr_scene_scaled"] else 1.0
-    b = params["lr_boost"]
+    s = scale if params.lr_scene_scaled else 1.0
+    b = params.lr_boost
     lr = {
-        "means": params["lr_means"] * s,
-        "quats": params["lr_quats"],
-        "log_scales": params["lr_scales"],
-        "color_logits": params["lr_colors"],
-        "sh_rest": params["lr_colors"] / 20.0,
-        "motion_coef_logits": params["lr_motion_coefs"],
+        "means": params.lr_means * s,
+        "quats": params.lr_quats,
+        "log_scales": params.lr_scales,
+        "color_logits": params.lr_colors,
+        "sh_rest": params.lr_colors / 20.0,
+        "motion_coef_logits": params.lr_motion_coefs,
     }
     out = {}
     for part in ("fg", "bg"):
         for k, v in lr.items():
             out[f"{part}.{k}"] = v * b
-        out[f"{part}.opacity_logits"] = params[f"lr_opacities_{part}"] * b
-    out["motion.rot6d"] = params["lr_rots"] * b
-    out["motion.transl"] = params["lr_transls"] * s * b
+        out[f"{part}.opacity_logits"] = getattr(params, f"lr_opacities_{part}") * b
+    out["motion.rot6d"] = params.lr_rots * b
+    out["motion.transl"] = params.lr_transls * s * b
     return out
 
 
@@ -38,7 +38,7 @@ class TrainerSchedule:
     """Learning rates, curriculum window and motion-basis gap filling of Trainer."""
 
     def set_lrs(self, it: int) -> None:
-        frac = min(1.0, it / max(1, self.p["iterations"]))
+        frac = min(1.0, it / max(1, self.p.iterations))
         for name, opt in self.optimizers.items():
             lr = self.base_lr[name]
             if name.endswith("log_scales"):
@@ -50,8 +50,8 @@ class TrainerSchedule:
         T = self.data.num_timesteps
         if not self.curriculum:
             return T
-        n = max(1, int(self.p["curriculum_fraction"] * self.p["iterations"]))
-        start = self.p["curriculum_start"]
+        n = max(1, int(self.p.curriculum_fraction * self.p.iterations))
+        start = self.p.curriculum_start
         return int(min(T, start + (T - start) * it / n))
 
     def allowed_frames(self, it: int) -> torch.Tensor:

@@ -18,7 +18,7 @@ from ..split import read_split
 from .data import TrainData, coarser, extend_masks_to_content, input_digests, load_train_data
 from .init import initialise
 from .init_common import _use_bg
-from .params import resolve_params
+from .params import load_settings, resolve_params
 from .trainer import Trainer, load_checkpoint, run_resumable
 
 log = logging.getLogger(__name__)
@@ -50,8 +50,9 @@ def checkpoint_digest(params: Mapping[str, Any], seed: int, data: TrainData, inp
 
 def prepare_data(data: TrainData, p: dict) -> None:
     """Mask handling that depends on the parameters (see extend_masks_to_content)."""
-    if not _use_bg(p, data) and p["content_threshold"] > 0:
-        extend_masks_to_content(data, p["content_threshold"])
+    p = load_settings(p)
+    if not _use_bg(p, data) and p.content_threshold > 0:
+        extend_masks_to_content(data, p.content_threshold)
 
 
 def build_trainer(
@@ -60,8 +61,9 @@ def build_trainer(
     """A Trainer resumed from `checkpoint` when its digest matches, else freshly initialised."""
     torch.manual_seed(int(seed))
     coarse = None
-    if params["coarse_downscale"] > 1 and params["coarse_fraction"] > 0:
-        c = params["coarse_downscale"]
+    s = load_settings(params)
+    if s.coarse_downscale > 1 and s.coarse_fraction > 0:
+        c = s.coarse_downscale
         if data.height // c >= 8 and data.width // c >= 8:
             coarse = coarser(data, c)
     state = load_checkpoint(checkpoint, digest) if checkpoint is not None else None
@@ -97,8 +99,9 @@ def run_recon_stage(
     """
     p = resolve_params(params)
     previous_threads = torch.get_num_threads()
-    if p["threads"] > 0:
-        torch.set_num_threads(p["threads"])
+    threads = load_settings(p).threads
+    if threads > 0:
+        torch.set_num_threads(threads)
     try:
         return _run(scene_h5, split_h5, priors_h5, out_h5, p, seed, checkpoint, progress, keep_checkpoint, stop_at)
     finally:
@@ -118,7 +121,8 @@ def _run(
     stop_at: int | None,
 ) -> Path:
     split = read_split(split_h5)
-    data = load_train_data(scene_h5, split, priors_h5, downscale=p["downscale"])
+    s = load_settings(p)  # p: the resolved dict, recorded and hashed as it is
+    data = load_train_data(scene_h5, split, priors_h5, downscale=s.downscale)
     prepare_data(data, p)
     inputs = input_digests({"scene": scene_h5, "split": split_h5, "priors": priors_h5})
     digest = checkpoint_digest(p, seed, data, inputs)
@@ -143,9 +147,9 @@ def _run(
     attrs = {
         "wall_time_s": float(wall),
         "train_psnr": float(train_psnr),
-        "iterations": int(p["iterations"]),
+        "iterations": int(s.iterations),
         "seed": int(seed),
-        "downscale": int(p["downscale"]),
+        "downscale": int(s.downscale),
         "train_width": data.width,
         "train_height": data.height,
         "num_fg": trainer.model.num_fg,

@@ -41,6 +41,7 @@ from .init_common import InitResult
 from .interpolation import gap_interpolation
 from .losses import basis_smoothness, gradient_loss, masked_l1, rgb_loss, z_velocity_loss
 from .model import ReconModel, gaussian_colors
+from .params import load_settings
 from .schedule import TrainerSchedule, _lr_names
 from .silhouette import SilhouetteTargets
 
@@ -65,9 +66,10 @@ class Trainer(TrainerSchedule, FrameLosses):
     ):
         self.fine = data
         self.coarse = coarse
+        params = load_settings(params)
         self.p = params
         self.seed = int(seed)
-        self.dev = resolve_device(params["device"])
+        self.dev = resolve_device(params.device)
         d = self.dev
         self.w2c = torch.tensor(data.w2c, dtype=torch.float32, device=d)
         self.cam_centers = torch.tensor(camera_centers(data.w2c), dtype=torch.float32, device=d)
@@ -75,14 +77,14 @@ class Trainer(TrainerSchedule, FrameLosses):
         self.background = torch.tensor(data.background, dtype=torch.float32, device=d)
         self.tracks_vis = torch.tensor(data.tracks_visible, device=d) if data.has_tracks else None
         # coarse-to-fine: the first `coarse_fraction` of the iterations use `coarse`
-        self.switch_at = int(params["coarse_fraction"] * params["iterations"]) if coarse is not None else 0
+        self.switch_at = int(params.coarse_fraction * params.iterations) if coarse is not None else 0
         self._levels: dict[int, dict[str, Any]] = {}
         self.level = -1
         self.gen = torch.Generator().manual_seed(self.seed)
         if state is None:
             assert init is not None
             self.model = ReconModel(
-                init.fg, init.rot6d, init.transl, init.bg, sh_degree=params["sh_degree"], scene_scale=init.scene_scale
+                init.fg, init.rot6d, init.transl, init.bg, sh_degree=params.sh_degree, scene_scale=init.scene_scale
             )
             self.canonical_frame = init.canonical_frame
             self.motion_source = init.motion_source
@@ -92,7 +94,7 @@ class Trainer(TrainerSchedule, FrameLosses):
             self.elapsed = 0.0
         else:
             self.model = ReconModel.from_state(
-                state["model"], sh_degree=params["sh_degree"], scene_scale=float(state["scene_scale"])
+                state["model"], sh_degree=params.sh_degree, scene_scale=float(state["scene_scale"])
             )
             self.canonical_frame = int(state["canonical_frame"])
             self.motion_source = str(state["motion_source"])
@@ -106,7 +108,7 @@ class Trainer(TrainerSchedule, FrameLosses):
         self.base_lr = _lr_names(params, self.scale)
         if self.motion_source == "identity":
             for k in ("motion.rot6d", "motion.transl"):
-                self.base_lr[k] *= params["lr_motion_identity_boost"]
+                self.base_lr[k] *= params.lr_motion_identity_boost
         self.optimizers = {
             name: torch.optim.Adam([p], lr=self.base_lr[name], eps=1e-15)
             for name, p in self.model.named_tensors().items()
@@ -117,7 +119,7 @@ class Trainer(TrainerSchedule, FrameLosses):
                 opt.load_state_dict(state["optimizers"][name])
             self.stats.load(state["stats"])
         self.has_bg = self.model.bg is not None
-        gi = gap_interpolation(data.num_timesteps, data.tidx) if params["gap_interpolation"] else None
+        gi = gap_interpolation(data.num_timesteps, data.tidx) if params.gap_interpolation else None
         if gi is None:
             self.gap_fill = None
         else:
@@ -127,20 +129,20 @@ class Trainer(TrainerSchedule, FrameLosses):
                 torch.tensor(knots, device=self.dev),
                 torch.tensor(gi[1], dtype=torch.float32, device=self.dev),
             )
-        mode = params["curriculum"]
+        mode = params.curriculum
         self.curriculum = (mode == "on") or (mode == "auto" and self.motion_source == "identity")
         self.rules = DensifyRules(
-            grad_threshold=params["densify_grad_threshold"],
-            scale_threshold=params["densify_scale_threshold"],
-            screen_threshold=params["densify_screen_threshold"],
-            cull_opacity=params["cull_opacity_threshold"],
-            cull_scale=params["cull_scale_threshold"],
-            cull_screen=params["cull_screen_threshold"],
+            grad_threshold=params.densify_grad_threshold,
+            scale_threshold=params.densify_scale_threshold,
+            screen_threshold=params.densify_screen_threshold,
+            cull_opacity=params.cull_opacity_threshold,
+            cull_scale=params.cull_scale_threshold,
+            cull_screen=params.cull_screen_threshold,
             extent=self.scale,
-            max_gaussians=params["max_gaussians"],
+            max_gaussians=params.max_gaussians,
         )
-        smode = params["silhouette"]
-        self.silhouette = params["w_silhouette"] > 0 and (
+        smode = params.silhouette
+        self.silhouette = params.w_silhouette > 0 and (
             (smode == "on") or (smode == "auto" and self.motion_source != "procrustes")
         )
         self.use_level(self.level_for(self.iteration))
@@ -177,7 +179,7 @@ class Trainer(TrainerSchedule, FrameLosses):
             }
             if self.silhouette:
                 gen = torch.Generator().manual_seed(self.seed + 29 + level)
-                lv["sil"] = SilhouetteTargets(data, self.p["silhouette_pixels"], gen, d)
+                lv["sil"] = SilhouetteTargets(data, self.p.silhouette_pixels, gen, d)
             self._levels[level] = lv
         lv = self._levels[level]
         self.level = level
@@ -232,7 +234,7 @@ class Trainer(TrainerSchedule, FrameLosses):
             self.W,
             self.H,
             background=bgc,
-            backend=self.p["backend"],
+            backend=self.p.backend,
         )
         if torch.is_grad_enabled() and hasattr(out, "retain_means2d_grad"):
             out.retain_means2d_grad()
@@ -246,11 +248,11 @@ class Trainer(TrainerSchedule, FrameLosses):
         self.set_lrs(it)
         self.extrapolate_bases(it)
         allowed = self.allowed_frames(it)
-        bs = min(p["batch_size"], int(allowed.numel()))
+        bs = min(p.batch_size, int(allowed.numel()))
         pick = allowed[torch.randperm(int(allowed.numel()), generator=self.gen)[:bs]]
         m = self.model
         T = self.data.num_timesteps
-        q = p["loss_quantile"]
+        q = p.loss_quantile
         total = torch.zeros((), device=self.dev)
         terms: dict[str, float] = {}
 
@@ -263,10 +265,10 @@ class Trainer(TrainerSchedule, FrameLosses):
         for f in pick.tolist():
             extra_fg = extra_bg = None
             targets = None
-            if self.tracks_xy is not None and p["w_track"] > 0 and p["track_targets"] > 0:
+            if self.tracks_xy is not None and p.w_track > 0 and p.track_targets > 0:
                 cand = allowed[allowed != f]
                 if cand.numel() > 0:
-                    k = min(p["track_targets"], int(cand.numel()))
+                    k = min(p.track_targets, int(cand.numel()))
                     targets = cand[torch.randperm(int(cand.numel()), generator=self.gen)[:k]]
                     tt = self.tidx[targets]
                     tm = m.fg_means_at(tt.to(self.dev))  # (N, k, 3)
@@ -280,59 +282,59 @@ class Trainer(TrainerSchedule, FrameLosses):
             acc = out.alpha
             gt = self.images[f]
             fgm = self.masks[f][..., None]
-            loss = p["w_rgb"] * note("rgb", rgb_loss(rgb[None], gt[None], p["ssim_weight"]))
+            loss = p.w_rgb * note("rgb", rgb_loss(rgb[None], gt[None], p.ssim_weight))
             with torch.no_grad():
                 mse = float(((rgb - gt) ** 2).mean())
                 psnrs.append(-10 * math.log10(max(mse, 1e-10)))
             # mask
-            if p["w_mask"] > 0:
+            if p.w_mask > 0:
                 if self.has_bg:
                     ml = ((acc - 1) ** 2).mean() + masked_l1(feats[..., 3:4], fgm, None, q)
                 else:
                     ml = ((acc - fgm) ** 2).mean()
-                loss = loss + p["w_mask"] * note("mask", ml)
+                loss = loss + p.w_mask * note("mask", ml)
             # depth (disparity, scene-scale free)
-            if self.depth is not None and (p["w_depth"] > 0 or p["w_depth_grad"] > 0):
+            if self.depth is not None and (p.w_depth > 0 or p.w_depth_grad > 0):
                 dmask = self.depth_valid[f][..., None]
                 if not self.has_bg:
                     dmask = dmask * (fgm > 0.5)
                 pd = self.scale / (out.depth + 1e-5 * self.scale)
                 td = self.scale / (self.depth[f][..., None] + 1e-5 * self.scale)
                 td = torch.where(dmask > 0, td, torch.zeros_like(td))
-                if p["w_depth"] > 0:
-                    loss = loss + p["w_depth"] * note("depth", masked_l1(pd, td, dmask, q))
-                if p["w_depth_grad"] > 0:
-                    loss = loss + p["w_depth_grad"] * note(
+                if p.w_depth > 0:
+                    loss = loss + p.w_depth * note("depth", masked_l1(pd, td, dmask, q))
+                if p.w_depth_grad > 0:
+                    loss = loss + p.w_depth_grad * note(
                         "depth_grad", gradient_loss(pd[None], td[None], dmask[None], 0.95)
                     )
             if self.silhouette:
-                wsil = p["w_silhouette"] * (1 - p["silhouette_decay"] * min(1.0, it / max(1, p["iterations"])))
+                wsil = p.w_silhouette * (1 - p.silhouette_decay * min(1.0, it / max(1, p.iterations)))
                 loss = loss + wsil * note("silhouette", self.silhouette_loss(f, means_f))
             # 2D tracks
             if targets is not None:
-                loss = loss + p["w_track"] * note("track", self.track_loss(f, targets, feats, acc, q))
+                loss = loss + p.w_track * note("track", self.track_loss(f, targets, feats, acc, q))
             total = total + loss
         total = total / len(outs)
         # regularisers (once per step)
         reg = torch.zeros((), device=self.dev)
-        if p["w_smooth_bases"] > 0 and T >= 3:
-            reg = reg + p["w_smooth_bases"] * note(
+        if p.w_smooth_bases > 0 and T >= 3:
+            reg = reg + p.w_smooth_bases * note(
                 "smooth_bases", basis_smoothness(m.motion["rot6d"], m.motion["transl"], self.scale)
             )
-        if (p["w_smooth_tracks"] > 0 or p["w_z_accel"] > 0) and T >= 3:
+        if (p.w_smooth_tracks > 0 or p.w_z_accel > 0) and T >= 3:
             ts = self.tidx[pick].clamp(1, T - 2)
             nb = torch.cat([ts - 1, ts, ts + 1])
             mn = m.fg_means_at(nb.to(self.dev)).reshape(m.num_fg, 3, len(ts), 3)
-            if p["w_smooth_tracks"] > 0:
+            if p.w_smooth_tracks > 0:
                 a = (2 * mn[:, 1] - mn[:, 0] - mn[:, 2]).norm(dim=-1).mean() / self.scale
-                reg = reg + p["w_smooth_tracks"] * 0.5 * note("smooth_tracks", a)
-            if p["w_z_accel"] > 0:
-                reg = reg + p["w_z_accel"] * note(
+                reg = reg + p.w_smooth_tracks * 0.5 * note("smooth_tracks", a)
+            if p.w_z_accel > 0:
+                reg = reg + p.w_z_accel * note(
                     "z_vel", z_velocity_loss(mn, self.cam_centers[pick.to(self.dev)], self.scale)
                 )
-        if p["w_scale_var"] > 0:
+        if p.w_scale_var > 0:
             for g in m.parts().values():
-                reg = reg + p["w_scale_var"] * torch.var(g.get("log_scales"), dim=-1).mean()
+                reg = reg + p.w_scale_var * torch.var(g.get("log_scales"), dim=-1).mean()
         if self.extra_loss is not None:
             reg = reg + self.extra_loss(pick, note)
         total = total + reg
@@ -356,20 +358,20 @@ class Trainer(TrainerSchedule, FrameLosses):
     def control(self) -> dict | None:
         p = self.p
         it = self.iteration
-        stop = int(p["stop_control_fraction"] * p["iterations"])
-        if it <= p["warmup_steps"] or it % p["control_every"] != 0 or it >= stop:
+        stop = int(p.stop_control_fraction * p.iterations)
+        if it <= p.warmup_steps or it % p.control_every != 0 or it >= stop:
             return None
         self.rules.use_screen = True
-        every = p["reset_opacity_every"]
+        every = p.reset_opacity_every
         self.rules.cull_by_size = every > 0 and it > every
         counts = control_step(self.model, self.optimizers, self.stats, self.rules, self.gen)
-        if p["reset_opacity_every"] > 0 and it % p["reset_opacity_every"] == 0:
+        if p.reset_opacity_every > 0 and it % p.reset_opacity_every == 0:
             self.reset_opacity()
         return counts
 
     @torch.no_grad()
     def reset_opacity(self) -> None:
-        v = math.log(0.8 * self.p["cull_opacity_threshold"] / (1 - 0.8 * self.p["cull_opacity_threshold"]))
+        v = math.log(0.8 * self.p.cull_opacity_threshold / (1 - 0.8 * self.p.cull_opacity_threshold))
         for part, g in self.model.parts().items():
             prm = g.get("opacity_logits")
             prm.data.clamp_(max=v)
@@ -420,9 +422,9 @@ class Trainer(TrainerSchedule, FrameLosses):
         from tqdm import tqdm
 
         p = self.p
-        end = p["iterations"] if stop_at is None else min(stop_at, p["iterations"])
+        end = p.iterations if stop_at is None else min(stop_at, p.iterations)
         bar = tqdm(
-            total=p["iterations"],
+            total=p.iterations,
             initial=self.iteration,
             disable=not progress,
             file=sys.stderr,
@@ -437,7 +439,7 @@ class Trainer(TrainerSchedule, FrameLosses):
                 loss, psnr = self.step()
                 self._loss_acc.append(loss)
                 self._psnr_acc.append(psnr)
-                if self.iteration % p["log_every"] == 0 or self.iteration == p["iterations"]:
+                if self.iteration % p.log_every == 0 or self.iteration == p.iterations:
                     self.curve.iteration.append(self.iteration)
                     self.curve.loss.append(float(np.mean(self._loss_acc)))
                     self.curve.psnr.append(float(np.mean(self._psnr_acc)))
@@ -448,8 +450,8 @@ class Trainer(TrainerSchedule, FrameLosses):
                 self.elapsed = base_elapsed + time.perf_counter() - t0
                 if (
                     checkpoint is not None
-                    and (self.iteration % p["checkpoint_every"] == 0)
-                    and self.iteration < p["iterations"]
+                    and (self.iteration % p.checkpoint_every == 0)
+                    and self.iteration < p.iterations
                 ):
                     save_checkpoint(checkpoint, self.checkpoint_state(digest))
         finally:
@@ -470,10 +472,10 @@ def run_resumable(
     """Train to the end, or to `stop_at` leaving a checkpoint (its path is returned then; None at the end)."""
     if resumed:
         log.info(
-            "%s: resumed from %s at iteration %d of %d", stage, checkpoint, trainer.iteration, trainer.p["iterations"]
+            "%s: resumed from %s at iteration %d of %d", stage, checkpoint, trainer.iteration, trainer.p.iterations
         )
     trainer.run(progress=progress, checkpoint=checkpoint, digest=digest, stop_at=stop_at)
-    if stop_at is not None and trainer.iteration < trainer.p["iterations"]:
+    if stop_at is not None and trainer.iteration < trainer.p.iterations:
         if checkpoint is None:
             raise ValueError("stop_at needs a checkpoint path")
         save_checkpoint(checkpoint, trainer.checkpoint_state(digest))

@@ -18,11 +18,12 @@ from ..grouping.core import Groups
 from ..grouping.stage import load_groups, read_rigid_init
 from ..recon.data import TrainData, input_digests, load_train_data
 from ..recon.init_common import InitResult
+from ..recon.params import load_settings as load_recon_settings
 from ..recon.stage import prepare_data
 from ..recon.trainer import load_checkpoint, run_resumable
 from ..representation import Model4D, load_model, save_model
 from ..split import read_split
-from .params import resolve_params
+from .params import RefineSettings, resolve_params
 from .trainer import RefineTrainer, rigid_residuals
 
 log = logging.getLogger(__name__)
@@ -90,7 +91,9 @@ def run_refine_stage(
     if groups.group_id.size != N:
         raise input_error(groups_h5, f"groups cover {groups.group_id.size} Gaussians, {model_h5} has {N}")
     p = resolve_params(params, model.attrs.get("params"))
-    rp = p["recon"]
+    rp = p["recon"]  # the recon.h5 parameters with refine's overrides (a dict: recorded as it is)
+    rs = load_recon_settings(rp)
+    settings = RefineSettings(**p)
     has_rigid = bool(np.any((groups.rigid == 1) & (groups.static == 0)))
     rigid = None
     if has_rigid:
@@ -114,7 +117,7 @@ def run_refine_stage(
         "rigid_residual_before": before,
     }
     digest = stage_digest(p, seed)
-    if dynamic.size == 0 or p["iterations"] == 0 or N == 0:
+    if dynamic.size == 0 or settings.iterations == 0 or N == 0:
         # nothing moves (or refinement switched off): the reconstruction as it is
         log.info(
             "refine: %s; refined.h5 = recon.h5 + group ids", "no dynamic group" if dynamic.size == 0 else "0 iterations"
@@ -126,12 +129,12 @@ def run_refine_stage(
         return save_model(out_h5, STAGE, model, config_digest=digest, attrs=attrs)
 
     threads_before = torch.get_num_threads()
-    if rp["threads"] > 0:
-        torch.set_num_threads(rp["threads"])
+    if rs.threads > 0:
+        torch.set_num_threads(rs.threads)
     try:
         torch.manual_seed(int(seed))
         split = read_split(split_h5)
-        data = load_train_data(scene_h5, split, priors_h5, downscale=rp["downscale"])
+        data = load_train_data(scene_h5, split, priors_h5, downscale=rs.downscale)
         if not np.array_equal(data.timesteps, model.timesteps):
             raise input_error(model_h5, "its observed time steps differ from the split's")
         prepare_data(data, rp)
@@ -176,7 +179,7 @@ def run_refine_stage(
         attrs["train_psnr_recon"] = float(model.attrs["train_psnr"])
     attrs.update(
         noop=0,
-        iterations=int(rp["iterations"]),
+        iterations=int(rs.iterations),
         train_psnr=float(train_psnr),
         wall_time_s=float(time.perf_counter() - t_start),
         rigid_residual_after=after,

@@ -98,8 +98,8 @@ class RefineTrainer(Trainer):
             if refine["learn_rigid_motion"]:
                 p = self.p
                 for name, prm, lr in (
-                    ("rigid.rot6d", self.rigid_rot6d, p["lr_rots"] * p["lr_boost"]),
-                    ("rigid.transl", self.rigid_transl, p["lr_transls"] * self.scale * p["lr_boost"]),
+                    ("rigid.rot6d", self.rigid_rot6d, p.lr_rots * p.lr_boost),
+                    ("rigid.transl", self.rigid_transl, p.lr_transls * self.scale * p.lr_boost),
                 ):
                     self.base_lr[name] = lr
                     self.optimizers[name] = torch.optim.Adam([prm], lr=lr, eps=1e-15)
