@@ -117,7 +117,10 @@ class Forecaster:
     MIN_FRAMES = 1
 
     def __init__(self, params: Mapping[str, Any] | None = None, seed: int = 0):
-        self.params = merge_params(self.NAME, self.DEFAULTS, params)
+        self.params = merge_params(self.NAME, self.DEFAULTS, params)  # the dict recorded with the forecast
+        # what the method reads: its frozen settings (None for a method without settings)
+        cls = METHOD_SETTINGS.get(self.NAME)
+        self.settings = cls(**self.params) if cls is not None else None
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
             raise MogafError(f"forecast.{self.NAME}: seed must be an integer, got {seed!r}")
         self.seed = int(seed)

@@ -29,6 +29,7 @@ Our adaptation to per-group trajectory input (no 4DGS deformation field):
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -110,15 +111,15 @@ def _build_model(n_nodes: int, p: dict[str, Any]):
     class GCN(nn.Module):
         def __init__(self, n: int) -> None:
             super().__init__()
-            h = p["linear_size"]
-            self.gc1 = GraphConv(p["input_size"], h, n)
+            h = p.linear_size
+            self.gc1 = GraphConv(p.input_size, h, n)
             self.bn1 = nn.BatchNorm1d(n * h)
-            self.blocks = nn.ModuleList(GCBlock(h, n, p["dropout"]) for _ in range(p["num_stage"]))
-            if p["no_mapping"]:
-                self.out = GraphConv(h, p["output_size"], n)
+            self.blocks = nn.ModuleList(GCBlock(h, n, p.dropout) for _ in range(p.num_stage))
+            if p.no_mapping:
+                self.out = GraphConv(h, p.output_size, n)
             else:
-                self.out = nn.Sequential(nn.Linear(h, h), nn.ReLU(), nn.Linear(h, p["output_size"]))
-            self.drop = nn.Dropout(p["dropout"])
+                self.out = nn.Sequential(nn.Linear(h, h), nn.ReLU(), nn.Linear(h, p.output_size))
+            self.drop = nn.Dropout(p.dropout)
 
         def forward(self, x):
             y = self.gc1(x)
@@ -159,33 +160,22 @@ class GCNForecaster(Forecaster):
     def _fit(self, obs: np.ndarray) -> None:
         import torch
 
-        p = self.params
-        for key in (
-            "n_nodes",
-            "nearest_num",
-            "input_size",
-            "output_size",
-            "num_stage",
-            "linear_size",
-            "epochs",
-            "batch_size",
-        ):
-            if p[key] < 1:
-                raise MogafError(f"forecast.gcn: parameter '{key}' must be >= 1, got {p[key]}")
+        p = self.settings
+        # each setting's own bounds are checked by its settings class (mogaf.forecast.params)
         g, t, _ = obs.shape
-        out_size = p["output_size"]
+        out_size = p.output_size
         # Window: upstream's 10 frames, clipped so at least two training windows exist.
-        w = min(p["input_size"], t - out_size - 1)
+        w = min(p.input_size, t - out_size - 1)
         if w < 2:
             raise MogafError(f"forecast.gcn: {t} observed frames are too few for output_size {out_size}")
-        self.info["window_clipped"] = w != p["input_size"]
-        pw = dict(p, input_size=w)
+        self.info["window_clipped"] = w != p.input_size
+        pw = dataclasses.replace(p, input_size=w)
         self.window = w
 
-        nodes = farthest_point_sampling(obs[:, 0, :3], p["n_nodes"])
+        nodes = farthest_point_sampling(obs[:, 0, :3], p.n_nodes)
         k = len(nodes)
         self.nodes = nodes
-        self.nn_idx, self.weights = skinning_weights(obs[:, 0, :3], obs[nodes, 0, :3], p["nearest_num"])
+        self.nn_idx, self.weights = skinning_weights(obs[:, 0, :3], obs[nodes, 0, :3], p.nearest_num)
         xyz = obs[nodes, :, :3].transpose(1, 0, 2)  # (T, K, 3)
         q = obs[nodes, :, 3:]
         r = quat.mul(q, quat.conj(q[:, :1]))  # rotation relative to the first observed frame
@@ -198,21 +188,21 @@ class GCNForecaster(Forecaster):
         rin = np.stack([r[i : i + w] for i in range(n_win)])
         rgt = np.stack([r[i + w : i + w + out_size] for i in range(n_win)])
 
-        with torch_determinism(self.seed, p["num_threads"] or None):
+        with torch_determinism(self.seed, p.num_threads or None):
             gen = torch.Generator().manual_seed(self.seed)
             model = _build_model(k, pw)
             XI = torch.from_numpy(xin).float().permute(0, 3, 2, 1)  # (n, 3, K, W)
             RI = torch.from_numpy(rin).float().permute(0, 3, 2, 1)
             XG = torch.from_numpy(xgt).float()  # (n, out, K, 3)
             RG = torch.from_numpy(rgt).float()
-            opt = torch.optim.Adam(model.parameters(), lr=p["lr"], eps=p["adam_eps"])
-            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=p["epochs"], eta_min=p["lr_min"])
+            opt = torch.optim.Adam(model.parameters(), lr=p.lr, eps=p.adam_eps)
+            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=p.epochs, eta_min=p.lr_min)
             # drop_last as upstream; with fewer windows than a batch, one batch of all.
-            bs = min(p["batch_size"], n_win)
+            bs = min(p.batch_size, n_win)
             model.train()
             loss_val = float("nan")
-            for epoch in range(p["epochs"]):
-                noise = p["noise_init"] * max(1.0 - epoch / p["noise_step"], 0.0) if p["noise_init"] > 0 else 0.0
+            for epoch in range(p.epochs):
+                noise = p.noise_init * max(1.0 - epoch / p.noise_step, 0.0) if p.noise_init > 0 else 0.0
                 perm = torch.randperm(n_win, generator=gen)
                 tot, nb = 0.0, 0
                 for s in range(0, n_win - bs + 1, bs):
@@ -240,8 +230,8 @@ class GCNForecaster(Forecaster):
         self.model = model
         self.info.update(
             final_loss=loss_val,
-            epochs=p["epochs"],
-            iterations=p["epochs"] * (n_win // bs),
+            epochs=p.epochs,
+            iterations=p.epochs * (n_win // bs),
             n_nodes=k,
             window=w,
             train_windows=n_win,
@@ -251,12 +241,12 @@ class GCNForecaster(Forecaster):
     def _rollout(self, n_steps: int) -> np.ndarray:
         import torch
 
-        p = self.params
-        w, out_size = self.window, p["output_size"]
+        p = self.settings
+        w, out_size = self.window, p.output_size
         xyz_win = self._xyz_hist[-w:].copy()  # (W, K, 3)
         r_win = self._r_hist[-w:].copy()
         xyz_pred, r_pred = [], []
-        with torch_determinism(self.seed, p["num_threads"] or None), torch.no_grad():
+        with torch_determinism(self.seed, p.num_threads or None), torch.no_grad():
             made = 0
             while made < n_steps:
                 xi = torch.from_numpy(xyz_win[None]).float().permute(0, 3, 2, 1)

@@ -67,10 +67,10 @@ def _sinusoid(length: int, dim: int):
 def _build_model(p: dict[str, Any], obs_len: int):
     from torch import nn
 
-    act = nn.Tanh if p["use_tanh"] else nn.ReLU
+    act = nn.Tanh if p.use_tanh else nn.ReLU
 
     def init_linear(lin: nn.Linear, gain: float = 1.0) -> None:
-        if p["use_tanh"]:
+        if p.use_tanh:
             nn.init.xavier_uniform_(lin.weight, gain=gain)
         else:
             nn.init.kaiming_uniform_(lin.weight, nonlinearity="relu")
@@ -81,8 +81,8 @@ def _build_model(p: dict[str, Any], obs_len: int):
 
         def __init__(self) -> None:
             super().__init__()
-            n, h = p["latent_dim"], p["ode_nhidden"]
-            dims = [n] + [h] * (p["ode_layers"] - 1) + [n]
+            n, h = p.latent_dim, p.ode_nhidden
+            dims = [n] + [h] * (p.ode_layers - 1) + [n]
             self.lins = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
             for lin in self.lins:
                 init_linear(lin)
@@ -101,21 +101,21 @@ def _build_model(p: dict[str, Any], obs_len: int):
     class LatentODE(nn.Module):
         def __init__(self) -> None:
             super().__init__()
-            d = p["d_model"]
+            d = p.d_model
             self.value_embedding = nn.Linear(7, d)
             nn.init.xavier_uniform_(self.value_embedding.weight)
             nn.init.zeros_(self.value_embedding.bias)
             self.register_buffer("pos", _sinusoid(obs_len, d), persistent=False)
             layer = nn.TransformerEncoderLayer(
-                d_model=d, nhead=p["nhead"], dim_feedforward=4 * d, dropout=p["encoder_dropout"], batch_first=True
+                d_model=d, nhead=p.nhead, dim_feedforward=4 * d, dropout=p.encoder_dropout, batch_first=True
             )
-            self.encoder = nn.TransformerEncoder(layer, num_layers=p["num_encoder_layers"], enable_nested_tensor=False)
-            self.to_z0 = nn.Linear(d, p["latent_dim"])
+            self.encoder = nn.TransformerEncoder(layer, num_layers=p.num_encoder_layers, enable_nested_tensor=False)
+            self.to_z0 = nn.Linear(d, p.latent_dim)
             init_linear(self.to_z0)
             self.func = VectorField()
-            h = p["decoder_nhidden"]
-            layers: list[nn.Module] = [nn.Linear(p["latent_dim"], h), act()]
-            for _ in range(p["num_decoder_layers"] - 1):
+            h = p.decoder_nhidden
+            layers: list[nn.Module] = [nn.Linear(p.latent_dim, h), act()]
+            for _ in range(p.num_decoder_layers - 1):
                 layers += [nn.Linear(h, h), act()]
             layers.append(nn.Linear(h, 7))
             self.decoder = nn.Sequential(*layers)
@@ -137,14 +137,14 @@ def _solve(model, z0, times, p: dict[str, Any]):
     import torch
     from torchdiffeq import odeint
 
-    cap = int(p["max_num_steps"])
+    cap = int(p.max_num_steps)
     func = model.func
     func.nfe = 0
     # Independent guard on function evaluations (dopri5: 6 per attempted step,
     # plus start-up), so the cap holds even with assertions disabled (python -O).
     func.nfe_cap = 7 * cap * max(len(times) - 1, 1) + 16
     try:
-        z = odeint(func, z0, times, method="dopri5", rtol=p["rtol"], atol=p["atol"], options={"max_num_steps": cap})
+        z = odeint(func, z0, times, method="dopri5", rtol=p.rtol, atol=p.atol, options={"max_num_steps": cap})
     except AssertionError as exc:  # torchdiffeq: max_num_steps exceeded / underflow in dt / non-finite y
         raise _StepCapHit(str(exc)) from None
     finally:
@@ -160,48 +160,28 @@ class LatentODEForecaster(Forecaster):
     MIN_FRAMES = 4
 
     def _layout(self, t: int) -> tuple[float, int, int]:
-        p = self.params
-        if not (p["time_split"] > 0 and p["obs_time_span"] > 0 and p["max_extrap_time_span"] > 0):
+        p = self.settings
+        if not (p.time_split > 0 and p.obs_time_span > 0 and p.max_extrap_time_span > 0):
             raise MogafError("forecast.ode: time_split, obs_time_span and max_extrap_time_span must be > 0")
-        dt = p["time_split"] / (t - 1)
-        obs_len = int(round(p["obs_time_span"] / dt)) + 1
+        dt = p.time_split / (t - 1)
+        obs_len = int(round(p.obs_time_span / dt)) + 1
         obs_len = max(2, min(obs_len, t - 1))  # leave at least one target frame
-        extrap = max(1, min(p["extrap_points"], int(round(p["max_extrap_time_span"] / dt))))
+        extrap = max(1, min(p.extrap_points, int(round(p.max_extrap_time_span / dt))))
         return dt, obs_len, extrap
 
     def _fit(self, obs: np.ndarray) -> None:
         import torch
 
-        p = self.params
-        for key in (
-            "latent_dim",
-            "d_model",
-            "nhead",
-            "num_encoder_layers",
-            "num_decoder_layers",
-            "ode_nhidden",
-            "decoder_nhidden",
-            "extrap_points",
-            "num_time_windows",
-            "max_gaussians_per_epoch",
-            "batch_size",
-            "max_num_steps",
-            "rollout_chunk",
-        ):
-            if p[key] < 1:
-                raise MogafError(f"forecast.ode: parameter '{key}' must be >= 1, got {p[key]}")
-        if p["ode_layers"] < 2:
-            raise MogafError("forecast.ode: ode_layers must be >= 2")
-        if p["d_model"] % p["nhead"]:
-            raise MogafError(f"forecast.ode: d_model ({p['d_model']}) must be divisible by nhead ({p['nhead']})")
-        if p["epochs"] < 0:
-            raise MogafError("forecast.ode: epochs must be >= 0")
+        p = self.settings
+        # each setting's own bounds are checked by its settings class (mogaf.forecast.params)
+        if p.d_model % p.nhead:
+            raise MogafError(f"forecast.ode: d_model ({p.d_model}) must be divisible by nhead ({p.nhead})")
         g, t, _ = obs.shape
         dt, obs_len, extrap = self._layout(t)
         self.dt, self.obs_len = dt, obs_len
         starts_all = np.arange(0, t - obs_len)  # at least one target frame after each window
-        if len(starts_all) > p["num_time_windows"]:
-            starts_all = np.unique(np.round(np.linspace(0, t - obs_len - 1, p["num_time_windows"])).astype(int))
+        if len(starts_all) > p.num_time_windows:
+            starts_all = np.unique(np.round(np.linspace(0, t - obs_len - 1, p.num_time_windows)).astype(int))
         n_win = len(starts_all)
         # Per window: observation frames [s, s+obs_len), targets up to `extrap` frames after.
         obs_idx = starts_all[:, None] + np.arange(obs_len)[None]
@@ -212,7 +192,7 @@ class LatentODEForecaster(Forecaster):
         cap_hits = 0
         steps_done = 0
         loss_val = float("nan")
-        with torch_determinism(self.seed, p["num_threads"] or None):
+        with torch_determinism(self.seed, p.num_threads or None):
             gen = torch.Generator().manual_seed(self.seed)
             model = _build_model(p, obs_len)
             OBS = torch.from_numpy(obs).float()  # (G, T, 7)
@@ -220,18 +200,18 @@ class LatentODEForecaster(Forecaster):
             TI = torch.from_numpy(tgt_idx)
             TM = torch.from_numpy(tgt_mask)
             times = torch.arange(extrap + 1, dtype=torch.float32) * dt  # last obs frame, then targets
-            opt = torch.optim.Adam(model.parameters(), lr=p["lr"])
-            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(p["epochs"], 1), eta_min=p["lr_min"])
-            reg_w, xyz_w = p["reg_weight"], p["xyz_reg_weight"]
+            opt = torch.optim.Adam(model.parameters(), lr=p.lr)
+            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(p.epochs, 1), eta_min=p.lr_min)
+            reg_w, xyz_w = p.reg_weight, p.xyz_reg_weight
             ema = None
             model.train()
-            for _epoch in range(p["epochs"]):
-                gsel = torch.randperm(g, generator=gen)[: min(g, p["max_gaussians_per_epoch"])]
+            for _epoch in range(p.epochs):
+                gsel = torch.randperm(g, generator=gen)[: min(g, p.max_gaussians_per_epoch)]
                 pairs = torch.cartesian_prod(torch.arange(n_win), gsel)  # (window, Gaussian) samples
                 pairs = pairs[torch.randperm(len(pairs), generator=gen)]
                 tot, nb = 0.0, 0
-                for s in range(0, len(pairs), p["batch_size"]):
-                    wi, gi = pairs[s : s + p["batch_size"]].unbind(1)
+                for s in range(0, len(pairs), p.batch_size):
+                    wi, gi = pairs[s : s + p.batch_size].unbind(1)
                     x_obs = OBS[gi[:, None], OI[wi]]  # (B, L, 7)
                     x_tgt = torch.cat([x_obs[:, -1:], OBS[gi[:, None], TI[wi]]], 1)  # (B, E+1, 7)
                     m = torch.cat([torch.ones(len(wi), 1, dtype=torch.bool), TM[wi]], 1)  # (B, E+1)
@@ -264,12 +244,10 @@ class LatentODEForecaster(Forecaster):
                     # Adaptive regulariser scale (train_extrapolation.py), from the EMA of the L1 loss.
                     lv = l_pred.item()
                     ema = (
-                        lv
-                        if (ema is None or not p["reg_use_ema"])
-                        else p["reg_ema_decay"] * ema + (1 - p["reg_ema_decay"]) * lv
+                        lv if (ema is None or not p.reg_use_ema) else p.reg_ema_decay * ema + (1 - p.reg_ema_decay) * lv
                     )
                     scale = self._reg_scale(ema)
-                    reg_w, xyz_w = p["reg_weight"] * scale, p["xyz_reg_weight"] * scale
+                    reg_w, xyz_w = p.reg_weight * scale, p.xyz_reg_weight * scale
                 if nb:
                     sched.step()
                     loss_val = tot / nb
@@ -277,7 +255,7 @@ class LatentODEForecaster(Forecaster):
         self.model = model
         self.info.update(
             final_loss=loss_val,
-            epochs=p["epochs"],
+            epochs=p.epochs,
             iterations=steps_done,
             obs_window=obs_len,
             extrap_frames=extrap,
@@ -306,25 +284,25 @@ class LatentODEForecaster(Forecaster):
         return (sec**2).mean()
 
     def _reg_scale(self, loss_value: float) -> float:
-        p = self.params
-        init, end = p["expected_traj_loss_init"], p["expected_traj_loss_end"]
+        p = self.settings
+        init, end = p.expected_traj_loss_init, p.expected_traj_loss_end
         if init < end:
             init, end = end, init
         r = min(max((loss_value - end) / max(init - end, 1e-8), 0.0), 1.0)
-        return float(min(max(math.exp(-r / max(p["reg_temperature"], 1e-8)), 0.0), 1.0))
+        return float(min(max(math.exp(-r / max(p.reg_temperature, 1e-8)), 0.0), 1.0))
 
     def _rollout(self, n_steps: int) -> np.ndarray:
         import torch
 
-        p = self.params
+        p = self.settings
         obs = self._obs
         g = obs.shape[0]
         out = np.empty((g, n_steps, 7))
         times = torch.arange(n_steps + 1, dtype=torch.float32) * self.dt
         chunks_failed = 0
-        with torch_determinism(self.seed, p["num_threads"] or None), torch.no_grad():
-            for s in range(0, g, p["rollout_chunk"]):
-                x = torch.from_numpy(obs[s : s + p["rollout_chunk"], -self.obs_len :]).float()
+        with torch_determinism(self.seed, p.num_threads or None), torch.no_grad():
+            for s in range(0, g, p.rollout_chunk):
+                x = torch.from_numpy(obs[s : s + p.rollout_chunk, -self.obs_len :]).float()
                 try:
                     z = _solve(self.model, self.model.encode(x), times, p)  # (n+1, B, latent)
                     pred = self.model.decoder(z[1:]).transpose(0, 1).double().numpy()

@@ -69,15 +69,20 @@ class MogafSettings:
     dropout: float = setting(0.2, '"We apply a dropout rate of 0.2" (residual branches and feed-forward)')
     num_layers: int = setting(
         1,
-        '"single-layer Transformer encoder" (LW); 5 = HC (supp. "Effect of Forecaster Capacity") not stated in the paper (ours):',
+        '"single-layer Transformer encoder" (LW); 5 = HC (supp. "Effect of Forecaster Capacity")',
         minimum=1,
     )
     attn_dropout: float = setting(
-        0.0, "no dropout on attention weights (PatchTST's default; its RevIN + flatten-head design matches)"
+        0.0,
+        "ours, not stated in the paper: no dropout on attention weights (PatchTST's default; its RevIN + flatten-head design matches)",
     )
-    norm_first: bool = setting(True, "pre-norm: keeps a linear path from the normalised inputs to the flatten head")
+    norm_first: bool = setting(
+        True,
+        "ours, not stated in the paper: pre-norm: keeps a linear path from the normalised inputs to the flatten head",
+    )
     zero_init_residual: bool = setting(
-        True, "attention/FFN branches start at zero, i.e. training starts from a linear autoregressor"
+        True,
+        "ours, not stated in the paper: attention/FFN branches start at zero, i.e. training starts from a linear autoregressor",
     )
     # --- state normalisation: supp. "use instance normalization for each sequence" ---
     norm_eps: float = setting(

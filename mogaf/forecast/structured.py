@@ -54,6 +54,7 @@ members' orientations about it.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -63,9 +64,9 @@ from mogaf.forecast import quat
 from mogaf.forecast.base import torch_determinism
 from mogaf.forecast.classical import constant_twist_rollout
 from mogaf.forecast.params import STRUCTURED_DEFAULTS as _STRUCTURED_DEFAULTS
-from mogaf.forecast.params import StructuredSettings
+from mogaf.forecast.params import MogafSettings, StructuredSettings
 from mogaf.forecast.transformer_net import _build_model, mask_ratio, minibatches, optimiser_step
-from mogaf.settings import check
+from mogaf.settings import load
 
 # forecast.mogaf.mode picks the forecaster; forecast.mogaf.structured holds the
 # structured mode's own settings (the paper mode ignores them). Everything else
@@ -76,11 +77,20 @@ MODES = ("structured", "paper")
 STRUCTURED_DEFAULTS: dict[str, Any] = _STRUCTURED_DEFAULTS  # from forecast.params.StructuredSettings
 
 
-def structured_params(p: Mapping[str, Any]) -> dict[str, Any]:
-    """The settings the structured mode runs with: the paper mode's, with
-    forecast.mogaf.structured (over its defaults, StructuredSettings) on top."""
-    own = p.get("structured") or {}
-    return {**p, **check(StructuredSettings, "forecast.mogaf.structured", own)}
+@dataclass(frozen=True)
+class StructuredRun:
+    """What the structured mode runs with: the network, masking and optimiser
+    settings of forecast.mogaf (`net`) and forecast.mogaf.structured (`own`,
+    whose weight_decay replaces the paper mode's)."""
+
+    net: MogafSettings
+    own: StructuredSettings
+
+
+def structured_settings(p: Mapping[str, Any] | MogafSettings) -> StructuredRun:
+    """forecast.mogaf (checked) and its `structured` part (over its defaults, checked)."""
+    net = load(MogafSettings, "forecast.mogaf", p)
+    return StructuredRun(net, load(StructuredSettings, "forecast.mogaf.structured", net.structured or {}))
 
 
 CANDIDATES = ("frozen", "constant_velocity", "learned")  # tie order: the simpler wins
@@ -174,8 +184,8 @@ class ChannelForecaster:
     """One shared network over independent scalar series (S, T): context ->
     next `horizon` values, a residual over each series' constant velocity."""
 
-    def __init__(self, p: Mapping[str, Any], seed: int) -> None:
-        self.p = dict(p)
+    def __init__(self, run: StructuredRun, seed: int) -> None:
+        self.run = run
         self.seed = int(seed)
 
     @staticmethod
@@ -189,9 +199,9 @@ class ChannelForecaster:
     def fit(self, series: np.ndarray, floor: np.ndarray) -> ChannelForecaster:
         import torch
 
-        p = self.p
+        net, own = self.run.net, self.run.own
         S, T = series.shape
-        sizes = window_sizes(T, int(p["context"]), int(p["horizon"]))
+        sizes = window_sizes(T, int(own.context), int(own.horizon))
         if sizes is None:
             raise MogafError(f"forecast.mogaf: {T} observed frames are too few for the learned forecaster")
         self.context, self.horizon = L, H = sizes
@@ -200,8 +210,8 @@ class ChannelForecaster:
         total = S * n_win
         # (channel, window) pairs drawn by flat index: a big group never builds all of them
         flat = (
-            np.sort(rng.choice(total, int(p["max_train_windows"]), replace=False))
-            if total > p["max_train_windows"]
+            np.sort(rng.choice(total, int(own.max_train_windows), replace=False))
+            if total > own.max_train_windows
             else np.arange(total)
         )
         pairs = np.stack(np.divmod(flat, n_win), axis=-1)
@@ -211,22 +221,22 @@ class ChannelForecaster:
         yn = (win[:, L:] - anchor) / scale
         steps_ahead = np.arange(1, H + 1, dtype=np.float64)
 
-        with torch_determinism(self.seed, p["num_threads"] or None):
+        with torch_determinism(self.seed, net.num_threads or None):
             gen = torch.Generator().manual_seed(self.seed)
-            model = _build_model(L, p, in_dim=1, out_dim=H, zero_head=True)
+            model = _build_model(L, net, in_dim=1, out_dim=H, zero_head=True)
             X = torch.from_numpy(xn).float()[..., None]
             Y = torch.from_numpy(yn).float()
             K = torch.from_numpy(steps_ahead).float()
             n = X.shape[0]
-            opt = torch.optim.Adam(model.parameters(), lr=p["lr"], weight_decay=p["weight_decay"])
-            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=p["iterations"], eta_min=p["lr_min"])
-            bs = min(int(p["batch_size"]), n)
+            opt = torch.optim.Adam(model.parameters(), lr=net.lr, weight_decay=own.weight_decay)
+            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=net.iterations, eta_min=net.lr_min)
+            bs = min(int(net.batch_size), n)
             model.train()
             loss_val = float("nan")
-            for it, b in minibatches(n, bs, p["iterations"], gen):
+            for it, b in minibatches(n, bs, net.iterations, gen):
                 x = X[b]
                 mask = None
-                span = int(round(mask_ratio(p, it) * (L - 2)))  # the last two values carry the prior
+                span = int(round(mask_ratio(net, it) * (L - 2)))  # the last two values carry the prior
                 if span > 0:
                     starts = torch.randint(0, L - 2 - span + 1, (bs,), generator=gen)
                     pos = torch.arange(L)[None, :]
@@ -236,8 +246,8 @@ class ChannelForecaster:
                 l_pred = ((pred - Y[b]) ** 2).mean()
                 seq = torch.cat([x[:, -2:, 0], pred], dim=1)
                 l_acc = ((seq[:, 2:] - 2.0 * seq[:, 1:-1] + seq[:, :-2]) ** 2).mean()
-                loss = l_pred + p["lambda_acc"] * l_acc
-                optimiser_step(loss, model, opt, sched, p["grad_clip"], it)
+                loss = l_pred + net.lambda_acc * l_acc
+                optimiser_step(loss, model, opt, sched, net.grad_clip, it)
                 loss_val = loss.item()
             model.eval()
         self.model = model
@@ -252,10 +262,10 @@ class ChannelForecaster:
         L, H = self.context, self.horizon
         hist = np.array(series[:, -L:], dtype=np.float64)
         out = np.empty((hist.shape[0], n_steps))
-        chunk = int(self.p["rollout_chunk"])
+        chunk = int(self.run.net.rollout_chunk)
         steps_ahead = np.arange(1, H + 1, dtype=np.float64)
         done = 0
-        with torch_determinism(self.seed, self.p["num_threads"] or None), torch.no_grad():
+        with torch_determinism(self.seed, self.run.net.num_threads or None), torch.no_grad():
             while done < n_steps:
                 xn, anchor, scale = self.normalise(hist[:, -L:], floor)
                 res = np.empty((hist.shape[0], H))
@@ -356,12 +366,12 @@ class GroupMotion:
 class FittedCandidate:
     """A candidate fitted on a GroupMotion; rollout(n) gives member poses (G, n, 7)."""
 
-    def __init__(self, name: str, motion: GroupMotion, p: Mapping[str, Any], seed: int) -> None:
+    def __init__(self, name: str, motion: GroupMotion, run: StructuredRun, seed: int) -> None:
         self.name, self.motion = name, motion
         self.info: dict[str, Any] = {}
         self.model: ChannelForecaster | None = None
         if name == "learned" and motion.series.shape[0]:  # (no series: every Gaussian still)
-            self.model = ChannelForecaster(p, seed).fit(motion.series, motion.floor)
+            self.model = ChannelForecaster(run, seed).fit(motion.series, motion.floor)
             self.info = {
                 "final_loss": self.model.final_loss,
                 "context": self.model.context,
@@ -383,47 +393,48 @@ def _score(pred: np.ndarray, truth: np.ndarray) -> float:
 
 
 def fit_structured(
-    obs: np.ndarray, p: Mapping[str, Any], seed: int, rigid_hint: bool | None, n_steps: int
+    obs: np.ndarray, p: Mapping[str, Any] | MogafSettings, seed: int, rigid_hint: bool | None, n_steps: int
 ) -> tuple[FittedCandidate, dict[str, Any]]:
     """The structured mode's fit of one group (G, T, 7) for a forecast of
     n_steps: the chosen candidate, fitted on every observed frame, and what
-    was decided (info). `p`: the MoGaF settings (forecast.mogaf)."""
-    p = structured_params(p)
+    was decided (info). `p`: the MoGaF settings (forecast.mogaf, a mapping or MogafSettings)."""
+    run = structured_settings(p)
+    own = run.own
     G, T, _ = obs.shape
     # Fewer than 3 members fix no rotation: such a group is forecast per Gaussian.
     decomposition = rigid_decomposition(obs[..., :3]) if G >= 3 else None
     rel = decomposition[2] if decomposition is not None else None
-    rigid = rel is not None and (bool(rigid_hint) if rigid_hint is not None else rel <= p["rigid_residual"])
+    rigid = rel is not None and (bool(rigid_hint) if rigid_hint is not None else rel <= own.rigid_residual)
     info: dict[str, Any] = {
         "mode": "structured",
         "rigid": rigid,
         "rigid_residual_rel": rel,
         "rigid_source": "groups" if rigid_hint is not None and rel is not None else "residual",
     }
-    context, horizon = int(p["context"]), int(p["horizon"])
-    h = max(1, min(int(n_steps), int(round(p["backtest_frac"] * T))))
+    context, horizon = int(own.context), int(own.horizon)
+    h = max(1, min(int(n_steps), int(round(own.backtest_frac * T))))
     backtest_sizes = window_sizes(T - h, context, horizon)
-    if not p["gate"]:
+    if not own.gate:
         choice = "learned" if window_sizes(T, context, horizon) else "constant_velocity"
     else:
         # Too few frames to backtest: nothing shows the learned forecaster is
         # better, so the group keeps its constant velocity.
         choice = "constant_velocity"
-    if p["gate"] and backtest_sizes is not None:
+    if own.gate and backtest_sizes is not None:
         # Backtest on observed frames only: fit on the first T - h, score on the last h.
         # On short observations the backtested network reads a shorter context
         # (window_sizes) than the one refitted on all T frames; deploying the
         # backtest's size instead measured worse (GT cloth at 0.6: 0.0059 -> 0.0135 m).
-        past = GroupMotion(obs[:, : T - h], rigid, p["still_factor"])
+        past = GroupMotion(obs[:, : T - h], rigid, own.still_factor)
         scores = {}
         for name in CANDIDATES:
-            scores[name] = _score(FittedCandidate(name, past, p, seed).rollout(h), obs[:, T - h :])
+            scores[name] = _score(FittedCandidate(name, past, run, seed).rollout(h), obs[:, T - h :])
             info[f"backtest_epe_{name}"] = scores[name]
         choice = min(CANDIDATES, key=lambda c: (scores[c], CANDIDATES.index(c)))
         info["backtest_frames"] = h
-    motion = GroupMotion(obs, rigid, p["still_factor"], decomposition)
+    motion = GroupMotion(obs, rigid, own.still_factor, decomposition)
     info["still_fraction"] = float(motion.still.mean())
-    fitted = FittedCandidate(choice, motion, p, seed)
+    fitted = FittedCandidate(choice, motion, run, seed)
     info.update(fitted.info)
     info["choice"] = choice
     return fitted, info

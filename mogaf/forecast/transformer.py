@@ -33,6 +33,7 @@ Choices where the paper is silent (each a parameter, see DEFAULTS):
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any
 
@@ -42,7 +43,7 @@ from mogaf.errors import MogafError
 from mogaf.forecast import quat
 from mogaf.forecast.base import Forecaster, torch_determinism
 from mogaf.forecast.params import MOGAF_DEFAULTS
-from mogaf.forecast.structured import MODES, fit_structured, structured_params
+from mogaf.forecast.structured import fit_structured, structured_settings
 from mogaf.forecast.transformer_net import _build_model, mask_ratio, minibatches, optimiser_step
 
 DEFAULTS: dict[str, Any] = MOGAF_DEFAULTS  # forecast.params.MogafSettings
@@ -71,43 +72,30 @@ class MoGaFForecaster(Forecaster):
     MIN_FRAMES = 3  # L_acc needs mu_{T-1} and mu_{T-2} inside the input window
 
     def _check(self) -> None:
-        p = self.params
-        for key in ("d_model", "nhead", "dim_feedforward", "num_layers", "iterations", "batch_size", "rollout_chunk"):
-            if p[key] < 1:
-                raise MogafError(f"forecast.mogaf: parameter '{key}' must be >= 1, got {p[key]}")
-        for key in ("batch_tokens", "weight_decay"):
-            if p[key] < 0:
-                raise MogafError(f"forecast.mogaf: parameter '{key}' must be >= 0, got {p[key]}")
-        if p["d_model"] % p["nhead"]:
-            raise MogafError(f"forecast.mogaf: d_model ({p['d_model']}) must be divisible by nhead ({p['nhead']})")
-        if not (0.0 <= p["mask_ratio_end"] <= p["mask_ratio_start"] < 1.0):
+        """What the settings' own bounds (MogafSettings) cannot say: relations between settings."""
+        p = self.settings
+        if p.d_model % p.nhead:
+            raise MogafError(f"forecast.mogaf: d_model ({p.d_model}) must be divisible by nhead ({p.nhead})")
+        if not (0.0 <= p.mask_ratio_end <= p.mask_ratio_start < 1.0):
             raise MogafError("forecast.mogaf: need 0 <= mask_ratio_end <= mask_ratio_start < 1")
-        if not (0.0 < p["mask_anneal_frac"] <= 1.0):
-            raise MogafError("forecast.mogaf: mask_anneal_frac must be in (0, 1]")
-        if p["norm_eps"] <= 0:
-            raise MogafError("forecast.mogaf: norm_eps must be > 0")
-        if p["mode"] not in MODES:
-            raise MogafError(f"forecast.mogaf: mode must be one of {', '.join(MODES)}, got {p['mode']!r}")
-        structured_params(p)  # refuses bad structured settings in either mode
-        if p["loss_space"] not in ("normalized", "pose"):
-            raise MogafError(f"forecast.mogaf: loss_space must be 'normalized' or 'pose', got {p['loss_space']!r}")
+        structured_settings(p)  # refuses bad structured settings in either mode
 
     def mask_ratio(self, it: int) -> float:
         """Masked fraction of the input window at iteration `it` (linear anneal)."""
-        return mask_ratio(self.params, it)
+        return mask_ratio(self.settings, it)
 
     def _fit(self, obs: np.ndarray) -> None:
         self._check()
-        if self.params["mode"] == "structured":
+        if self.settings.mode == "structured":
             # The backtest's length depends on the forecast horizon: fitted in _rollout.
-            structured_params(self.params)
+            structured_settings(self.settings)
             return
         self._fit_paper(obs)
 
     def _rollout(self, n_steps: int) -> np.ndarray:
-        if self.params["mode"] == "structured":
+        if self.settings.mode == "structured":
             start = time.perf_counter()
-            fitted, info = fit_structured(self._obs, self.params, self.seed, self.rigid_hint, n_steps)
+            fitted, info = fit_structured(self._obs, self.settings, self.seed, self.rigid_hint, n_steps)
             self.info.update(info)
             self.info["train_time_s"] = self.info.get("train_time_s", 0.0) + time.perf_counter() - start
             return fitted.rollout(n_steps)
@@ -116,15 +104,15 @@ class MoGaFForecaster(Forecaster):
     def _fit_paper(self, obs: np.ndarray) -> None:
         import torch
 
-        p = self.params
+        p = self.settings
         g, t, _ = obs.shape
         window = t - 1
         self.window = window
         xin = obs[:, :window]
         target = obs[:, window]
-        xn, mean, std = instance_norm(xin, p["norm_eps"])
+        xn, mean, std = instance_norm(xin, p.norm_eps)
 
-        with torch_determinism(self.seed, p["num_threads"] or None):
+        with torch_determinism(self.seed, p.num_threads or None):
             gen = torch.Generator().manual_seed(self.seed)
             model = _build_model(window, p)
             X = torch.from_numpy(xn).float()
@@ -132,16 +120,16 @@ class MoGaFForecaster(Forecaster):
             S = torch.from_numpy(std).float()
             Y = torch.from_numpy(target).float()
             Yn = torch.from_numpy((target - mean) / std).float()
-            normalized_loss = p["loss_space"] == "normalized"
+            normalized_loss = p.loss_space == "normalized"
             mu1 = torch.from_numpy(obs[:, window - 1, :3]).float()
             mu2 = torch.from_numpy(obs[:, window - 2, :3]).float()
-            opt = torch.optim.Adam(model.parameters(), lr=p["lr"], weight_decay=p["weight_decay"])
-            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=p["iterations"], eta_min=p["lr_min"])
-            bs = min(batch_for_window(p["batch_size"], p["batch_tokens"], window), g)
+            opt = torch.optim.Adam(model.parameters(), lr=p.lr, weight_decay=p.weight_decay)
+            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=p.iterations, eta_min=p.lr_min)
+            bs = min(batch_for_window(p.batch_size, p.batch_tokens, window), g)
             model.train()
             loss_val = float("nan")
             pred_val = acc_val = float("nan")
-            for it, idx in minibatches(g, bs, p["iterations"], gen):
+            for it, idx in minibatches(g, bs, p.iterations, gen):
                 x = X[idx]
                 mask = None
                 span = int(round(self.mask_ratio(it) * window))
@@ -161,8 +149,8 @@ class MoGaFForecaster(Forecaster):
                     l_pred = ((out - Y[idx]) ** 2).sum(-1).mean()
                     acc = out[:, :3] - 2.0 * mu1[idx] + mu2[idx]
                 l_acc = (acc**2).sum(-1).mean()
-                loss = l_pred + p["lambda_acc"] * l_acc
-                optimiser_step(loss, model, opt, sched, p["grad_clip"], it)
+                loss = l_pred + p.lambda_acc * l_acc
+                optimiser_step(loss, model, opt, sched, p.grad_clip, it)
                 loss_val, pred_val, acc_val = loss.item(), l_pred.item(), l_acc.item()
             model.eval()
         self.model = model
@@ -170,12 +158,12 @@ class MoGaFForecaster(Forecaster):
             final_loss=loss_val,
             final_loss_pred=pred_val,
             final_loss_acc=acc_val,
-            iterations=p["iterations"],
-            epochs=p["iterations"] * bs / g,
+            iterations=p.iterations,
+            epochs=p.iterations * bs / g,
             batch_size=bs,
             window=window,
-            num_layers=p["num_layers"],
-            masking=p["masking"],
+            num_layers=p.num_layers,
+            masking=p.masking,
             n_params=int(sum(v.numel() for v in model.parameters())),
         )
 
@@ -183,10 +171,10 @@ class MoGaFForecaster(Forecaster):
         """One step: (G, T-1, 7) float64 poses -> (G, 7) next pose (unit quaternion)."""
         import torch
 
-        p = self.params
-        xn, mean, std = instance_norm(window, p["norm_eps"])
+        p = self.settings
+        xn, mean, std = instance_norm(window, p.norm_eps)
         out = np.empty((window.shape[0], 7))
-        chunk = p["rollout_chunk"]
+        chunk = p.rollout_chunk
         with torch.no_grad():
             for s in range(0, window.shape[0], chunk):
                 y = self.model(torch.from_numpy(xn[s : s + chunk]).float()).double().numpy()
@@ -197,10 +185,10 @@ class MoGaFForecaster(Forecaster):
         return out
 
     def _rollout_paper(self, n_steps: int) -> np.ndarray:
-        p = self.params
+        p = self.settings
         win = self._obs[:, -self.window :].copy()
         out = np.empty((win.shape[0], n_steps, 7))
-        with torch_determinism(self.seed, p["num_threads"] or None):
+        with torch_determinism(self.seed, p.num_threads or None):
             for k in range(n_steps):
                 nxt = self.predict_next(win)
                 out[:, k] = nxt
@@ -218,3 +206,4 @@ class MoGaFPaperForecaster(MoGaFForecaster):
     def __init__(self, params=None, seed: int = 0):
         super().__init__(params, seed)
         self.params["mode"] = "paper"  # whatever forecast.mogaf.mode says
+        self.settings = dataclasses.replace(self.settings, mode="paper")

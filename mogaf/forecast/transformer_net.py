@@ -82,15 +82,15 @@ def _build_model(window: int, p: dict[str, Any], in_dim: int = 7, out_dim: int =
 
         def __init__(self) -> None:
             super().__init__()
-            d = p["d_model"]
+            d = p.d_model
             self.embed = nn.Linear(in_dim, d)
             # Learned [MASK] embedding replacing masked frames (BERT-style, the
             # paper's cited inspiration for masked motion modelling).
             self.mask_token = nn.Parameter(torch.randn(d) * 0.02)
             self.register_buffer("pos", _sinusoid(window, d), persistent=False)
             self.layers = nn.ModuleList(
-                EncoderLayer(d, p["nhead"], p["dim_feedforward"], p["dropout"], p["attn_dropout"], p["norm_first"])
-                for _ in range(p["num_layers"])
+                EncoderLayer(d, p.nhead, p.dim_feedforward, p.dropout, p.attn_dropout, p.norm_first)
+                for _ in range(p.num_layers)
             )
             self.head = nn.Linear(window * d, out_dim)  # flatten head
             if zero_head:
@@ -98,7 +98,7 @@ def _build_model(window: int, p: dict[str, Any], in_dim: int = 7, out_dim: int =
                 # at zero, the untrained model is that prior exactly.
                 nn.init.zeros_(self.head.weight)
                 nn.init.zeros_(self.head.bias)
-            if p["zero_init_residual"]:
+            if p.zero_init_residual:
                 # Residual branches start as the identity, so the untrained model
                 # is a linear autoregressor on the normalised window (embedding ->
                 # flatten head); attention/feed-forward learn the corrections.
@@ -123,11 +123,11 @@ def mask_ratio(p: dict[str, Any], it: int) -> float:
     """Masked fraction of the input window at iteration `it`: a linear anneal
     from mask_ratio_start to mask_ratio_end over the first mask_anneal_frac of
     training (0 without masking)."""
-    if not p["masking"]:
+    if not p.masking:
         return 0.0
-    span = max(1.0, p["mask_anneal_frac"] * p["iterations"])
+    span = max(1.0, p.mask_anneal_frac * p.iterations)
     a = min(1.0, it / span)
-    return (1.0 - a) * p["mask_ratio_start"] + a * p["mask_ratio_end"]
+    return (1.0 - a) * p.mask_ratio_start + a * p.mask_ratio_end
 
 
 def minibatches(n: int, batch: int, iterations: int, gen):
