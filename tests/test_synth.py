@@ -79,10 +79,10 @@ def test_worlds_keep_objects_in_view_and_apart():
         world = build_world(resolve_params(params))
         assert check_world(world) is None
     hard = build_world(resolve_params({"preset": "hard"}))
-    duration = (hard.params["num_frames"] - 1) / hard.params["fps"]
+    duration = (hard.params.num_frames - 1) / hard.params.fps
     bounces = hard.info["sphere_bounce_times"]
     assert any(b > 0.6 * duration for b in bounces), "hard preset: a bounce falls in the forecast part"
-    assert len(hard.objects) == 3 + hard.params["num_extra_objects"]
+    assert len(hard.objects) == 3 + hard.params.num_extra_objects
     assert build_world(resolve_params({})).info["sphere_bounce_times"] == []
 
 
@@ -375,6 +375,6 @@ def test_articulated_scene_ships_no_instance_masks(tmp_path):
 def test_bounce_preset_bounces_after_either_split():
     world = build_world(resolve_params({"preset": "bounce"}))
     assert check_world(world) is None
-    frames = [b * world.params["fps"] for b in world.info["sphere_bounce_times"]]
-    last = world.params["num_frames"] - 1
+    frames = [b * world.params.fps for b in world.info["sphere_bounce_times"]]
+    last = world.params.num_frames - 1
     assert len(frames) >= 1 and 0.8 * last < frames[0] < last, frames

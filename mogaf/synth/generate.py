@@ -107,7 +107,7 @@ def camera_json(world: World, w2c: np.ndarray) -> dict[str, Any]:
 
 def _track_points(world: World, rng: np.random.Generator):
     """GT surface points of every dynamic object: trajectories (P, T, 3), instance (P,)."""
-    n = world.params["num_track_points"]
+    n = world.params.num_track_points
     trajs, insts = [], []
     for obj in world.objects:
         material = obj.sample_material(rng, n)
@@ -181,8 +181,9 @@ def _covisible(
 
 def _write_layout(root: Path, p: dict[str, Any]) -> None:
     world = build_world(p)
+    s = world.params
     T = len(world.taus)
-    rng = np.random.default_rng([int(p["seed"]), 777])
+    rng = np.random.default_rng([int(s.seed), 777])
     points3d, points_inst = _track_points(world, rng)
     out = _render_all(world, root, points3d, points_inst)
 
@@ -225,7 +226,7 @@ def _write_layout(root: Path, p: dict[str, Any]) -> None:
         {
             "bbox": [allp.min(axis=0).tolist(), allp.max(axis=0).tolist()],
             "factor": 1,
-            "fps": float(p["fps"]),
+            "fps": float(s.fps),
             "lookat": LOOK_AT.tolist(),
             "up": UP.tolist(),
         },

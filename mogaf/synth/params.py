@@ -108,6 +108,13 @@ def _as_float_list(key: str, value: Any, n: int) -> list[float]:
     return out
 
 
+def load_settings(params: Mapping[str, Any] | SyntheticSettings | None) -> SyntheticSettings:
+    """resolve_params as a frozen SyntheticSettings (what the generator reads)."""
+    if isinstance(params, SyntheticSettings):
+        return params
+    return SyntheticSettings(**resolve_params(params))
+
+
 def resolve_params(params: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Defaults <- preset <- explicit params, checked (SyntheticSettings)."""
     params = dict(params or {})

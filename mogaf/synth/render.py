@@ -124,7 +124,7 @@ class Renderer:
     def __init__(self, world):
         self.world = world
         p = world.params
-        self.H, self.W, self.ss = p["height"], p["width"], p["supersample"]
+        self.H, self.W, self.ss = p.height, p.width, p.supersample
         self.dirs_ss = camera_dirs(world.K, self.H, self.W, self.ss)
         self.dirs_c = camera_dirs(world.K, self.H, self.W, 1)
         self._static_cache: dict[int, tuple] = {}

@@ -16,6 +16,7 @@ import numpy as np
 from ..errors import MogafError
 from .motion import Ballistic, _clamped_velocity, _linear, rotation
 from .objects import Arm, Articulated, Cloth, Object, RigidBox, RigidSphere
+from .params import SyntheticSettings, load_settings
 from .primitives import Box, Plane
 from .textures import BoxTexture, ClothTexture, PlaneTexture, SphereTexture
 
@@ -55,7 +56,7 @@ EXTRA_LANES = [
 
 @dataclass
 class World:
-    params: dict[str, Any]
+    params: SyntheticSettings
     objects: list[Object]
     static: list  # background primitives (instance 0)
     taus: np.ndarray  # (T,) motion time of every frame
@@ -67,11 +68,11 @@ class World:
 
     @property
     def width(self) -> int:
-        return int(self.params["width"])
+        return int(self.params.width)
 
     @property
     def height(self) -> int:
-        return int(self.params["height"])
+        return int(self.params.height)
 
     def camera_w2c(self, cam: int, ti: int) -> np.ndarray:
         return self.train_w2c[ti] if cam == 0 else self.test_w2c[cam - 1]
@@ -93,16 +94,16 @@ def _jitter(rng: np.random.Generator, t: np.ndarray, amplitude: float) -> np.nda
     return amplitude * out / weights.sum()
 
 
-def build_world(params: dict[str, Any]) -> World:
-    """Objects, background and cameras for resolved `params` (see params.resolve_params)."""
-    p = params
-    rng = np.random.default_rng([int(p["seed"]), 20240611])
-    T = p["num_frames"]
-    times = np.arange(T) / p["fps"]
-    taus = p["speed"] * times
+def build_world(params: dict[str, Any] | SyntheticSettings) -> World:
+    """Objects, background and cameras for `params` (a mapping, see params.resolve_params, or SyntheticSettings)."""
+    p = load_settings(params)
+    rng = np.random.default_rng([int(p.seed), 20240611])
+    T = p.num_frames
+    times = np.arange(T) / p.fps
+    taus = p.speed * times
     tau_max = float(taus[-1])
     tau_mid = 0.5 * tau_max
-    spin = p["spin"]
+    spin = p.spin
 
     # ---- static background: ground, back wall and the flag pole
     ground_tex = PlaneTexture(rng, [0.78, 0.68, 0.52], [0.47, 0.52, 0.36], 0.42, [0.08, 0.0, -0.08])
@@ -115,7 +116,7 @@ def build_world(params: dict[str, Any]) -> World:
 
     objects: list[Object] = []
     # ---- textured box: uniform translation + constant spin (screw motion)
-    v_box = _clamped_velocity(np.array(p["box_velocity"]), tau_max, p["max_travel"])
+    v_box = _clamped_velocity(np.array(p.box_velocity), tau_max, p.max_travel)
     rigid_objects: list[Object] = []
     rigid_objects.append(
         RigidBox(
@@ -126,15 +127,13 @@ def build_world(params: dict[str, Any]) -> World:
             centre_fn=_linear([-0.45, 1.4, 0.98], v_box, tau_mid),
             R0=rotation(rng.normal(size=3), rng.uniform(0, 2 * np.pi)),
             spin_axis=[0.35, 0.25, 1.0],
-            spin_rate=p["box_spin"] * spin,
+            spin_rate=p.box_spin * spin,
         )
     )
     # ---- sphere on a ballistic arc (bounces when the sequence is long/fast enough)
     r_s = 0.18
-    v_xy = _clamped_velocity(np.array(p["sphere_velocity"]), tau_max, p["max_travel"])
-    ballistic = Ballistic(
-        [0.42, 0.75], v_xy, tau_mid, 0.42, p["sphere_launch_vz"], p["gravity"], p["restitution"], r_s, tau_max
-    )
+    v_xy = _clamped_velocity(np.array(p.sphere_velocity), tau_max, p.max_travel)
+    ballistic = Ballistic([0.42, 0.75], v_xy, tau_mid, 0.42, p.sphere_launch_vz, p.gravity, p.restitution, r_s, tau_max)
     vh = np.array([v_xy[0], v_xy[1], 0.0])
     roll_axis = np.cross(UP, vh) if np.linalg.norm(vh) > 1e-9 else np.array([1.0, 0.0, 0.0])
     rigid_objects.append(
@@ -146,13 +145,13 @@ def build_world(params: dict[str, Any]) -> World:
             centre_fn=ballistic,
             R0=rotation(rng.normal(size=3), rng.uniform(0, 2 * np.pi)),
             spin_axis=roll_axis + np.array([0.0, 0.0, 0.3]) * np.linalg.norm(roll_axis),
-            spin_rate=p["sphere_spin"] * spin,
+            spin_rate=p.sphere_spin * spin,
         )
     )
-    if p["rigid_objects"]:
+    if p.rigid_objects:
         objects.extend(rigid_objects)
     # ---- non-rigid object
-    if p["nonrigid"] == "articulated":
+    if p.nonrigid == "articulated":
         objects.append(
             Articulated(
                 3,
@@ -161,13 +160,13 @@ def build_world(params: dict[str, Any]) -> World:
                 body_half=[0.42, 0.28, 0.3],
                 lid_thickness=0.06,
                 yaw=np.deg2rad(-15.0),
-                swing=p["lid_swing"],
-                rate=p["lid_rate"],
+                swing=p.lid_swing,
+                rate=p.lid_rate,
                 texture=BoxTexture(rng, rng.uniform()),
                 phase=0.0,
             )
         )
-    elif p["nonrigid"] == "cloth":
+    elif p.nonrigid == "cloth":
         pole_x, pole_y = 0.3, 1.85
         static.append(Box(np.eye(3), [pole_x, pole_y, 0.68], [0.025, 0.025, 0.68], pole_tex, 0))
         objects.append(
@@ -178,9 +177,9 @@ def build_world(params: dict[str, Any]) -> World:
                 yaw=np.deg2rad(22.0),
                 length=0.85,
                 height=0.7,
-                amplitude=p["cloth_amplitude"],
-                wavelength=p["cloth_wavelength"],
-                frequency=p["cloth_frequency"],
+                amplitude=p.cloth_amplitude,
+                wavelength=p.cloth_wavelength,
+                frequency=p.cloth_frequency,
                 texture=ClothTexture(rng),
             )
         )
@@ -199,19 +198,17 @@ def build_world(params: dict[str, Any]) -> World:
         )
 
     # ---- cameras
-    W, H = p["width"], p["height"]
-    f = 0.5 * W / np.tan(np.deg2rad(p["hfov_deg"]) / 2)
+    W, H = p.width, p.height
+    f = 0.5 * W / np.tan(np.deg2rad(p.hfov_deg) / 2)
     K = np.array([[f, 0.0, W / 2], [0.0, f, H / 2], [0.0, 0.0, 1.0]])
     u = times / times[-1]
-    walk = np.stack(
-        [p["camera_sweep"] * (u - 0.5), 0.15 * np.sin(np.pi * u) - 0.05, 0.02 * np.sin(2 * np.pi * u)], axis=1
-    )
-    centres = LOOK_AT + TRAIN_OFFSET + walk + _jitter(rng, times, p["camera_jitter"])
-    targets = LOOK_AT + _jitter(rng, times, 2.5 * p["camera_jitter"])
+    walk = np.stack([p.camera_sweep * (u - 0.5), 0.15 * np.sin(np.pi * u) - 0.05, 0.02 * np.sin(2 * np.pi * u)], axis=1)
+    centres = LOOK_AT + TRAIN_OFFSET + walk + _jitter(rng, times, p.camera_jitter)
+    targets = LOOK_AT + _jitter(rng, times, 2.5 * p.camera_jitter)
     rolls = 0.01 * np.sin(2 * np.pi * 0.6 * times + rng.uniform(0, 2 * np.pi))
     train_w2c = np.stack([look_at(c, tg, r) for c, tg, r in zip(centres, targets, rolls)])
     test = []
-    for yaw_deg, dist, dz, roll in zip(p["test_camera_yaw_deg"], (1.0, 1.05), (-0.12, 0.2), (0.015, -0.02)):
+    for yaw_deg, dist, dz, roll in zip(p.test_camera_yaw_deg, (1.0, 1.05), (-0.12, 0.2), (0.015, -0.02)):
         off = rotation(UP, np.deg2rad(yaw_deg)) @ (TRAIN_OFFSET * np.array([dist, dist, 1.0]))
         test.append(look_at(LOOK_AT + off + np.array([0, 0, dz]), LOOK_AT + np.array([0.0, 0.0, -0.03]), roll))
     test_w2c = np.stack(test)
@@ -219,20 +216,20 @@ def build_world(params: dict[str, Any]) -> World:
     world = World(
         params=p, objects=objects, static=static, taus=taus, times=times, train_w2c=train_w2c, test_w2c=test_w2c, K=K
     )
-    world.info["sphere_bounce_times"] = [float(b / p["speed"]) for b in ballistic.bounces if b <= tau_max]
+    world.info["sphere_bounce_times"] = [float(b / p.speed) for b in ballistic.bounces if b <= tau_max]
     problem = check_world(world)
     if problem:
         raise MogafError(f"synthetic scene: {problem}; lower speed/max_travel or num_frames")
 
     # ---- extra small rigid objects, rejection-sampled so they stay in view and apart
-    for i in range(p["num_extra_objects"]):
+    for i in range(p.num_extra_objects):
         lane = np.array(EXTRA_LANES[i])
         for _attempt in range(200):
             kind = "box" if (i + _attempt) % 2 == 0 else "sphere"
             size = rng.uniform(0.07, 0.11)
             a = rng.uniform(0, 2 * np.pi)
-            v = p["extra_speed"] * np.array([np.cos(a), 0.35 * rng.uniform(-1, 1), 0.6 * np.sin(a)])
-            v = _clamped_velocity(v, tau_max, min(p["max_travel"], 0.6))
+            v = p.extra_speed * np.array([np.cos(a), 0.35 * rng.uniform(-1, 1), 0.6 * np.sin(a)])
+            v = _clamped_velocity(v, tau_max, min(p.max_travel, 0.6))
             kw = dict(  # noqa: C408 (keyword names read as the parameters they are)
                 centre_fn=_linear(lane + rng.uniform(-0.08, 0.08, 3), v, tau_mid),
                 R0=rotation(rng.normal(size=3), rng.uniform(0, 2 * np.pi)),
