@@ -7,98 +7,10 @@ metrics.json (written by mogaf.evaluate) has, per result:
   methods.<m>.runtime    total_wall_s: the stages that produced this method's forecast
   grouping               method, ari, mean_iou, ...
   runtime.stages.<s>     wall_s, max_rss_mb (from Snakemake benchmark files)
+
+Modules: metrics_files (load_metrics), tables, runtime, glance.
 """
 
-from __future__ import annotations
+from .metrics_files import METRIC_SECTIONS, NO_RESULT, load_metrics
 
-import json
-import math
-import os
-from pathlib import Path
-from typing import Any
-
-from ..errors import input_error
-
-NO_RESULT = "no result"
-# Sections of methods.<m> whose every value is a metric: a number or null.
-METRIC_SECTIONS = ("image", "tracking", "runtime")
-
-
-def _no_constants(name: str) -> Any:
-    raise ValueError(f"{name} is not a JSON number (evaluate never writes it)")
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _metrics_problem(data: dict[str, Any]) -> str | None:
-    """What makes a parsed metrics.json unusable for the tables, or None."""
-    for key in ("dataset", "scene"):
-        if not isinstance(data.get(key), str) or not data[key]:
-            return f"'{key}' must be a non-empty string, got {data.get(key)!r}"
-    ratio = data.get("ratio")
-    if not _is_number(ratio) or not 0 < ratio < 1:
-        return f"'ratio' must be a number in (0, 1), got {ratio!r}"
-    for key in ("variant", "protocol"):
-        if data.get(key) is not None and not isinstance(data[key], str):
-            return f"'{key}' must be a string, got {data[key]!r}"
-    if not isinstance(data["methods"], dict):
-        return "'methods' must be an object"
-    for method, section in data["methods"].items():
-        if not isinstance(section, dict):
-            return f"'methods.{method}' must be an object"
-        for part in METRIC_SECTIONS:
-            values = section.get(part)
-            if values is None:
-                continue
-            if not isinstance(values, dict):
-                return f"'methods.{method}.{part}' must be an object"
-            for name, value in values.items():
-                if value is not None and not _is_number(value):
-                    return f"'methods.{method}.{part}.{name}' must be a number or null, got {value!r}"
-    grouping = data.get("grouping")
-    if grouping is not None and not isinstance(grouping, dict):
-        return "'grouping' must be an object"
-    for name in ("ari", "mean_iou"):
-        value = (grouping or {}).get(name)
-        if value is not None and not _is_number(value):
-            return f"'grouping.{name}' must be a number or null, got {value!r}"
-    return None
-
-
-def _result_key(data: dict[str, Any]) -> tuple[str, str, float, str]:
-    return (data["dataset"], data["scene"], float(data["ratio"]), data.get("variant") or "default")
-
-
-def load_metrics(paths: list[str | os.PathLike]) -> list[dict[str, Any]]:
-    """Read metrics.json files; a malformed one, or two files of one result
-    (one row each in every table), fail with one line naming the file."""
-    out = []
-    seen: dict[tuple[str, str, float, str], str] = {}
-    for path in sorted({str(p) for p in paths}):
-        p = Path(path)
-        if not p.is_file():
-            raise input_error(p, "no such metrics file")
-        try:
-            data = json.loads(p.read_bytes(), parse_constant=_no_constants)
-        except (OSError, ValueError) as exc:  # ValueError: also malformed UTF-8, NaN, Infinity
-            raise input_error(
-                p, f"not readable JSON ({exc.__class__.__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
-            ) from None
-        if not isinstance(data, dict) or "methods" not in data:
-            raise input_error(p, "not a mogaf metrics.json (no 'methods' section)")
-        problem = _metrics_problem(data)
-        if problem:
-            raise input_error(p, f"not a usable metrics.json: {problem}")
-        key = _result_key(data)
-        if key in seen:
-            raise input_error(
-                p,
-                f"holds the same result as {seen[key]} ({key[0]}/{key[1]}, ratio {key[2]:g}, "
-                f"variant {key[3]}); the tables take one file per result, remove one",
-            )
-        seen[key] = str(p)
-        data["_path"] = str(p)
-        out.append(data)
-    return out
+__all__ = ["METRIC_SECTIONS", "NO_RESULT", "load_metrics"]

@@ -18,7 +18,7 @@ from typing import Any
 
 from ..artefact import atomic_path
 from ..errors import input_error
-from . import load_metrics
+from .metrics_files import load_metrics
 from .tables import METHOD_ORDER, _key, _metric, _variant, budget_differences, fmt, method_label
 
 START, END = "<!-- glance:start -->", "<!-- glance:end -->"

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from ..artefact import atomic_path
-from . import load_metrics
+from .metrics_files import load_metrics
 from .tables import METHOD_LABELS, METHOD_ORDER, METRICS, Table, _metric, _variant, fmt
 
 HIGHER_IS_BETTER = {

@@ -25,7 +25,7 @@ from typing import Any
 
 from ..artefact import atomic_path
 from ..forecast import METHODS, defaults
-from . import NO_RESULT, load_metrics
+from .metrics_files import NO_RESULT, load_metrics
 
 # A cell whose result does not exist, among cells that have one.
 MISSING = "–"
