@@ -18,7 +18,9 @@ one definition come
 from __future__ import annotations
 
 import dataclasses
+import functools
 import numbers
+import types
 import typing
 from collections.abc import Mapping
 from typing import Any, Literal, get_args, get_origin
@@ -72,14 +74,20 @@ def _fields(cls: type) -> tuple[dataclasses.Field, ...]:
     return dataclasses.fields(cls)
 
 
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    """The class's resolved annotations (evaluated once: check() runs at every stage call)."""
+    return typing.get_type_hints(cls)
+
+
 def _annotation(cls: type, f: dataclasses.Field) -> Any:
-    return typing.get_type_hints(cls)[f.name]
+    return _hints(cls)[f.name]
 
 
 def _parts(annotation: Any) -> tuple[Any, bool]:
     """(the type without None, whether None is allowed)."""
     args = get_args(annotation)
-    if get_origin(annotation) in (typing.Union, getattr(__import__("types"), "UnionType", None)) and type(None) in args:
+    if get_origin(annotation) in (typing.Union, types.UnionType) and type(None) in args:
         rest = [a for a in args if a is not type(None)]
         return (rest[0] if len(rest) == 1 else typing.Union[tuple(rest)]), True  # noqa: UP007 (built at run time)
     return annotation, False
@@ -238,7 +246,7 @@ SECTIONS: dict[str, tuple[str, str]] = {
     "forecast.gcn": ("mogaf.forecast.params:GCNSettings", "forecast_gcn"),
     "forecast.ode": ("mogaf.forecast.params:ODESettings", "forecast_ode"),
     "evaluate": ("mogaf.evaluate.params:EvaluateSettings", "evaluate"),
-    "grouping_quality": ("mogaf.grouping.quality:GroupingQualitySettings", "grouping_quality"),
+    "grouping_quality": ("mogaf.grouping.params:GroupingQualitySettings", "grouping_quality"),
     "reconstruction_quality": (
         "mogaf.reconstruction_quality.params:ReconstructionQualitySettings",
         "reconstruction_quality",
@@ -319,14 +327,13 @@ def markdown() -> str:
             "| setting | default | source and meaning |",
             "|---|---|---|",
         ]
-        for name, default, source in describe(cls):
-            f = next(x for x in _fields(cls) if x.name == name)
+        for f, default in zip(_fields(cls), defaults(cls).values()):
             if f.metadata.get("injected"):
                 continue
             shown = json.dumps(default) if not isinstance(default, str) else default
-            if isinstance(default, dict) and len(shown) > 40:
-                shown = "see below" if name == "structured" else shown
-            out.append(f"| `{name}` | `{shown}` | {source.replace('|', chr(92) + '|')} |")
+            if f.name == "structured":  # its own section follows
+                shown = "see below"
+            out.append(f"| `{f.name}` | `{shown}` | {f.metadata['source'].replace('|', chr(92) + '|')} |")
         out.append("")
     return "\n".join(out)
 

@@ -94,3 +94,32 @@ def test_with_defaults_fills_every_section_and_keeps_given_values():
 def test_config_readme_is_current():
     text = (REPO / "config" / "README.md").read_text()
     assert text.strip() == settings.markdown().strip(), "run: python -m mogaf.settings --markdown > config/README.md"
+
+
+def test_the_config_schema_and_defaults_load_no_stage_code():
+    """Every workflow and CLI start builds the schema and the defaults from the
+    settings classes: that must not import torch, OpenCV or scikit-learn (the
+    stage packages re-export their entry points lazily, mogaf.lazy)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; from mogaf.schema import load_config_schema; from mogaf.config import with_defaults, load_yaml; "
+        f"load_config_schema({str(REPO / 'config' / 'schema.yaml')!r}); "
+        f"with_defaults(load_yaml({str(REPO / 'config' / 'config.yaml')!r})); "
+        "print(sorted(m for m in ('torch', 'cv2', 'sklearn') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_lazy_exports_resolve_cache_and_refuse_unknown_names():
+    import mogaf.recon
+
+    assert "run_recon_stage" in dir(mogaf.recon)
+    from mogaf.recon.stage import run_recon_stage
+
+    assert mogaf.recon.run_recon_stage is run_recon_stage
+    assert "run_recon_stage" in vars(mogaf.recon)  # cached after the first lookup
+    with pytest.raises(AttributeError, match="has no attribute 'no_such_name'"):
+        mogaf.recon.no_such_name  # noqa: B018

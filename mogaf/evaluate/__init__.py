@@ -24,11 +24,28 @@ images (renders, PNGs, videos), tracking (tracking metrics), stage
 (run_evaluate_stage).
 """
 
-from .images import render_forecast_views
-from .inputs import FORECAST_STAGE, forecast_summary, read_benchmark, read_forecast, runtime_section
+from ..lazy import lazy_exports
 from .params import DEFAULT_PARAMS
-from .stage import _round, run_evaluate_stage
-from .tracking import attach_points, carry_points, predicted_gt_tracks, tracking_section
+
+# Entry points load with their module on first use (mogaf.lazy): importing the
+# package for its settings (params) stays light.
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        "render_forecast_views": ".images",
+        "FORECAST_STAGE": ".inputs",
+        "forecast_summary": ".inputs",
+        "read_benchmark": ".inputs",
+        "read_forecast": ".inputs",
+        "runtime_section": ".inputs",
+        "_round": ".stage",
+        "run_evaluate_stage": ".stage",
+        "attach_points": ".tracking",
+        "carry_points": ".tracking",
+        "predicted_gt_tracks": ".tracking",
+        "tracking_section": ".tracking",
+    },
+)
 
 __all__ = [
     "DEFAULT_PARAMS",

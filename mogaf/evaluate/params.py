@@ -1,4 +1,4 @@
-"""Parameters of the evaluation stage: EvaluateSettings (DEFAULT_PARAMS as a dict) and resolve_params."""
+"""Parameters of the evaluation stage: EvaluateSettings (DEFAULT_PARAMS as a dict) and load_settings."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from ..settings import check, defaults, load, setting
+from ..settings import defaults, load, setting
 
 
 @dataclass(frozen=True)
@@ -32,11 +32,6 @@ class EvaluateSettings:
 DEFAULT_PARAMS: dict[str, Any] = defaults(EvaluateSettings)
 
 
-def resolve_params(params: Mapping[str, Any] | None) -> dict[str, Any]:
-    """Defaults <- params, checked (EvaluateSettings); unknown keys are refused."""
-    return check(EvaluateSettings, "evaluate", params)
-
-
 def load_settings(params: Mapping[str, Any] | EvaluateSettings | None) -> EvaluateSettings:
-    """resolve_params as a frozen EvaluateSettings (what the stage reads)."""
+    """Defaults <- params, checked, as a frozen EvaluateSettings (what the stage reads); unknown keys are refused."""
     return load(EvaluateSettings, "evaluate", params)

@@ -63,7 +63,6 @@ from mogaf.errors import MogafError
 from mogaf.forecast import quat
 from mogaf.forecast.base import torch_determinism
 from mogaf.forecast.classical import constant_twist_rollout
-from mogaf.forecast.params import STRUCTURED_DEFAULTS as _STRUCTURED_DEFAULTS
 from mogaf.forecast.params import MogafSettings, StructuredSettings
 from mogaf.forecast.transformer_net import _build_model, mask_ratio, minibatches, optimiser_step
 from mogaf.settings import load
@@ -74,7 +73,6 @@ from mogaf.settings import load
 # None of these is in the paper: ours, each measured in `python -m mogaf.bench
 # forecast` (docs/forecasting.md).
 MODES = ("structured", "paper")
-STRUCTURED_DEFAULTS: dict[str, Any] = _STRUCTURED_DEFAULTS  # from forecast.params.StructuredSettings
 
 
 @dataclass(frozen=True)

@@ -15,20 +15,33 @@ Modules
              has_rigid_groups, load_groups, read_rigid_init.
 """
 
-from .api import group_gaussians, instance_table
-from .core import Groups, InstanceTable, MaskFrames, mask_gaussians
-from .metrics import adjusted_rand_index, grouping_quality, render_group_labels
+from ..lazy import lazy_exports
 from .params import DEFAULT_PARAMS, METHODS, RIGID_INIT_DEFAULTS, resolve_params
-from .stage import (
-    GROUP_STAGE,
-    RIGID_STAGE,
-    has_rigid_groups,
-    load_groups,
-    read_rigid_init,
-    rigid_init,
-    run_group_stage,
-    run_rigid_init_stage,
-    write_groups,
+
+# Entry points load with their module on first use (mogaf.lazy): importing the
+# package for its settings (params) stays light.
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        "group_gaussians": ".api",
+        "instance_table": ".api",
+        "Groups": ".core",
+        "InstanceTable": ".core",
+        "MaskFrames": ".core",
+        "mask_gaussians": ".core",
+        "adjusted_rand_index": ".metrics",
+        "grouping_quality": ".metrics",
+        "render_group_labels": ".metrics",
+        "GROUP_STAGE": ".stage",
+        "RIGID_STAGE": ".stage",
+        "has_rigid_groups": ".stage",
+        "load_groups": ".stage",
+        "read_rigid_init": ".stage",
+        "rigid_init": ".stage",
+        "run_group_stage": ".stage",
+        "run_rigid_init_stage": ".stage",
+        "write_groups": ".stage",
+    },
 )
 
 __all__ = [

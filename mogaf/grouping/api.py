@@ -72,7 +72,7 @@ def _single_group(
             np.asarray(model.fg.means, np.float64),
             np.asarray(model.trajectory_means, np.float64),
             group_id,
-            p,
+            s,
         )
     else:
         flags, sources, residual = np.array([rigid], np.int8), ["estimated"], np.array([0.0])
@@ -146,14 +146,14 @@ def group_gaussians(
             },
             attrs={"scene_extent": extent, "static_scene": True},
         )
-    if is_static_scene(disp, extent, p):
+    if is_static_scene(disp, extent, s):
         return _single_group(N, "static", True, 1, p, model, table, disp, extent)
 
     if s.method == "ours":
-        labels, stage, diag = group_ours(model, masks, frames, table.ids, p, frame_order)
+        labels, stage, diag = group_ours(model, masks, frames, table.ids, s, frame_order)
         group_inst = np.arange(len(table.ids), dtype=np.int64)
     else:
-        labels, group_inst, stage, diag = group_gaga4d(model, masks, frames, table.ids, p, frame_order)
+        labels, group_inst, stage, diag = group_gaga4d(model, masks, frames, table.ids, s, frame_order)
     if not np.any(labels >= 0):
         g = _single_group(N, "unlabelled", None, None, p, model, table, disp, extent)
         g.attrs["method_diagnostics"] = diag
@@ -174,7 +174,7 @@ def group_gaussians(
         seen[int(j)] = n + 1
         names.append(table.names[j] if n == 0 else f"{table.names[j]}#{n + 1}")
     rigid, sources, residual = decide_rigidity(
-        group_inst, table, np.asarray(model.fg.means, np.float64), traj, group_id, p
+        group_inst, table, np.asarray(model.fg.means, np.float64), traj, group_id, s
     )
     gdisp = group_displacement(disp, group_id, Kg, float(s.static_quantile))
     static = (gdisp <= float(s.static_threshold) * extent).astype(np.int8)

@@ -1,6 +1,6 @@
 """Parameters of the grouping stages: group (DEFAULT_PARAMS, resolve_params) and
-rigid_init (RIGID_INIT_DEFAULTS), and _typed_params for parameters read back
-from an artefact's JSON attrs."""
+rigid_init (RIGID_INIT_DEFAULTS), grouping_quality (GroupingQualitySettings),
+and _typed_params for parameters read back from an artefact's JSON attrs."""
 
 from __future__ import annotations
 
@@ -137,3 +137,16 @@ def _typed_params(raw: dict[str, Any]) -> dict[str, Any]:
         else:
             out[key] = value
     return out
+
+
+@dataclass(frozen=True)
+class GroupingQualitySettings:
+    """Settings of the grouping_quality stage (config section `grouping_quality`)."""
+
+    alpha: float = setting(
+        0.5, "a pixel is labelled where the rendered alpha exceeds this", exclusive_minimum=0, exclusive_maximum=1
+    )
+    pixels: Literal["foreground", "all"] = setting(
+        "foreground", 'ARI over GT-foreground U predicted-foreground pixels ("all": every pixel)'
+    )
+    max_frames: int = setting(0, "held-out frames rendered (evenly spaced); 0 = all", minimum=0)

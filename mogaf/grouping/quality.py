@@ -20,9 +20,8 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
@@ -30,25 +29,13 @@ from ..artefact import config_digest, open_artefact, read_artefact, write_artefa
 from ..errors import input_error
 from ..representation import load_model
 from ..scene import SCENE_STAGE
-from ..settings import as_dict, defaults, load, setting
+from ..settings import as_dict, defaults, load
 from ..split import Split, load_evenly_spaced_frames, read_split
 from .metrics import grouping_quality
+from .params import GroupingQualitySettings
 from .stage import load_groups
 
 GROUPING_QUALITY_STAGE = "grouping_quality"
-
-
-@dataclass(frozen=True)
-class GroupingQualitySettings:
-    """Settings of the grouping_quality stage (config section `grouping_quality`)."""
-
-    alpha: float = setting(
-        0.5, "a pixel is labelled where the rendered alpha exceeds this", exclusive_minimum=0, exclusive_maximum=1
-    )
-    pixels: Literal["foreground", "all"] = setting(
-        "foreground", 'ARI over GT-foreground U predicted-foreground pixels ("all": every pixel)'
-    )
-    max_frames: int = setting(0, "held-out frames rendered (evenly spaced); 0 = all", minimum=0)
 
 
 DEFAULT_PARAMS: dict[str, Any] = defaults(GroupingQualitySettings)

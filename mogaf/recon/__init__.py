@@ -11,8 +11,19 @@ Entry points:
   render_poses(model, means, quats, K, w2c, width, height, features="rgb")
 """
 
-from ..rendering import render_model, render_poses
+from ..lazy import lazy_exports
 from .params import DEFAULT_PARAMS, resolve_params
-from .stage import run_recon_stage, stage_digest
+
+# Entry points load with their module on first use (mogaf.lazy): importing the
+# package for its settings (params) stays light.
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        "render_model": "..rendering",
+        "render_poses": "..rendering",
+        "run_recon_stage": ".stage",
+        "stage_digest": ".stage",
+    },
+)
 
 __all__ = ["DEFAULT_PARAMS", "resolve_params", "render_model", "render_poses", "run_recon_stage", "stage_digest"]

@@ -31,9 +31,22 @@ Modules: params (REFINE_DEFAULTS, resolve_params), trainer (RefineTrainer and
 the neighbour pairs), stage (run_refine_stage).
 """
 
+from ..lazy import lazy_exports
 from .params import FIXED_RECON, REFINE_DEFAULTS, resolve_params
-from .stage import STAGE, run_refine_stage, stage_digest
-from .trainer import RefineTrainer, neighbour_pairs, rigid_residuals
+
+# Entry points load with their module on first use (mogaf.lazy): importing the
+# package for its settings (params) stays light.
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        "STAGE": ".stage",
+        "run_refine_stage": ".stage",
+        "stage_digest": ".stage",
+        "RefineTrainer": ".trainer",
+        "neighbour_pairs": ".trainer",
+        "rigid_residuals": ".trainer",
+    },
+)
 
 __all__ = [
     "FIXED_RECON",
