@@ -169,7 +169,7 @@ def test_layered_configs_and_ablation_variants_validate():
     import mogaf.config as mcfg
 
     base = load_config()
-    for overlay in ("paper.yaml", "demo.yaml", "mujoco.yaml"):  # the files the README layers over config.yaml
+    for overlay in ("paper.yaml", "demo.yaml", "mujoco.yaml", "baselines_steps.yaml"):  # overlays the docs name
         validate(mcfg.deep_merge(base, mcfg.load_yaml(REPO / "config" / overlay)))
     variants = mcfg.load_yaml(REPO / "config" / "ablations.yaml")["variants"]
     for name in variants:

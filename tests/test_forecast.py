@@ -7,6 +7,7 @@ import pytest
 
 from mogaf.errors import MogafError
 from mogaf.forecast import METHODS, defaults, fit_and_rollout, make_forecaster, quat
+from mogaf.forecast.base import epochs_for
 from mogaf.forecast.gcn import farthest_point_sampling
 from mogaf.forecast.synthetic import rigid_box, rigid_motion
 from support.forecast_params import FAST
@@ -248,3 +249,17 @@ def test_ode_learns_per_gaussian_trajectories_given_steps():
     true_spread = np.linalg.norm(fut[..., :3] - fut[..., :3].mean(0), axis=-1).mean()
     assert epe < 0.75 * frozen, (epe, frozen)
     assert spread > 0.75 * true_spread, (spread, true_spread)
+
+
+@pytest.mark.parametrize("method", ["gcn", "ode"])
+def test_step_budget_gives_the_baselines_the_same_steps_on_short_and_long_groups(method):
+    """`steps: N` trains a baseline for the fewest whole epochs giving at least
+    N optimiser steps, whatever the group's length or size (an epoch over a
+    paper's scene is not an epoch over one group); `steps: 0` keeps the epochs."""
+    assert epochs_for(40, 0, 7) == 40 and epochs_for(40, 30, 7) == 5 and epochs_for(40, 30, 0) == 30
+    for g, t in ((24, 16), (48, 30)):
+        traj = _rigid_rotation(g, t, 0.1)
+        res = fit_and_rollout(method, traj, 2, {**FAST[method], "steps": 12}, seed=0)
+        per_epoch = res.info["iterations"] / res.info["epochs"]
+        assert 12 <= res.info["iterations"] < 12 + per_epoch, res.info
+    assert fit_and_rollout(method, traj, 2, FAST[method], seed=0).info["epochs"] == FAST[method]["epochs"]

@@ -11,6 +11,7 @@ from mogaf.errors import MogafError
 from mogaf.forecast import fit_and_rollout, make_forecaster, quat
 from mogaf.forecast.coherence import coherence, rigid_distance_change
 from mogaf.forecast.structured import (
+    GroupMotion,
     accumulated_rotvec,
     integrate_rotvec,
     rigid_decomposition,
@@ -112,8 +113,6 @@ def test_rigid_constant_twist_candidate_is_exact_on_a_screw_motion(omega):
     """The rigid path's constant velocity carries the group's twist: a screw
     about an axis off the centroid, fast or slow, is continued exactly, and
     every member's orientation turns with the body."""
-    from mogaf.forecast.structured import GroupMotion
-
     traj = _screw(24, 30, omega)
     obs, fut = traj[:, :20], traj[:, 20:]
     pred = GroupMotion(obs, True, 3.0).constant_velocity(10)
@@ -124,8 +123,6 @@ def test_rigid_constant_twist_candidate_is_exact_on_a_screw_motion(omega):
 def test_rigid_poses_from_the_true_future_series_are_the_truth():
     """GroupMotion.poses is the inverse of the decomposition: fed the true
     future centroids and accumulated rotation vectors, it gives the true poses."""
-    from mogaf.forecast.structured import GroupMotion
-
     traj = _screw(24, 30, 0.3)
     whole = GroupMotion(traj, True, 3.0)
     past = GroupMotion(traj[:, :20], True, 3.0)
@@ -149,6 +146,31 @@ def test_still_part_stays_still_beside_a_moving_part():
     assert res.info["still_fraction"] == pytest.approx(0.5)
     np.testing.assert_allclose(res.poses[64:], np.repeat(obs[64:, -1:], 15, axis=1), atol=1e-12)
     assert np.abs(res.poses[:64, -1, :3] - obs[:64, -1, :3]).max() > 0.1  # the part still moves
+
+
+def test_still_part_of_a_rigid_flagged_group_stays_still_and_the_body_stays_rigid():
+    """A grouping that joins a resting part to a moving box (MuJoCo scene4):
+    the resting members keep their last pose, the body's motion is fitted on
+    the moving members alone and carried to them rigidly; the coherence
+    figures see a rigid body and a still part, both near zero."""
+    rng = np.random.default_rng(2)
+    moving = rigid_box(64, 30)
+    rest = np.repeat(
+        np.concatenate([rng.uniform(-1, 1, (16, 1, 3)) + 2.0, np.tile([1.0, 0, 0, 0], (16, 1, 1))], -1), 30, axis=1
+    )
+    obs = add_noise(np.concatenate([moving, rest]), pos_sigma=5e-4, rot_sigma=0.0, seed=3)
+    res = fit_and_rollout("mogaf", obs, 15, QUICK, seed=0, rigid=True)
+    assert res.info["rigid"] is True and res.info["still_fraction"] == pytest.approx(0.2)
+    np.testing.assert_allclose(res.poses[64:], np.repeat(obs[64:, -1:], 15, axis=1), atol=1e-12)
+    assert _pairwise_change(res.poses[:64], obs[:64, -1]) < 1e-9
+    assert np.abs(res.poses[:64, -1, :3] - obs[:64, -1, :3]).max() > 0.1  # the body still moves
+    figures = coherence(obs[..., :3], res.poses[..., :3], np.zeros(80, int), np.array([False]), np.array([True]))
+    assert figures["still_gaussians"] == 16 and figures["still_displacement"] == 0.0
+    assert figures["rigid_distance_change"] < 1e-9
+    # moving the resting part with the body (the old rigid path) is what the figures catch
+    carried = GroupMotion(obs, True, 0.0).constant_velocity(15)
+    moved = coherence(obs[..., :3], carried[..., :3], np.zeros(80, int), np.array([False]), np.array([True]))
+    assert moved["still_displacement"] > 0.05
 
 
 def test_gate_freezes_a_group_whose_motion_stopped():

@@ -74,6 +74,16 @@ def check_steps(n_steps: Any, method: str) -> int:
     return int(n_steps)
 
 
+def epochs_for(epochs: int, steps: int, steps_per_epoch: int) -> int:
+    """Epochs of a baseline's training: its papers' `epochs` when `steps` is 0,
+    else the fewest whole epochs giving at least `steps` optimiser steps (a
+    paper's epoch is a pass over a whole scene; a group's is far shorter or
+    longer, so a step budget is what compares across groups)."""
+    if steps <= 0:
+        return epochs
+    return max(1, -(-steps // max(steps_per_epoch, 1)))
+
+
 def finish_poses(poses: np.ndarray, last_q: np.ndarray) -> np.ndarray:
     """Float64 copy with unit quaternions, sign-continuous from last_q (G, 4)."""
     out = np.array(poses, dtype=np.float64, copy=True)

@@ -5,7 +5,9 @@ the forecast poses and the observed trajectories only (no ground truth):
       mean over forecast steps and member pairs of |d_ij(t) - d_ij(T)|, the
       change of the members' pairwise distances from the last observed frame
       (0 for a forecast that moves the group as one body); the mean over
-      groups, also divided by each group's RMS radius (`_rel`).
+      groups, also divided by each group's RMS radius (`_rel`). The members
+      are the group's moving ones: its still members (below) belong to no
+      moving body, whatever the grouping joined them to.
   still_displacement: the mean distance of still Gaussians from their last
       observed position over the forecast. Still: members of dynamic groups
       that never moved more than STILL_FACTOR x their group's noise level
@@ -63,9 +65,13 @@ def coherence(
             continue
         if group_static[k]:
             continue
-        still[members] = still_gaussians(obs[members], STILL_FACTOR)
+        group_still = still_gaussians(obs[members], STILL_FACTOR)
+        still[members] = group_still
         if group_rigid[k]:
-            c, r = rigid_distance_change(last[members], fc[members], rng)
+            # the rigid body is the members that moved: a still part joined to
+            # it is measured as still (below), not as part of the body
+            body = members[~group_still] if (~group_still).sum() >= 2 else members
+            c, r = rigid_distance_change(last[body], fc[body], rng)
             changes.append(c)
             rel_changes.append(r)
     disp = np.linalg.norm(fc[still] - last[still, None], axis=-1)

@@ -36,7 +36,7 @@ import numpy as np
 
 from mogaf.errors import MogafError
 from mogaf.forecast import quat
-from mogaf.forecast.base import Forecaster, torch_determinism
+from mogaf.forecast.base import Forecaster, epochs_for, torch_determinism
 from mogaf.forecast.params import GCN_DEFAULTS
 
 DEFAULTS: dict[str, Any] = GCN_DEFAULTS  # forecast.params.GCNSettings
@@ -196,12 +196,13 @@ class GCNForecaster(Forecaster):
             XG = torch.from_numpy(xgt).float()  # (n, out, K, 3)
             RG = torch.from_numpy(rgt).float()
             opt = torch.optim.Adam(model.parameters(), lr=p.lr, eps=p.adam_eps)
-            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=p.epochs, eta_min=p.lr_min)
             # drop_last as upstream; with fewer windows than a batch, one batch of all.
             bs = min(p.batch_size, n_win)
+            epochs = epochs_for(p.epochs, p.steps, n_win // bs)
+            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs, eta_min=p.lr_min)
             model.train()
             loss_val = float("nan")
-            for epoch in range(p.epochs):
+            for epoch in range(epochs):
                 noise = p.noise_init * max(1.0 - epoch / p.noise_step, 0.0) if p.noise_init > 0 else 0.0
                 perm = torch.randperm(n_win, generator=gen)
                 tot, nb = 0.0, 0
@@ -230,8 +231,8 @@ class GCNForecaster(Forecaster):
         self.model = model
         self.info.update(
             final_loss=loss_val,
-            epochs=p.epochs,
-            iterations=p.epochs * (n_win // bs),
+            epochs=epochs,
+            iterations=epochs * (n_win // bs),
             n_nodes=k,
             window=w,
             train_windows=n_win,

@@ -38,7 +38,7 @@ import numpy as np
 
 from mogaf.errors import MogafError
 from mogaf.forecast import quat
-from mogaf.forecast.base import Forecaster, torch_determinism
+from mogaf.forecast.base import Forecaster, epochs_for, torch_determinism
 from mogaf.forecast.classical import constant_twist_rollout
 from mogaf.forecast.params import ODE_DEFAULTS
 
@@ -201,11 +201,13 @@ class LatentODEForecaster(Forecaster):
             TM = torch.from_numpy(tgt_mask)
             times = torch.arange(extrap + 1, dtype=torch.float32) * dt  # last obs frame, then targets
             opt = torch.optim.Adam(model.parameters(), lr=p.lr)
-            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(p.epochs, 1), eta_min=p.lr_min)
+            per_epoch = math.ceil(n_win * min(g, p.max_gaussians_per_epoch) / p.batch_size)
+            epochs = epochs_for(p.epochs, p.steps, per_epoch)
+            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(epochs, 1), eta_min=p.lr_min)
             reg_w, xyz_w = p.reg_weight, p.xyz_reg_weight
             ema = None
             model.train()
-            for _epoch in range(p.epochs):
+            for _epoch in range(epochs):
                 gsel = torch.randperm(g, generator=gen)[: min(g, p.max_gaussians_per_epoch)]
                 pairs = torch.cartesian_prod(torch.arange(n_win), gsel)  # (window, Gaussian) samples
                 pairs = pairs[torch.randperm(len(pairs), generator=gen)]
@@ -255,7 +257,7 @@ class LatentODEForecaster(Forecaster):
         self.model = model
         self.info.update(
             final_loss=loss_val,
-            epochs=p.epochs,
+            epochs=epochs,
             iterations=steps_done,
             obs_window=obs_len,
             extrap_frames=extrap,

@@ -162,6 +162,11 @@ class GCNSettings:
         "--no_mapping off: output through Linear-ReLU-Linear optimisation -- train_GCN.py + scripts/predict/d-nerf/*.sh",
     )
     epochs: int = setting(2001, "epoch=2001", minimum=1)
+    steps: int = setting(
+        0,
+        "ours: 0 = `epochs` as above; N > 0 = as many epochs as give this group at least N Adam steps (ceil(N / batches per epoch)), a budget that does not grow or shrink with the group's sequence length",
+        minimum=0,
+    )
     batch_size: int = setting(32, "--batch_size 32 (drop_last=True)", minimum=1)
     lr: float = setting(0.01, "Adam(lr=0.01, eps=1e-15)")
     adam_eps: float = setting(1e-15, "GSPred train_GCN.py: Adam(lr=0.01, eps=1e-15)")
@@ -249,6 +254,11 @@ class ODESettings:
     )
     # train -- config_DNerf_default.yaml `train:` / `scheduler:`
     epochs: int = setting(40, "train -- config_DNerf_default.yaml `train:` / `scheduler:`", minimum=0)
+    steps: int = setting(
+        0,
+        "ours: 0 = `epochs` as above; N > 0 = as many epochs as give this group at least N Adam steps (ceil(N / batches per epoch)), a budget that does not grow or shrink with the group's size",
+        minimum=0,
+    )
     lr: float = setting(1e-3, "Adam (train_extrapolation.py passes no weight decay)")
     lr_min: float = setting(1e-5, "CosineAnnealingLR eta_min, T_max = 40 = epochs")
     reg_weight: float = setting(1e-5, "latent second-derivative regulariser")

@@ -16,9 +16,13 @@ output is used:
     it to every member, so the forecast stays rigid by construction. A group is
     rigid when the grouping says so, or (no hint) when its rigid-fit residual is
     below `rigid_residual` of its radius.
-  * Non-rigid groups forecast each Gaussian, but Gaussians whose observed
-    motion is below the trajectories' own noise level (`still_factor` x the
-    median second difference) stay where they are.
+  * Non-rigid groups forecast each Gaussian. In every group, Gaussians whose
+    observed motion is below the trajectories' own noise level (`still_factor`
+    x the median third difference) stay where they are; a rigid group's body
+    motion is then fitted on its moving members (at least 3 of them; else the
+    whole group is one body). A still part joined to a moving body is a
+    grouping error the observation shows: moving it with the body would carry
+    a resting object away.
   * Channel-independent inputs: every scalar channel (x, y, z of a position,
     the three rotation-vector components) is its own sequence, normalised on its
     own (anchored at its last value, divided by its spread), all through one
@@ -285,9 +289,10 @@ class GroupMotion:
     """A group's observed motion in the form the candidates forecast.
 
     rigid: one trajectory (centroids (T, 3), accumulated rotation vectors
-    (T, 3)) carried to the members' last poses. Non-rigid: every moving
-    Gaussian's position (3) and accumulated rotation vector (3); still
-    Gaussians keep their last pose in every candidate."""
+    (T, 3)) of the moving members (`body`), carried to their last poses.
+    Non-rigid: every moving Gaussian's position (3) and accumulated rotation
+    vector (3). In both, still Gaussians keep their last pose in every
+    candidate (a rigid group's, only when at least 3 members move)."""
 
     def __init__(
         self,
@@ -302,9 +307,17 @@ class GroupMotion:
         self.last = obs[:, -1]
         pos = obs[..., :3]
         if rigid:
+            self.still = still_gaussians(pos, still_factor, obs[..., 3:])
+            if self.still.any() and (~self.still).sum() >= 3:
+                # A still part the grouping joined to a moving body (a hinge's
+                # base, a resting object it touched): it keeps its last pose, and
+                # the body's motion is fitted on the moving members alone.
+                decomposition = rigid_decomposition(pos[~self.still])
+            else:
+                self.still = np.zeros(obs.shape[0], bool)
+            self.body = np.flatnonzero(~self.still)
             self.centroids, self.rotations, _ = decomposition or rigid_decomposition(pos)
-            self.still = np.zeros(obs.shape[0], bool)
-            radius = float(np.sqrt(np.mean(np.sum((pos[:, -1] - self.centroids[-1]) ** 2, axis=-1))))
+            radius = float(np.sqrt(np.mean(np.sum((pos[self.body, -1] - self.centroids[-1]) ** 2, axis=-1))))
             # (6, T): centroid xyz, accumulated body rotation vector xyz
             self.series = np.concatenate([self.centroids.T, accumulated_rotvec(self.rotations).T], axis=0)
             self.floor = np.array([1e-3 * max(radius, 1e-6)] * 3 + [1e-3] * 3)
@@ -332,9 +345,10 @@ class GroupMotion:
             r_all = future_series[3:].T
             r_last = self.series[3:, -1]
             g = integrate_rotvec(self.rotations[-1], r_last, r_all)  # (n, 4): from the last frame
-            rel = self.last[:, :3] - self.centroids[-1]
-            out[..., :3] = quat.rotate(g[None], rel[:, None, :]) + c_fut[None]
-            out[..., 3:] = quat.mul(g[None], self.last[:, None, 3:])
+            body = self.last[self.body]
+            rel = body[:, :3] - self.centroids[-1]
+            out[self.body, :, :3] = quat.rotate(g[None], rel[:, None, :]) + c_fut[None]
+            out[self.body, :, 3:] = quat.mul(g[None], body[:, None, 3:])
             return out
         if len(self.moving):
             f = future_series.reshape(len(self.moving), 6, n).transpose(0, 2, 1)
@@ -351,9 +365,10 @@ class GroupMotion:
             prev = np.concatenate([self.centroids[-2], self.rotations[-2]])[None]
             last = np.concatenate([self.centroids[-1], self.rotations[-1]])[None]
             g = constant_twist_rollout(prev, last, n)[0]
-            rel = self.last[:, :3] - self.centroids[-1]
-            out[..., :3] = quat.rotate(g[None, :, 3:], rel[:, None, :]) + g[None, :, :3]
-            out[..., 3:] = quat.mul(g[None, :, 3:], self.last[:, None, 3:])
+            body = self.last[self.body]
+            rel = body[:, :3] - self.centroids[-1]
+            out[self.body, :, :3] = quat.rotate(g[None, :, 3:], rel[:, None, :]) + g[None, :, :3]
+            out[self.body, :, 3:] = quat.mul(g[None, :, 3:], body[:, None, 3:])
             return out
         if len(self.moving):
             m = self.obs[self.moving]
