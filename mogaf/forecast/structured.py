@@ -18,11 +18,13 @@ output is used:
     below `rigid_residual` of its radius.
   * Non-rigid groups forecast each Gaussian. In every group, Gaussians whose
     observed motion is below the trajectories' own noise level (`still_factor`
-    x the median third difference) stay where they are; a rigid group's body
+    x the median third difference; position and orientation in a non-rigid
+    group, position in a rigid one) stay where they are; a rigid group's body
     motion is then fitted on its moving members (at least 3 of them; else the
     whole group is one body). A still part joined to a moving body is a
     grouping error the observation shows: moving it with the body would carry
-    a resting object away.
+    a resting object away. (The cost: on a body spinning in place, members
+    on the axis keep their orientation too.)
   * Channel-independent inputs: every scalar channel (x, y, z of a position,
     the three rotation-vector components) is its own sequence, normalised on its
     own (anchored at its last value, divided by its spread), all through one
@@ -307,7 +309,9 @@ class GroupMotion:
         self.last = obs[:, -1]
         pos = obs[..., :3]
         if rigid:
-            self.still = still_gaussians(pos, still_factor, obs[..., 3:])
+            # Positions only: a rigid group's members turn with the body in
+            # the reconstruction, a resting part joined to it included.
+            self.still = still_gaussians(pos, still_factor)
             if self.still.any() and (~self.still).sum() >= 3:
                 # A still part the grouping joined to a moving body (a hinge's
                 # base, a resting object it touched): it keeps its last pose, and
