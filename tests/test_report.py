@@ -598,3 +598,24 @@ def test_readme_glance_section_is_what_the_generator_prints(tmp_path, monkeypatc
     _demo_metrics(tmp_path)
     block = glance_table(load_metrics([DEMO_FILE]))
     assert replace_section(readme, block) == readme
+
+
+def test_scenes_table_compares_the_methods_every_scene_ran(metrics_files):
+    from mogaf.report.scenes import scenes_table
+
+    text = scenes_table(load_metrics(metrics_files))
+    first, second = text.split("Ratio ")[1:]
+    # ratio 0.6: frozen ran on scene a only, so only MoGaF is compared; the mean is over a and b
+    assert first.startswith("0.6 (iphone; PSNR / LPIPS)")
+    rows = md_rows(first)
+    assert rows[0][:2] == ["scene", METHOD_LABELS["mogaf"]] and len(rows[0]) == 4
+    assert [r[:2] for r in rows[1:]] == [
+        ["a", "**16.50** / **0.4000**"],
+        ["b", "**17.50** / **0.3500**"],
+        ["**mean**", "**17.00** / **0.3750**"],
+    ]
+    # ratio 0.8: the shortened ODE is starred and loses to MoGaF on both figures
+    rows = md_rows(second)
+    assert rows[0][1:3] == [METHOD_LABELS["ode"] + "*", METHOD_LABELS["mogaf"]]
+    assert rows[1][1:3] == ["21.50 / 0.0900", "**22.25** / **0.0812**"]
+    assert "ran off its paper's settings" in second

@@ -1,9 +1,11 @@
-"""`python -m mogaf.report glance METRICS.json... [--write FILE | --check FILE]`.
+"""`python -m mogaf.report glance METRICS.json... [--write FILE | --check FILE]`
+and `python -m mogaf.report scenes METRICS.json...`.
 
 glance: print the results-at-a-glance table (mogaf.report.glance) made from
 metrics.json files; --write puts it between the `<!-- glance:start -->` and
 `<!-- glance:end -->` markers of a Markdown file (the README), --check exits 1
-when that section differs from what the files give.
+when that section differs from what the files give. scenes: print a table
+per observation ratio, a row per scene (mogaf.report.scenes).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import sys
 
 from ..errors import MogafError
 from .glance import glance, section_matches, write_section
+from .scenes import scenes
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -23,9 +26,14 @@ def main(argv: list[str] | None = None) -> int:
     out = p.add_mutually_exclusive_group()
     out.add_argument("--write", metavar="FILE", help="rewrite FILE's section between the glance markers")
     out.add_argument("--check", metavar="FILE", help="exit 1 if FILE's glance section differs from the table")
+    p = sub.add_parser("scenes", help="per-scene PSNR / LPIPS of every method, a table per ratio, with the mean")
+    p.add_argument("metrics", nargs="+", help="metrics.json files (written by the evaluate stage)")
     args = parser.parse_args(argv)
 
     try:
+        if args.command == "scenes":
+            sys.stdout.write(scenes(args.metrics))
+            return 0
         block = glance(args.metrics)
         if args.write:
             changed = write_section(args.write, block)

@@ -1,0 +1,91 @@
+"""Per-scene comparison: one Markdown table per observation ratio, a row per
+scene with every method's PSNR / LPIPS, the mean over the scenes, what
+MoGaF's backtest chose per motion group and its coherence figures
+(docs/forecasting.md, the MuJoCo tables):
+
+    python -m mogaf.report scenes results/mujoco/*/ratio0.6/metrics.json
+
+Only methods that every scene of a ratio ran are compared: a mean over
+different scenes would not compare.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import Counter
+from typing import Any
+
+from ..errors import MogafError
+from .glance import _methods
+from .metrics_files import load_metrics
+from .tables import _mean, _metric, _variant, budget_differences, fmt, method_label
+
+
+def _choices(result: dict[str, Any]) -> str:
+    jobs = ((result["methods"].get("mogaf") or {}).get("forecast") or {}).get("jobs") or {}
+    counts = Counter(str(info.get("choice")).replace("_", " ") for info in jobs.values() if isinstance(info, dict))
+    return ", ".join(name + (f" x{n}" if n > 1 else "") for name, n in sorted(counts.items())) or "–"
+
+
+def _coherence(result: dict[str, Any]) -> str:
+    c = ((result["methods"].get("mogaf") or {}).get("forecast") or {}).get("coherence") or {}
+    rigid, still = c.get("rigid_distance_change"), c.get("still_displacement")
+    return f"{fmt(rigid, 'coherence')} / {fmt(still, 'coherence')} ({c.get('still_gaussians', 0)})"
+
+
+def _cell(value: tuple[float | None, float | None], best: tuple[str, str]) -> str:
+    texts = (fmt(value[0], "psnr"), fmt(value[1], "lpips"))
+    return " / ".join(f"**{t}**" if t == b else t for t, b in zip(texts, best))
+
+
+def _best(rows: list[dict[str, tuple[float | None, float | None]]]) -> list[tuple[str, str]]:
+    out = []
+    for row in rows:
+        psnr = [v[0] for v in row.values() if v[0] is not None]
+        lpips = [v[1] for v in row.values() if v[1] is not None]
+        out.append((fmt(max(psnr), "psnr") if psnr else "", fmt(min(lpips), "lpips") if lpips else ""))
+    return out
+
+
+def ratio_table(results: list[dict[str, Any]]) -> str:
+    """The table of results of one ratio (Markdown lines)."""
+    methods = [m for m in _methods(results[0]) if all(m in r["methods"] for r in results)]
+    if not methods:
+        raise MogafError("no method was run on every scene of ratio " + str(results[0]["ratio"]))
+    rows = [{m: (_metric(r, m, "psnr"), _metric(r, m, "lpips")) for m in methods} for r in results]
+    means = {m: (_mean([row[m][0] for row in rows]), _mean([row[m][1] for row in rows])) for m in methods}
+    mogaf = "mogaf" in methods
+    starred = {m: any(budget_differences(r, m) for r in results) for m in methods}
+    header = ["scene"] + [method_label(results[0], m) + ("*" if starred[m] else "") for m in methods]
+    header += ["MoGaF's choice per group", "MoGaF coherence: rigid / still (m, still count)"] if mogaf else []
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for r, row, best in zip(results, rows, _best(rows)):
+        variant = _variant(r)
+        cells = [r["scene"] + ("" if variant == "default" else f" ({variant})")] + [
+            _cell(row[m], best) for m in methods
+        ]
+        cells += [_choices(r), _coherence(r)] if mogaf else []
+        lines.append("| " + " | ".join(cells) + " |")
+    (best,) = _best([means])
+    cells = ["**mean**"] + [_cell(means[m], best) for m in methods] + (["", ""] if mogaf else [])
+    lines.append("| " + " | ".join(cells) + " |")
+    if any(starred.values()):
+        lines += ["", "\\* ran off its paper's settings; `metrics.json` records what each ran with."]
+    return "\n".join(lines)
+
+
+def scenes_table(results: list[dict[str, Any]]) -> str:
+    """One table per ratio (PSNR / LPIPS at the held-out views and forecast
+    times, best per row in bold), Markdown ending in a newline."""
+    if not results:
+        raise MogafError("scenes: no metrics.json given")
+    out = []
+    for ratio in sorted({float(r["ratio"]) for r in results}):
+        of_ratio = sorted((r for r in results if float(r["ratio"]) == ratio), key=lambda r: r["scene"])
+        datasets = sorted({r["dataset"] for r in of_ratio})
+        out += [f"Ratio {ratio:g} ({', '.join(datasets)}; PSNR / LPIPS):", "", ratio_table(of_ratio), ""]
+    return "\n".join(out)
+
+
+def scenes(metrics_files: list[str | os.PathLike]) -> str:
+    return scenes_table(load_metrics(metrics_files))
