@@ -46,7 +46,9 @@ output is used:
     and scored on the last h (h = backtest_frac * T, at most the forecast
     horizon: a short backtest favours constant velocity, whose error grows
     with the horizon, over frozen and the learned forecaster); the best is
-    refitted on all T frames and rolled out. The choice and the scores are
+    refitted on all T frames and rolled out (with `backtest_margin` > 0, the
+    learned forecaster only when it scores that share below the better of the
+    other two). The choice and the scores are
     recorded in the forecast's info. Without enough frames for a backtest the
     group keeps constant velocity. The choice depends on the forecast length
     (h does), so the first k steps of a longer forecast need not equal a
@@ -447,7 +449,8 @@ def fit_structured(
         for name in CANDIDATES:
             scores[name] = _score(FittedCandidate(name, past, run, seed).rollout(h), obs[:, T - h :])
             info[f"backtest_epe_{name}"] = scores[name]
-        choice = min(CANDIDATES, key=lambda c: (scores[c], CANDIDATES.index(c)))
+        simple = min(CANDIDATES[:2], key=lambda c: (scores[c], CANDIDATES.index(c)))
+        choice = "learned" if scores["learned"] < (1.0 - own.backtest_margin) * scores[simple] else simple
         info["backtest_frames"] = h
     motion = GroupMotion(obs, rigid, own.still_factor, decomposition)
     info["still_fraction"] = float(motion.still.mean())
