@@ -206,3 +206,21 @@ def test_converted_file_is_plain_npz(weights, tmp_path):
         assert npz["lin4.weight"].shape == (1, 256, 1, 1)
         assert str(npz["source_sha256"]) == "443c5bc35326b81e4ac7517b853fd22d3effe38783697d87e2ec65cb01d744b1"
         assert all(npz[k].dtype != object for k in npz.files)
+
+
+def test_cpu_values_do_not_depend_on_the_thread_count(weights, rng):
+    """On the CPU the network runs in float64: float32 sums changed with the
+    thread count in the 7th digit (a -c1 and a -c2 run of the pipeline wrote
+    different metrics.json)."""
+    a = rng.random((200, 200, 3))
+    b = np.clip(a + 0.2 * rng.standard_normal(a.shape), 0, 1)
+    before = torch.get_num_threads()
+    maps = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            maps.append(lpips_map(a, b, weights_path=weights))
+    finally:
+        torch.set_num_threads(before)
+    assert np.abs(maps[0] - maps[1]).max() < 1e-12
+    assert next(get_lpips_model(weights, "cpu").parameters()).dtype == torch.float64

@@ -357,7 +357,14 @@ def _model_cached(path: str, device: str):
     weights = _load_weights_cached(path)
     model = _module_class()()
     model.load_arrays(weights)
-    return model.eval().requires_grad_(False).to(device)
+    model = model.eval().requires_grad_(False).to(device)
+    # On the CPU in float64: float32 sums differ with the thread count in the
+    # 7th digit, which reached metrics.json's 6 (a -c1 and a -c2 run disagreed).
+    return model.double() if torch_device_is_cpu(device) else model
+
+
+def torch_device_is_cpu(device: str) -> bool:
+    return str(device).split(":")[0] == "cpu"
 
 
 def get_lpips_model(weights_path: str | os.PathLike | None = None, device: str = "cpu"):
@@ -402,8 +409,9 @@ def _run(img0, img1, spatial: bool, weights_path, device: str):
     if x0.shape != x1.shape:
         raise MogafError(f"images differ in shape: {tuple(x0.shape)} vs {tuple(x1.shape)} (NCHW)")
     model = get_lpips_model(weights_path, device)
+    dtype = next(model.parameters()).dtype
     with torch.inference_mode():
-        out = model(x0.to(device), x1.to(device), spatial=spatial).cpu().numpy().astype(np.float64)
+        out = model(x0.to(device, dtype), x1.to(device, dtype), spatial=spatial).cpu().numpy().astype(np.float64)
     return out[:, 0], single0 and single1
 
 
