@@ -55,6 +55,20 @@ def test_default_target_lists_the_chain(tmp_path):
     assert counts["priors"] == 1 and counts["split"] == 1 and counts["recon"] == 3
 
 
+def test_tables_read_other_configs_results_without_rebuilding_them(tmp_path):
+    """A metrics.json of a scene this config does not know (another config's
+    run) is read by the tables but is no job of this DAG: forcing evaluate
+    (`-R evaluate`) once re-ran it without its config, failed and deleted it."""
+    other = tmp_path / "results" / "mujoco" / "scene1" / "ratio0.8" / "metrics.json"
+    other.parent.mkdir(parents=True)
+    other.write_text("{}")
+    res = snakemake(["-n", "demo", "-R", "evaluate"], tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert "results/mujoco" not in "".join(job_blocks(res.stdout, "evaluate"))
+    (tables,) = job_blocks(res.stdout, "tables")
+    assert "results/mujoco" not in tables.split("output:")[0]  # not an input
+
+
 def test_users_example_without_data_fails_fast_in_one_line(tmp_path):
     start = time.perf_counter()
     res = snakemake(["-n", "results/iphone/apple/ratio0.6/metrics.json"], tmp_path)

@@ -354,9 +354,18 @@ def evaluate_inputs(wildcards):
     return inputs
 
 
-def existing_metrics(wildcards=None):
+def configured_metrics(wildcards=None):
+    """The metrics.json files this config builds: its grid's and its demo's."""
+    return sorted(set(demo_targets_metrics()) | set(grid_targets()))
+
+
+def other_metrics():
+    """metrics.json files under results/ that this config does not build
+    (another config's runs). The tables read them as plain files: as inputs
+    they would join the DAG, and `-R evaluate` under this config would rerun
+    them without their config, fail and delete them."""
     found = {str(p) for p in Path("results").glob("**/metrics.json")}
-    return sorted(found | set(demo_targets_metrics()) | set(grid_targets()))
+    return sorted(found - set(configured_metrics()))
 
 
 def demo_targets_metrics():

@@ -5,7 +5,7 @@
 
 rule tables:
     input:
-        existing_metrics,
+        configured_metrics,
     output:
         report(
             multiext(
@@ -45,13 +45,14 @@ rule tables:
     params:
         report=config["report"],
         ablations=ABLATIONS,
+        other_metrics=other_metrics(),
     script:
         "../scripts/tables.py"
 
 
 rule runtime_report:
     input:
-        existing_metrics,
+        configured_metrics,
     output:
         csv="results/tables/error_vs_runtime.csv",
         md="results/tables/error_vs_runtime.md",
@@ -62,6 +63,7 @@ rule runtime_report:
         "../../envs/mogaf.yaml"
     params:
         report=runtime_report_params(),
+        other_metrics=other_metrics(),
     script:
         "../scripts/runtime_report.py"
 
