@@ -292,10 +292,10 @@ class GroupMotion:
     """A group's observed motion in the form the candidates forecast.
 
     rigid: one trajectory (centroids (T, 3), accumulated rotation vectors
-    (T, 3)) of the whole group, carried to its moving members (`body`).
-    Non-rigid: every moving Gaussian's position (3) and accumulated rotation
-    vector (3). In both, still Gaussians keep their last pose in every
-    candidate."""
+    (T, 3)) of the whole group, carried to its moving members. Non-rigid:
+    every moving Gaussian's position (3) and accumulated rotation vector (3).
+    In both, still Gaussians keep their last pose in every candidate
+    (`moving` indexes the others)."""
 
     def __init__(
         self,
@@ -321,7 +321,7 @@ class GroupMotion:
                 # no moving body beside them: a fast turn's own third differences
                 # (the jitter estimate) can exceed every member's reach
                 self.still[:] = False
-            self.body = np.flatnonzero(~self.still)
+            self.moving = np.flatnonzero(~self.still)
             radius = float(np.sqrt(np.mean(np.sum((pos[:, -1] - self.centroids[-1]) ** 2, axis=-1))))
             # (6, T): centroid xyz, accumulated body rotation vector xyz
             self.series = np.concatenate([self.centroids.T, accumulated_rotvec(self.rotations).T], axis=0)
@@ -350,16 +350,22 @@ class GroupMotion:
             r_all = future_series[3:].T
             r_last = self.series[3:, -1]
             g = integrate_rotvec(self.rotations[-1], r_last, r_all)  # (n, 4): from the last frame
-            body = self.last[self.body]
-            rel = body[:, :3] - self.centroids[-1]
-            out[self.body, :, :3] = quat.rotate(g[None], rel[:, None, :]) + c_fut[None]
-            out[self.body, :, 3:] = quat.mul(g[None], body[:, None, 3:])
-            return out
+            return self._carry(out, g, c_fut)
         if len(self.moving):
             f = future_series.reshape(len(self.moving), 6, n).transpose(0, 2, 1)
             rv_last = self.series.reshape(len(self.moving), 6, -1)[:, 3:, -1]
             out[self.moving, :, :3] = f[..., :3]
             out[self.moving, :, 3:] = integrate_rotvec(self.last[self.moving, 3:], rv_last, f[..., 3:])
+        return out
+
+    def _carry(self, out: np.ndarray, rotations: np.ndarray, centroids: np.ndarray) -> np.ndarray:
+        """A rigid group's moving members in `out` (G, n, 7) moved by the group
+        pose x_t = g_t (x - c_T) + c_t: rotations (n, 4) from the last frame,
+        centroids (n, 3)."""
+        members = self.last[self.moving]
+        rel = members[:, :3] - self.centroids[-1]
+        out[self.moving, :, :3] = quat.rotate(rotations[None], rel[:, None, :]) + centroids[None]
+        out[self.moving, :, 3:] = quat.mul(rotations[None], members[:, None, 3:])
         return out
 
     def constant_velocity(self, n: int) -> np.ndarray:
@@ -370,11 +376,7 @@ class GroupMotion:
             prev = np.concatenate([self.centroids[-2], self.rotations[-2]])[None]
             last = np.concatenate([self.centroids[-1], self.rotations[-1]])[None]
             g = constant_twist_rollout(prev, last, n)[0]
-            body = self.last[self.body]
-            rel = body[:, :3] - self.centroids[-1]
-            out[self.body, :, :3] = quat.rotate(g[None, :, 3:], rel[:, None, :]) + g[None, :, :3]
-            out[self.body, :, 3:] = quat.mul(g[None, :, 3:], body[:, None, 3:])
-            return out
+            return self._carry(out, g[:, 3:], g[:, :3])
         if len(self.moving):
             m = self.obs[self.moving]
             out[self.moving] = constant_twist_rollout(m[:, -2], m[:, -1], n)
