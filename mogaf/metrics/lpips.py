@@ -360,11 +360,7 @@ def _model_cached(path: str, device: str):
     model = model.eval().requires_grad_(False).to(device)
     # On the CPU in float64: float32 sums differ with the thread count in the
     # 7th digit, which reached metrics.json's 6 (a -c1 and a -c2 run disagreed).
-    return model.double() if torch_device_is_cpu(device) else model
-
-
-def torch_device_is_cpu(device: str) -> bool:
-    return str(device).split(":")[0] == "cpu"
+    return model.double() if str(device).split(":")[0] == "cpu" else model
 
 
 def get_lpips_model(weights_path: str | os.PathLike | None = None, device: str = "cpu"):

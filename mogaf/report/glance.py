@@ -27,6 +27,14 @@ COLUMNS = {"psnr": "PSNR↑", "lpips": "LPIPS↓", "mpsnr": "mPSNR↑", "epe_3d"
 LOWER_IS_BETTER = {"lpips", "epe_3d"}
 
 
+def best_text(values: list[float | None], metric: str) -> str | None:
+    """The best of `values` (None: not run) as the tables print it, or None."""
+    present = [v for v in values if v is not None]
+    if not present:
+        return None
+    return fmt(min(present) if metric in LOWER_IS_BETTER else max(present), metric)
+
+
 def _methods(result: dict[str, Any]) -> list[str]:
     names = list(result["methods"])
     return [m for m in METHOD_ORDER if m in names] + sorted(m for m in names if m not in METHOD_ORDER)
@@ -50,11 +58,7 @@ def glance_table(results: list[dict[str, Any]]) -> str:
     starred = False
     for r in sorted(results, key=lambda r: (_key(r), _variant(r))):
         methods = [m for m in _methods(r) if any(_metric(r, m, x) is not None for x in metrics)]
-        best = {}
-        for x in metrics:
-            values = [v for m in methods if (v := _metric(r, m, x)) is not None]
-            if values:
-                best[x] = fmt(min(values) if x in LOWER_IS_BETTER else max(values), x)
+        best = {x: best_text([_metric(r, m, x) for m in methods], x) for x in metrics}
         for m in methods:
             star = bool(budget_differences(r, m))
             starred |= star

@@ -16,7 +16,7 @@ from collections import Counter
 from typing import Any
 
 from ..errors import MogafError
-from .glance import _methods
+from .glance import _methods, best_text
 from .metrics_files import load_metrics
 from .tables import _mean, _metric, _variant, budget_differences, fmt, method_label
 
@@ -33,18 +33,16 @@ def _coherence(result: dict[str, Any]) -> str:
     return f"{fmt(rigid, 'coherence')} / {fmt(still, 'coherence')} ({c.get('still_gaussians', 0)})"
 
 
-def _cell(value: tuple[float | None, float | None], best: tuple[str, str]) -> str:
+def _cell(value: tuple[float | None, float | None], best: tuple[str | None, str | None]) -> str:
     texts = (fmt(value[0], "psnr"), fmt(value[1], "lpips"))
     return " / ".join(f"**{t}**" if t == b else t for t, b in zip(texts, best))
 
 
-def _best(rows: list[dict[str, tuple[float | None, float | None]]]) -> list[tuple[str, str]]:
-    out = []
-    for row in rows:
-        psnr = [v[0] for v in row.values() if v[0] is not None]
-        lpips = [v[1] for v in row.values() if v[1] is not None]
-        out.append((fmt(max(psnr), "psnr") if psnr else "", fmt(min(lpips), "lpips") if lpips else ""))
-    return out
+def _best(rows: list[dict[str, tuple[float | None, float | None]]]) -> list[tuple[str | None, str | None]]:
+    return [
+        (best_text([v[0] for v in row.values()], "psnr"), best_text([v[1] for v in row.values()], "lpips"))
+        for row in rows
+    ]
 
 
 def ratio_table(results: list[dict[str, Any]]) -> str:
