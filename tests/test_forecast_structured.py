@@ -15,6 +15,7 @@ from mogaf.forecast.structured import (
     accumulated_rotvec,
     integrate_rotvec,
     rigid_decomposition,
+    rigid_group_still,
     still_gaussians,
     window_sizes,
 )
@@ -288,3 +289,23 @@ def test_coherence_is_zero_for_rigid_and_still_and_not_for_drift():
         ]
         == 0
     )
+
+
+def test_a_fast_spin_is_a_moving_body_for_the_forecaster_and_the_coherence_figure():
+    """Spinning 1.2 rad a frame, every member's third differences exceed its
+    reach, so each alone looks still; with no moving member left, the
+    forecaster and the coherence figure both treat the whole group as the
+    moving body (one test, mogaf.forecast.structured.rigid_group_still)."""
+    angles = 1.2 * np.arange(30)
+    radii = np.linspace(0.5, 1.0, 12)
+    phase = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    a = angles[None, :] + phase[:, None]
+    pos = np.stack([radii[:, None] * np.cos(a), radii[:, None] * np.sin(a), np.zeros_like(a)], -1)
+    assert still_gaussians(pos, 3.0).all()  # the trap: alone, each member looks still
+    assert not rigid_group_still(pos, 3.0).any()
+    obs = np.concatenate([pos, np.tile([1.0, 0, 0, 0], (12, 30, 1))], -1)
+    motion = GroupMotion(obs, True, 3.0)
+    assert motion.moving.size == 12
+    spun = motion.constant_velocity(5)
+    figures = coherence(pos, spun[..., :3], np.zeros(12, int), np.array([False]), np.array([True]))
+    assert figures["still_gaussians"] == 0 and figures["rigid_distance_change"] < 1e-9

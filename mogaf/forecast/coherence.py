@@ -11,7 +11,9 @@ the forecast poses and the observed trajectories only (no ground truth):
   still_displacement: the mean distance of still Gaussians from their last
       observed position over the forecast. Still: members of dynamic groups
       that never moved more than STILL_FACTOR x their group's noise level
-      (mogaf.forecast.structured.still_gaussians) while observed. Members of
+      while observed (mogaf.forecast.structured.still_gaussians; in a rigid
+      group rigid_group_still, the forecaster's own test: none unless 3
+      members move). Members of
       static groups are left out: no forecaster moves them (the merge keeps
       their last pose), so they would only dilute the figure.
 """
@@ -22,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from mogaf.forecast.structured import still_gaussians
+from mogaf.forecast.structured import rigid_group_still, still_gaussians
 
 STILL_FACTOR = 3.0  # fixed here (not the forecaster's setting), so every method is measured alike
 MAX_PAIR_MEMBERS = 256  # members sampled per group for the pairwise distances
@@ -65,15 +67,17 @@ def coherence(
             continue
         if group_static[k]:
             continue
-        group_still = still_gaussians(obs[members], STILL_FACTOR)
+        if not group_rigid[k]:
+            still[members] = still_gaussians(obs[members], STILL_FACTOR)
+            continue
+        # the rigid body is the members that moved: a still part joined to
+        # it is measured as still (below), not as part of the body
+        group_still = rigid_group_still(obs[members], STILL_FACTOR)
         still[members] = group_still
-        if group_rigid[k]:
-            # the rigid body is the members that moved: a still part joined to
-            # it is measured as still (below), not as part of the body
-            body = members[~group_still] if (~group_still).sum() >= 2 else members
-            c, r = rigid_distance_change(last[body], fc[body], rng)
-            changes.append(c)
-            rel_changes.append(r)
+        body = members[~group_still]
+        c, r = rigid_distance_change(last[body], fc[body], rng)
+        changes.append(c)
+        rel_changes.append(r)
     disp = np.linalg.norm(fc[still] - last[still, None], axis=-1)
     return {
         "rigid_groups": len(changes),

@@ -176,6 +176,17 @@ def still_gaussians(positions: np.ndarray, factor: float, quats: np.ndarray | No
     return still
 
 
+def rigid_group_still(positions: np.ndarray, factor: float) -> np.ndarray:
+    """(G,) the still members of a rigid group: still_gaussians on positions
+    (the reconstruction turns a joined resting part with the body), and none
+    unless at least 3 members move, so a moving body remains: a fast turn's own
+    third differences (the jitter estimate) can exceed every member's reach."""
+    still = still_gaussians(positions, factor)
+    if (~still).sum() < 3:
+        still[:] = False
+    return still
+
+
 # ---------------------------------------------------------------- the learned part
 def window_sizes(length: int, context: int, horizon: int) -> tuple[int, int] | None:
     """(context, horizon) that leave at least one training window in `length`
@@ -315,12 +326,7 @@ class GroupMotion:
             # a resting object it touched) keeps its last pose; the body's motion
             # is still the whole group's fit (fitting it on the moving members
             # alone measured worse: MuJoCo scene4 at 0.6, 19.45 against 19.54 dB).
-            # Positions only: the reconstruction turns a joined part with the body.
-            self.still = still_gaussians(pos, still_factor)
-            if (~self.still).sum() < 3:
-                # no moving body beside them: a fast turn's own third differences
-                # (the jitter estimate) can exceed every member's reach
-                self.still[:] = False
+            self.still = rigid_group_still(pos, still_factor)
             self.moving = np.flatnonzero(~self.still)
             radius = float(np.sqrt(np.mean(np.sum((pos[:, -1] - self.centroids[-1]) ** 2, axis=-1))))
             # (6, T): centroid xyz, accumulated body rotation vector xyz
