@@ -13,6 +13,8 @@ from mogaf.forecast.coherence import coherence, rigid_distance_change
 from mogaf.forecast.structured import (
     GroupMotion,
     accumulated_rotvec,
+    backtest_weights,
+    blend_trajectories,
     integrate_rotvec,
     rigid_decomposition,
     rigid_group_still,
@@ -181,7 +183,13 @@ def test_gate_keeps_the_learned_forecaster_only_by_a_margin():
     scores recorded are the same either way."""
     obs = add_noise(ballistic_sphere(64, 40), pos_sigma=5e-4, rot_sigma=0.0)
     runs = {
-        m: fit_and_rollout("mogaf", obs, 8, {**QUICK, "iterations": 60, "structured": {"backtest_margin": m}}, seed=0)
+        m: fit_and_rollout(
+            "mogaf",
+            obs,
+            8,
+            {**QUICK, "iterations": 60, "structured": {"combine": "select", "backtest_margin": m}},
+            seed=0,
+        )
         for m in (0.0, 0.1)
     }
     learned, cv = runs[0.0].info["backtest_epe_learned"], runs[0.0].info["backtest_epe_constant_velocity"]
@@ -212,6 +220,58 @@ def test_learned_rigid_forecast_learns_a_fall():
 
     assert res.info["choice"] == "learned"
     assert epe(res.poses) < 0.5 * epe(cv.poses)
+
+
+def test_backtest_weights_are_inverse_squared_errors():
+    w = backtest_weights({"frozen": 0.4, "constant_velocity": 0.1, "learned": 0.2})
+    np.testing.assert_allclose([w["frozen"], w["constant_velocity"], w["learned"]], np.array([1, 16, 4]) / 21)
+    # an exact candidate takes everything; a non-finite one nothing
+    assert backtest_weights({"frozen": 0.0, "constant_velocity": 0.1, "learned": 0.0}) == {
+        "frozen": 0.5,
+        "constant_velocity": 0.0,
+        "learned": 0.5,
+    }
+    assert backtest_weights({"frozen": 0.3, "constant_velocity": 0.3, "learned": float("nan")})["learned"] == 0.0
+    with pytest.raises(MogafError, match="non-finite"):
+        backtest_weights({"frozen": float("inf"), "learned": float("nan")})
+
+
+def test_blend_of_rigid_poses_is_one_rigid_pose_between_them():
+    """Two rotations about one axis blend to the weighted angle (the chordal
+    mean), and members carried by the blended pose keep their distances."""
+    n = 6
+    angles = np.linspace(0.1, 0.6, n)
+    z = np.broadcast_to([0.0, 0.0, 1.0], (n, 3))
+    a = np.concatenate([np.zeros((n, 3)), quat.from_axis_angle(z, angles)], axis=-1)
+    b = np.concatenate([np.ones((n, 3)), -quat.from_axis_angle(z, 3 * angles)], axis=-1)  # other hemisphere
+    mid = blend_trajectories([a, b], np.array([0.5, 0.5]))
+    np.testing.assert_allclose(mid[:, :3], 0.5, atol=1e-12)
+    assert np.all(quat.angle_between(mid[:, 3:], quat.from_axis_angle(z, 2 * angles)) < 1e-9)
+    motion = GroupMotion(rigid_box(40, 12), True, 3.0)
+    carried = motion.members(mid)
+    assert _pairwise_change(carried, motion.last) < 1e-9
+
+
+def test_weighted_combination_blends_the_candidates_and_stays_rigid():
+    obs = add_noise(rigid_box(64, 30), pos_sigma=0.002, rot_sigma=0.0)
+    settings = {**QUICK, "structured": {"combine": "weighted"}}  # the default
+    res = fit_and_rollout("mogaf", obs, 12, settings, seed=0)
+    info = res.info
+    weights = {c: info[f"backtest_weight_{c}"] for c in ("frozen", "constant_velocity", "learned")}
+    assert sum(weights.values()) == pytest.approx(1.0)
+    assert info["choice"] == max(weights, key=weights.get)
+    errors = {c: info[f"backtest_epe_{c}"] for c in weights}
+    assert weights == pytest.approx(backtest_weights(errors))
+    assert _pairwise_change(res.poses, obs[:, -1]) < 1e-9
+    # the blend lies between the candidates: not the selected one alone
+    chosen = fit_and_rollout("mogaf", obs, 12, {**QUICK, "structured": {"combine": "select"}}, seed=0)
+    assert chosen.info["backtest_epe_learned"] == info["backtest_epe_learned"]
+    assert np.abs(res.poses[..., :3] - chosen.poses[..., :3]).max() > 1e-6
+    # a still group: frozen is exact in the backtest and takes all the weight
+    still = np.repeat(obs[:, :1], 30, axis=1)
+    frozen = fit_and_rollout("mogaf", still, 12, settings, seed=0)
+    assert frozen.info["backtest_weight_frozen"] == 1.0
+    np.testing.assert_array_equal(frozen.poses[..., :3], np.repeat(still[:, -1:, :3], 12, axis=1))
 
 
 def test_info_records_the_decision():
@@ -261,6 +321,10 @@ def test_bad_structured_settings_are_refused_by_name():
         make_forecaster("mogaf", {"structured": {"backtest_frac": 1.5}}).fit(obs)
     with pytest.raises(MogafError, match="context"):
         make_forecaster("mogaf", {"structured": {"context": 1}}).fit(obs)
+    with pytest.raises(MogafError, match="combine"):
+        make_forecaster("mogaf", {"structured": {"combine": "mean"}}).fit(obs)
+    with pytest.raises(MogafError, match="backtest_margin applies to combine: select"):
+        make_forecaster("mogaf", {"structured": {"backtest_margin": 0.1}}).fit(obs)
 
 
 # ---------------------------------------------------------------- coherence figure

@@ -44,14 +44,19 @@ output is used:
     forecaster, constant velocity, frozen) is fitted on the first T - h frames
     and scored on the last h (h = backtest_frac * T, at most the forecast
     horizon: a short backtest favours constant velocity, whose error grows
-    with the horizon, over frozen and the learned forecaster); the best is
-    refitted on all T frames and rolled out (with `backtest_margin` > 0, the
-    learned forecaster only when it scores that share below the better of the
-    other two). The choice and the scores are
-    recorded in the forecast's info. Without enough frames for a backtest the
-    group keeps constant velocity. The choice depends on the forecast length
-    (h does), so the first k steps of a longer forecast need not equal a
-    k-step forecast.
+    with the horizon, over frozen and the learned forecaster). With
+    `combine: weighted` (the default) every candidate is refitted on all T
+    frames and the forecast is their mean weighted by the inverse squared
+    backtest error: one backtest window is a noisy judge, and a choice won
+    by a few percent often does not hold in the future. A rigid group's
+    candidates blend as one group pose, so the blend stays rigid. With
+    `combine: select` the best alone is refitted and rolled out (with
+    `backtest_margin` > 0, the learned forecaster only when it scores that
+    share below the better of the other two). The scores, the weights and
+    the choice (the heaviest candidate) are recorded in the forecast's info.
+    Without enough frames for a backtest the group keeps constant velocity.
+    The decision depends on the forecast length (h does), so the first k
+    steps of a longer forecast need not equal a k-step forecast.
 
 Known limit: a rigid group whose members lie on one line has no observable
 rotation about that line; Procrustes then picks one, which can turn the
@@ -95,7 +100,12 @@ class StructuredRun:
 def structured_settings(p: Mapping[str, Any] | MogafSettings) -> StructuredRun:
     """forecast.mogaf (checked) and its `structured` part (over its defaults, checked)."""
     net = load(MogafSettings, "forecast.mogaf", p)
-    return StructuredRun(net, load(StructuredSettings, "forecast.mogaf.structured", net.structured or {}))
+    own = load(StructuredSettings, "forecast.mogaf.structured", net.structured or {})
+    if own.backtest_margin > 0 and own.combine != "select":
+        raise MogafError(
+            "forecast.mogaf.structured: backtest_margin applies to combine: select only (combine is weighted)"
+        )
+    return StructuredRun(net, own)
 
 
 CANDIDATES = ("frozen", "constant_velocity", "learned")  # tie order: the simpler wins
@@ -347,46 +357,93 @@ class GroupMotion:
             self.series = np.concatenate([m[..., :3], rv], axis=-1).transpose(0, 2, 1).reshape(-1, obs.shape[1])
             self.floor = np.tile(np.array([1e-3 * max(extent, 1e-6)] * 3 + [1e-3] * 3), len(self.moving))
 
-    def poses(self, future_series: np.ndarray) -> np.ndarray:
-        """Member poses (G, n, 7) from forecast series (same rows as self.series)."""
-        n = future_series.shape[1]
-        out = np.repeat(self.last[:, None, :], n, axis=1)
+    # A candidate's trajectory: rigid, the group pose (n, 7) -- centroid and
+    # rotation from the last frame, x_t = g_t (x - c_T) + c_t; non-rigid, the
+    # moving Gaussians' poses (M, n, 7). members() carries it to all G.
+    def frozen_trajectory(self, n: int) -> np.ndarray:
         if self.rigid:
-            c_fut = future_series[:3].T
-            r_all = future_series[3:].T
-            r_last = self.series[3:, -1]
-            g = integrate_rotvec(self.rotations[-1], r_last, r_all)  # (n, 4): from the last frame
-            return self._carry(out, g, c_fut)
-        if len(self.moving):
-            f = future_series.reshape(len(self.moving), 6, n).transpose(0, 2, 1)
-            rv_last = self.series.reshape(len(self.moving), 6, -1)[:, 3:, -1]
-            out[self.moving, :, :3] = f[..., :3]
-            out[self.moving, :, 3:] = integrate_rotvec(self.last[self.moving, 3:], rv_last, f[..., 3:])
-        return out
+            pose = np.concatenate([self.centroids[-1], [1.0, 0.0, 0.0, 0.0]])
+            return np.repeat(pose[None], n, axis=0)
+        return np.repeat(self.last[self.moving, None, :], n, axis=1)
 
-    def _carry(self, out: np.ndarray, rotations: np.ndarray, centroids: np.ndarray) -> np.ndarray:
-        """A rigid group's moving members in `out` (G, n, 7) moved by the group
-        pose x_t = g_t (x - c_T) + c_t: rotations (n, 4) from the last frame,
-        centroids (n, 3)."""
-        members = self.last[self.moving]
-        rel = members[:, :3] - self.centroids[-1]
-        out[self.moving, :, :3] = quat.rotate(rotations[None], rel[:, None, :]) + centroids[None]
-        out[self.moving, :, 3:] = quat.mul(rotations[None], members[:, None, 3:])
-        return out
-
-    def constant_velocity(self, n: int) -> np.ndarray:
+    def constant_velocity_trajectory(self, n: int) -> np.ndarray:
         """Constant twist of the group (rigid) or of each moving Gaussian."""
-        out = np.repeat(self.last[:, None, :], n, axis=1)
         if self.rigid:
-            # the group pose maps last-frame coordinates: x_t = g_t (x - c_T) + c_t
             prev = np.concatenate([self.centroids[-2], self.rotations[-2]])[None]
             last = np.concatenate([self.centroids[-1], self.rotations[-1]])[None]
-            g = constant_twist_rollout(prev, last, n)[0]
-            return self._carry(out, g[:, 3:], g[:, :3])
-        if len(self.moving):
-            m = self.obs[self.moving]
-            out[self.moving] = constant_twist_rollout(m[:, -2], m[:, -1], n)
+            # (the decomposition's rotations are the identity at the last frame,
+            # so the twist's rotations are already relative to it)
+            return constant_twist_rollout(prev, last, n)[0]
+        m = self.obs[self.moving]
+        return constant_twist_rollout(m[:, -2], m[:, -1], n)
+
+    def series_trajectory(self, future_series: np.ndarray) -> np.ndarray:
+        """The trajectory of forecast series (same rows as self.series)."""
+        n = future_series.shape[1]
+        if self.rigid:
+            r_last = self.series[3:, -1]
+            g = integrate_rotvec(self.rotations[-1], r_last, future_series[3:].T)  # (n, 4): from the last frame
+            return np.concatenate([future_series[:3].T, g], axis=-1)
+        f = future_series.reshape(len(self.moving), 6, n).transpose(0, 2, 1)
+        rv_last = self.series.reshape(len(self.moving), 6, -1)[:, 3:, -1]
+        rot = integrate_rotvec(self.last[self.moving, 3:], rv_last, f[..., 3:])
+        return np.concatenate([f[..., :3], rot], axis=-1)
+
+    def members(self, trajectory: np.ndarray) -> np.ndarray:
+        """Member poses (G, n, 7) of a trajectory; still members keep their last pose."""
+        n = trajectory.shape[-2]
+        out = np.repeat(self.last[:, None, :], n, axis=1)
+        if not len(self.moving):
+            return out
+        if self.rigid:
+            members = self.last[self.moving]
+            rel = members[:, :3] - self.centroids[-1]
+            rotations = trajectory[None, :, 3:]
+            out[self.moving, :, :3] = quat.rotate(rotations, rel[:, None, :]) + trajectory[None, :, :3]
+            out[self.moving, :, 3:] = quat.mul(rotations, members[:, None, 3:])
+        else:
+            out[self.moving] = trajectory
         return out
+
+    def poses(self, future_series: np.ndarray) -> np.ndarray:
+        """Member poses (G, n, 7) from forecast series (same rows as self.series)."""
+        return self.members(self.series_trajectory(future_series))
+
+    def constant_velocity(self, n: int) -> np.ndarray:
+        return self.members(self.constant_velocity_trajectory(n))
+
+
+def blend_trajectories(trajectories: list[np.ndarray], weights: np.ndarray) -> np.ndarray:
+    """Weighted mean of pose trajectories (..., 7): positions linearly,
+    rotations as the normalised weighted sum of quaternions on the heaviest
+    one's hemisphere (the chordal mean; for a rigid group's pose it stays one
+    rotation, so the blend is rigid)."""
+    ref = trajectories[int(np.argmax(weights))][..., 3:]
+    out = np.zeros_like(trajectories[0])
+    for traj, w in zip(trajectories, weights, strict=True):
+        out[..., :3] += w * traj[..., :3]
+        out[..., 3:] += w * quat.align_to(traj[..., 3:], ref)
+    out[..., 3:] = quat.normalize(out[..., 3:])
+    return out
+
+
+def backtest_weights(scores: Mapping[str, float]) -> dict[str, float]:
+    """Inverse-squared-error weights of the candidates' backtest scores (Bates
+    & Granger's combination with independent errors). A candidate with an
+    exact backtest (score 0, e.g. frozen on a still group) takes all the
+    weight; a non-finite score takes none."""
+    names = list(scores)
+    s = np.array([scores[c] for c in names], dtype=np.float64)
+    finite = np.isfinite(s)
+    if not finite.any():
+        raise MogafError("forecast.mogaf: every candidate's backtest score is non-finite")
+    best = float(np.min(s[finite]))
+    if best <= 0.0:
+        w = np.where(finite & (s <= 0.0), 1.0, 0.0)
+    else:
+        w = np.where(finite, (best / np.where(finite, s, 1.0)) ** 2, 0.0)
+    w /= w.sum()
+    return {c: float(v) for c, v in zip(names, w, strict=True)}
 
 
 class FittedCandidate:
@@ -405,13 +462,32 @@ class FittedCandidate:
                 "train_windows": self.model.num_windows,
             }
 
-    def rollout(self, n: int) -> np.ndarray:
+    def trajectory(self, n: int) -> np.ndarray:
+        """The candidate's trajectory (GroupMotion's form) over n steps."""
         m = self.motion
         if self.name == "frozen":
-            return np.repeat(m.last[:, None, :], n, axis=1)
+            return m.frozen_trajectory(n)
         if self.name == "constant_velocity" or self.model is None:
-            return m.constant_velocity(n)
-        return m.poses(self.model.rollout(m.series, m.floor, n))
+            return m.constant_velocity_trajectory(n)
+        return m.series_trajectory(self.model.rollout(m.series, m.floor, n))
+
+    def rollout(self, n: int) -> np.ndarray:
+        if self.name == "frozen":  # exactly the last poses (carrying the identity would round them)
+            return np.repeat(self.motion.last[:, None, :], n, axis=1)
+        return self.motion.members(self.trajectory(n))
+
+
+class WeightedCandidates:
+    """The candidates' forecasts blended by their backtest weights (combine: weighted)."""
+
+    def __init__(self, candidates: list[FittedCandidate], weights: Mapping[str, float]) -> None:
+        self.candidates = [c for c in candidates if weights[c.name] > 0.0]
+        self.weights = np.array([weights[c.name] for c in self.candidates])
+        self.motion = candidates[0].motion
+
+    def rollout(self, n: int) -> np.ndarray:
+        trajectories = [c.trajectory(n) for c in self.candidates]
+        return self.motion.members(blend_trajectories(trajectories, self.weights))
 
 
 def _score(pred: np.ndarray, truth: np.ndarray) -> float:
@@ -420,10 +496,11 @@ def _score(pred: np.ndarray, truth: np.ndarray) -> float:
 
 def fit_structured(
     obs: np.ndarray, p: Mapping[str, Any] | MogafSettings, seed: int, rigid_hint: bool | None, n_steps: int
-) -> tuple[FittedCandidate, dict[str, Any]]:
+) -> tuple[FittedCandidate | WeightedCandidates, dict[str, Any]]:
     """The structured mode's fit of one group (G, T, 7) for a forecast of
-    n_steps: the chosen candidate, fitted on every observed frame, and what
-    was decided (info). `p`: the MoGaF settings (forecast.mogaf, a mapping or MogafSettings)."""
+    n_steps: the chosen candidate (combine: weighted, every candidate and its
+    backtest weight), fitted on every observed frame, and what was decided
+    (info; `choice` is the heaviest candidate under weighting). `p`: the MoGaF settings (forecast.mogaf, a mapping or MogafSettings)."""
     run = structured_settings(p)
     own = run.own
     G, T, _ = obs.shape
@@ -459,9 +536,18 @@ def fit_structured(
         simple = min(CANDIDATES[:2], key=lambda c: (scores[c], CANDIDATES.index(c)))
         choice = "learned" if scores["learned"] < (1.0 - own.backtest_margin) * scores[simple] else simple
         info["backtest_frames"] = h
+        if own.combine == "weighted":
+            weights = backtest_weights(scores)
+            info.update({f"backtest_weight_{c}": w for c, w in weights.items()})
+            choice = max(CANDIDATES, key=lambda c: weights[c])
     motion = GroupMotion(obs, rigid, own.still_factor, decomposition)
     info["still_fraction"] = float(motion.still.mean())
+    info["choice"] = choice
+    if own.gate and backtest_sizes is not None and own.combine == "weighted" and max(weights.values()) < 1.0:
+        fitted_all = [FittedCandidate(c, motion, run, seed) for c in CANDIDATES if weights[c] > 0.0]
+        for c in fitted_all:
+            info.update(c.info)
+        return WeightedCandidates(fitted_all, weights), info
     fitted = FittedCandidate(choice, motion, run, seed)
     info.update(fitted.info)
-    info["choice"] = choice
     return fitted, info

@@ -21,9 +21,20 @@ from .metrics_files import load_metrics
 from .tables import _mean, _metric, _variant, budget_differences, fmt, method_label
 
 
+def _choice_text(info: dict[str, Any]) -> str:
+    """A group's backtest decision: the candidate, with its weight when the
+    candidates were blended (combine: weighted)."""
+    choice = str(info.get("choice"))
+    weight = info.get(f"backtest_weight_{choice}")
+    return choice.replace("_", " ") + (f" {weight:.2f}" if isinstance(weight, float) and weight < 1.0 else "")
+
+
 def _choices(result: dict[str, Any]) -> str:
     jobs = ((result["methods"].get("mogaf") or {}).get("forecast") or {}).get("jobs") or {}
-    counts = Counter(str(info.get("choice")).replace("_", " ") for info in jobs.values() if isinstance(info, dict))
+    infos = [info for info in jobs.values() if isinstance(info, dict)]
+    if any(any(k.startswith("backtest_weight_") for k in info) for info in infos):
+        return ", ".join(_choice_text(info) for info in infos) or "–"
+    counts = Counter(_choice_text(info) for info in infos)
     return ", ".join(name + (f" x{n}" if n > 1 else "") for name, n in sorted(counts.items())) or "–"
 
 
@@ -55,7 +66,7 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
     mogaf = "mogaf" in methods
     starred = {m: any(budget_differences(r, m) for r in results) for m in methods}
     header = ["scene"] + [method_label(results[0], m) + ("*" if starred[m] else "") for m in methods]
-    header += ["MoGaF's choice per group", "MoGaF coherence: rigid / still (m, still count)"] if mogaf else []
+    header += ["MoGaF's choice per group (weight)", "MoGaF coherence: rigid / still (m, still count)"] if mogaf else []
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for r, row, best in zip(results, rows, _best(rows)):
         variant = _variant(r)
