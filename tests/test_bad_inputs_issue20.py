@@ -519,6 +519,19 @@ def test_config_error_under_snakemake_names_the_file_and_the_key(tmp_path):
     assert "Failed validating" not in out and len(out.splitlines()) < 10, out
 
 
+def test_conflicting_forecaster_settings_are_refused_before_any_job(tmp_path):
+    """A relation the schema cannot express (a select-only margin with the
+    weighted blend) stops the workflow at load, in one line, not at the
+    forecast after hours of reconstruction."""
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("forecast:\n  mogaf:\n    structured:\n      backtest_margin: 0.1\n")
+    res = _snakemake(["-n", "-c1", "--configfile", str(CONFIG), str(bad)], tmp_path)
+    out = res.stdout + res.stderr
+    assert res.returncode == 1
+    assert "forecast.mogaf.structured: backtest_margin applies to combine: select only (combine is weighted)" in out
+    assert "Job stats" not in out
+
+
 @pytest.mark.parametrize(
     "where, edit",
     [

@@ -12,9 +12,11 @@ from mogaf.forecast import fit_and_rollout, make_forecaster, quat
 from mogaf.forecast.coherence import coherence, rigid_distance_change
 from mogaf.forecast.structured import (
     GroupMotion,
+    WeightedCandidates,
     accumulated_rotvec,
     backtest_weights,
     blend_trajectories,
+    fit_structured,
     integrate_rotvec,
     rigid_decomposition,
     rigid_group_still,
@@ -237,8 +239,9 @@ def test_backtest_weights_are_inverse_squared_errors():
 
 
 def test_blend_of_rigid_poses_is_one_rigid_pose_between_them():
-    """Two rotations about one axis blend to the weighted angle (the chordal
-    mean), and members carried by the blended pose keep their distances."""
+    """Two rotations about one axis blend, with equal weights, to the middle
+    angle, whatever the quaternions' signs; members carried by the blended
+    pose keep their distances."""
     n = 6
     angles = np.linspace(0.1, 0.6, n)
     z = np.broadcast_to([0.0, 0.0, 1.0], (n, 3))
@@ -250,6 +253,11 @@ def test_blend_of_rigid_poses_is_one_rigid_pose_between_them():
     motion = GroupMotion(rigid_box(40, 12), True, 3.0)
     carried = motion.members(mid)
     assert _pairwise_change(carried, motion.last) < 1e-9
+
+
+def _resting_box(g: int, moving: int, resting: int) -> np.ndarray:
+    traj = rigid_box(g, moving)
+    return np.concatenate([traj, np.repeat(traj[:, -1:], resting, axis=1)], axis=1)  # moves, then rests
 
 
 def test_weighted_combination_blends_the_candidates_and_stays_rigid():
@@ -267,11 +275,39 @@ def test_weighted_combination_blends_the_candidates_and_stays_rigid():
     chosen = fit_and_rollout("mogaf", obs, 12, {**QUICK, "structured": {"combine": "select"}}, seed=0)
     assert chosen.info["backtest_epe_learned"] == info["backtest_epe_learned"]
     assert np.abs(res.poses[..., :3] - chosen.poses[..., :3]).max() > 1e-6
-    # a still group: frozen is exact in the backtest and takes all the weight
-    still = np.repeat(obs[:, :1], 30, axis=1)
-    frozen = fit_and_rollout("mogaf", still, 12, settings, seed=0)
-    assert frozen.info["backtest_weight_frozen"] == 1.0
-    np.testing.assert_array_equal(frozen.poses[..., :3], np.repeat(still[:, -1:, :3], 12, axis=1))
+
+
+def test_weighted_blend_is_the_weighted_mean_of_the_candidates_forecasts():
+    """Checked against each candidate's own member forecast (the path select
+    rolls out): every member of this box moves, so the blended group's mean
+    position is the weighted mean of the candidates' mean positions, and each
+    member turns by the weighted quaternion mean of the candidates' turns."""
+    obs = add_noise(rigid_box(48, 30), pos_sigma=0.002, rot_sigma=0.0)
+    blend, info = fit_structured(obs, {**QUICK, "structured": {"combine": "weighted"}}, 0, True, 12)
+    assert isinstance(blend, WeightedCandidates) and len(blend.candidates) == 3
+    assert blend.motion.still.sum() == 0
+    poses = blend.rollout(12)
+    each = [c.rollout(12) for c in blend.candidates]
+    w = blend.weights
+    want_mean = sum(wi * p[..., :3].mean(axis=0) for wi, p in zip(w, each))
+    np.testing.assert_allclose(poses[..., :3].mean(axis=0), want_mean, atol=1e-9)
+    turns = [quat.mul(p[..., 3:], quat.conj(obs[:, -1:, 3:])) for p in each]
+    ref = turns[int(np.argmax(w))]
+    want_turn = quat.normalize(sum(wi * quat.align_to(t, ref) for wi, t in zip(w, turns)))
+    got_turn = quat.mul(poses[..., 3:], quat.conj(obs[:, -1:, 3:]))
+    assert np.all(quat.angle_between(got_turn, want_turn) < 1e-7)
+
+
+def test_an_exact_backtest_takes_all_the_weight():
+    """A box that moved, then rested through the backtest: frozen's backtest
+    is exact, the moving candidates' are not, so the forecast is frozen's,
+    exactly."""
+    obs = _resting_box(64, 30, 10)  # a 10-step forecast backtests the last 10 frames
+    res = fit_and_rollout("mogaf", obs, 10, {**QUICK, "structured": {"combine": "weighted"}}, seed=0)
+    assert res.info["backtest_epe_frozen"] == 0.0 and res.info["backtest_epe_constant_velocity"] > 1e-3
+    assert res.info["backtest_weight_frozen"] == 1.0 and res.info["choice"] == "frozen"
+    np.testing.assert_array_equal(res.poses[..., :3], np.repeat(obs[:, -1:, :3], 10, axis=1))
+    np.testing.assert_allclose(res.poses, np.repeat(obs[:, -1:], 10, axis=1), atol=1e-12)  # quaternions renormalised
 
 
 def test_info_records_the_decision():

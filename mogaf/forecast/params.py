@@ -11,7 +11,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from ..settings import defaults, section_schema, setting
+from ..errors import MogafError
+from ..settings import defaults, load, section_schema, setting
 
 
 @dataclass(frozen=True)
@@ -48,7 +49,7 @@ class StructuredSettings:
     )
     combine: Literal["select", "weighted"] = setting(
         "weighted",
-        "how the backtest decides: 'weighted' (every candidate's forecast, weighted by its inverse squared backtest error; a rigid group blends as one pose, so it stays rigid) or 'select' (the lowest score wins). Weighted measured best at both MuJoCo ratios (0.6: 20.41 dB / 0.1826 against constant velocity's 20.02 / 0.1899; 0.8: 20.40 / 0.1802 against 20.23 / 0.1899), where select loses 0.8 (20.16 / 0.1923); GT mean EPE 0.0489 against select's 0.0435, ahead of constant velocity on 22 of 22 rows against 18 (docs/forecasting.md)",
+        "how the backtest decides: 'weighted' (every candidate's forecast, weighted by its inverse squared backtest error; a rigid group blends as one pose, so it stays rigid) or 'select' (the lowest score wins). Weighted has the best mean of the four methods at both MuJoCo ratios (0.8: 20.40 dB / 0.1802 against constant velocity's 20.23 / 0.1899, where select has 20.16 / 0.1923); select is ahead of it at MuJoCo 0.6 (20.66 against 20.41 dB), on the demo (by 0.05 dB) and in GT mean EPE (0.0435 against 0.0489 m), but behind constant velocity on 4 GT rows, weighted on none (docs/forecasting.md)",
     )
     max_train_windows: int = setting(
         65536, "training windows kept per fit (random, seeded): bounds memory for big groups", minimum=1
@@ -149,6 +150,23 @@ class MogafSettings:
 
 
 MOGAF_DEFAULTS: dict[str, Any] = defaults(MogafSettings)
+
+
+def load_mogaf(section: Mapping[str, Any] | MogafSettings) -> tuple[MogafSettings, StructuredSettings]:
+    """forecast.mogaf and its structured part (over its defaults), each checked
+    against its bounds, then what the bounds cannot say: relations between
+    settings. Both modes refuse a bad structured part (the config is one)."""
+    net = load(MogafSettings, "forecast.mogaf", section)
+    own = load(StructuredSettings, "forecast.mogaf.structured", net.structured or {})
+    if net.d_model % net.nhead:
+        raise MogafError(f"forecast.mogaf: d_model ({net.d_model}) must be divisible by nhead ({net.nhead})")
+    if not (0.0 <= net.mask_ratio_end <= net.mask_ratio_start < 1.0):
+        raise MogafError("forecast.mogaf: need 0 <= mask_ratio_end <= mask_ratio_start < 1")
+    if own.backtest_margin > 0 and own.combine != "select":
+        raise MogafError(
+            f"forecast.mogaf.structured: backtest_margin applies to combine: select only (combine is {own.combine})"
+        )
+    return net, own
 
 
 @dataclass(frozen=True)

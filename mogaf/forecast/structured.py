@@ -75,9 +75,8 @@ from mogaf.errors import MogafError
 from mogaf.forecast import quat
 from mogaf.forecast.base import torch_determinism
 from mogaf.forecast.classical import constant_twist_rollout
-from mogaf.forecast.params import MogafSettings, StructuredSettings
+from mogaf.forecast.params import MogafSettings, StructuredSettings, load_mogaf
 from mogaf.forecast.transformer_net import _build_model, mask_ratio, minibatches, optimiser_step
-from mogaf.settings import load
 
 # forecast.mogaf.mode picks the forecaster; forecast.mogaf.structured holds the
 # structured mode's own settings (the paper mode ignores them). Everything else
@@ -98,14 +97,8 @@ class StructuredRun:
 
 
 def structured_settings(p: Mapping[str, Any] | MogafSettings) -> StructuredRun:
-    """forecast.mogaf (checked) and its `structured` part (over its defaults, checked)."""
-    net = load(MogafSettings, "forecast.mogaf", p)
-    own = load(StructuredSettings, "forecast.mogaf.structured", net.structured or {})
-    if own.backtest_margin > 0 and own.combine != "select":
-        raise MogafError(
-            "forecast.mogaf.structured: backtest_margin applies to combine: select only (combine is weighted)"
-        )
-    return StructuredRun(net, own)
+    """forecast.mogaf and its `structured` part, checked (params.load_mogaf)."""
+    return StructuredRun(*load_mogaf(p))
 
 
 CANDIDATES = ("frozen", "constant_velocity", "learned")  # tie order: the simpler wins
@@ -430,8 +423,9 @@ def blend_trajectories(trajectories: list[np.ndarray], weights: np.ndarray) -> n
 def backtest_weights(scores: Mapping[str, float]) -> dict[str, float]:
     """Inverse-squared-error weights of the candidates' backtest scores (Bates
     & Granger's combination with independent errors). A candidate with an
-    exact backtest (score 0, e.g. frozen on a still group) takes all the
-    weight; a non-finite score takes none."""
+    exact backtest (score 0, e.g. frozen on a group that stopped) takes all
+    the weight (several exact ones share it); a non-finite score takes none,
+    and with every score non-finite there is nothing to weigh: an error."""
     names = list(scores)
     s = np.array([scores[c] for c in names], dtype=np.float64)
     finite = np.isfinite(s)

@@ -9,6 +9,7 @@ import mogaf.config as mcfg
 import mogaf.paths as mpaths
 import mogaf.registry as mreg
 from mogaf.errors import MogafError
+from mogaf.forecast.params import load_mogaf
 from mogaf.schema import config_error, file_layers, load_config_schema
 
 SCHEMA = Path(workflow.basedir) / "config" / "schema.yaml"
@@ -41,6 +42,11 @@ _validate(config, SCHEMA, _config_layers())
 # config/config.yaml holds only what a user changes: every other stage setting
 # takes its default from the stage's settings dataclass (mogaf.settings).
 config.update(mcfg.with_defaults(config))
+# Relations between settings the schema cannot express, refused before any job runs.
+try:
+    load_mogaf(config["forecast"]["mogaf"])
+except MogafError as exc:
+    raise WorkflowError(str(exc))
 
 # Every pipeline write goes to results/ or the cache folder (kernels, LPIPS).
 mpaths.use_cache_dir(config["cache_dir"])
