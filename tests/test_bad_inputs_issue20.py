@@ -530,6 +530,18 @@ def test_conflicting_forecaster_settings_are_refused_before_any_job(tmp_path):
     assert res.returncode == 1
     assert "forecast.mogaf.structured: backtest_margin applies to combine: select only (combine is weighted)" in out
     assert "Job stats" not in out
+    # the same in an ablation variant, named
+    ablations = tmp_path / "ablations.yaml"
+    ablations.write_text(
+        "variants:\n  margin:\n    description: x\n"
+        "    overrides: {forecast: {mogaf: {structured: {backtest_margin: 0.1}}}}\n"
+    )
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(f"ablations_file: {ablations}\n")
+    res = _snakemake(["-n", "-c1", "--configfile", str(CONFIG), str(cfg)], tmp_path)
+    out = res.stdout + res.stderr
+    assert res.returncode == 1
+    assert f"{ablations}: variant 'margin': forecast.mogaf.structured: backtest_margin applies" in out
 
 
 @pytest.mark.parametrize(

@@ -120,13 +120,14 @@ def test_rigid_constant_twist_candidate_is_exact_on_a_screw_motion(omega):
     every member's orientation turns with the body."""
     traj = _screw(24, 30, omega)
     obs, fut = traj[:, :20], traj[:, 20:]
-    pred = GroupMotion(obs, True, 3.0).constant_velocity(10)
+    motion = GroupMotion(obs, True, 3.0)
+    pred = motion.members(motion.constant_velocity_trajectory(10))
     np.testing.assert_allclose(pred[..., :3], fut[..., :3], atol=1e-9)
     assert np.all(quat.angle_between(pred[..., 3:], fut[..., 3:]) < 1e-9)
 
 
 def test_rigid_poses_from_the_true_future_series_are_the_truth():
-    """GroupMotion.poses is the inverse of the decomposition: fed the true
+    """GroupMotion.series_trajectory is the inverse of the decomposition: fed the true
     future centroids and accumulated rotation vectors, it gives the true poses."""
     traj = _screw(24, 30, 0.3)
     whole = GroupMotion(traj, True, 3.0)
@@ -135,7 +136,7 @@ def test_rigid_poses_from_the_true_future_series_are_the_truth():
     c = whole.centroids[20:]
     rel = quat.mul(quat.conj(whole.rotations[19]), whole.rotations[20:])
     r = accumulated_rotvec(np.concatenate([np.array([[1.0, 0, 0, 0]]), rel]))[1:] + past.series[3:, -1]
-    pred = past.poses(np.concatenate([c.T, r.T]))
+    pred = past.members(past.series_trajectory(np.concatenate([c.T, r.T])))
     np.testing.assert_allclose(pred[..., :3], traj[:, 20:, :3], atol=1e-9)
     assert np.all(quat.angle_between(pred[..., 3:], traj[:, 20:, 3:]) < 1e-9)
 
@@ -174,7 +175,8 @@ def test_still_part_of_a_rigid_flagged_group_stays_still_and_the_body_stays_rigi
     assert figures["still_gaussians"] == 16 and figures["still_displacement"] == 0.0
     assert figures["rigid_distance_change"] < 1e-9
     # moving the resting part with the body (the old rigid path) is what the figures catch
-    carried = GroupMotion(obs, True, 0.0).constant_velocity(15)
+    motion = GroupMotion(obs, True, 0.0)
+    carried = motion.members(motion.constant_velocity_trajectory(15))
     moved = coherence(obs[..., :3], carried[..., :3], np.zeros(80, int), np.array([False]), np.array([True]))
     assert moved["still_displacement"] > 0.05
 
@@ -406,6 +408,6 @@ def test_a_fast_spin_is_a_moving_body_for_the_forecaster_and_the_coherence_figur
     obs = np.concatenate([pos, np.tile([1.0, 0, 0, 0], (12, 30, 1))], -1)
     motion = GroupMotion(obs, True, 3.0)
     assert motion.moving.size == 12
-    spun = motion.constant_velocity(5)
+    spun = motion.members(motion.constant_velocity_trajectory(5))
     figures = coherence(pos, spun[..., :3], np.zeros(12, int), np.array([False]), np.array([True]))
     assert figures["still_gaussians"] == 0 and figures["rigid_distance_change"] < 1e-9

@@ -398,13 +398,6 @@ class GroupMotion:
             out[self.moving] = trajectory
         return out
 
-    def poses(self, future_series: np.ndarray) -> np.ndarray:
-        """Member poses (G, n, 7) from forecast series (same rows as self.series)."""
-        return self.members(self.series_trajectory(future_series))
-
-    def constant_velocity(self, n: int) -> np.ndarray:
-        return self.members(self.constant_velocity_trajectory(n))
-
 
 def blend_trajectories(trajectories: list[np.ndarray], weights: np.ndarray) -> np.ndarray:
     """Weighted mean of pose trajectories (..., 7): positions linearly,
@@ -475,8 +468,8 @@ class WeightedCandidates:
     """The candidates' forecasts blended by their backtest weights (combine: weighted)."""
 
     def __init__(self, candidates: list[FittedCandidate], weights: Mapping[str, float]) -> None:
-        self.candidates = [c for c in candidates if weights[c.name] > 0.0]
-        self.weights = np.array([weights[c.name] for c in self.candidates])
+        self.candidates = candidates
+        self.weights = np.array([weights[c.name] for c in candidates])
         self.motion = candidates[0].motion
 
     def rollout(self, n: int) -> np.ndarray:
@@ -511,6 +504,7 @@ def fit_structured(
     context, horizon = int(own.context), int(own.horizon)
     h = max(1, min(int(n_steps), int(round(own.backtest_frac * T))))
     backtest_sizes = window_sizes(T - h, context, horizon)
+    weights: dict[str, float] | None = None  # combine: weighted, once backtested
     if not own.gate:
         choice = "learned" if window_sizes(T, context, horizon) else "constant_velocity"
     else:
@@ -537,7 +531,7 @@ def fit_structured(
     motion = GroupMotion(obs, rigid, own.still_factor, decomposition)
     info["still_fraction"] = float(motion.still.mean())
     info["choice"] = choice
-    if own.gate and backtest_sizes is not None and own.combine == "weighted" and max(weights.values()) < 1.0:
+    if weights is not None and max(weights.values()) < 1.0:
         fitted_all = [FittedCandidate(c, motion, run, seed) for c in CANDIDATES if weights[c] > 0.0]
         for c in fitted_all:
             info.update(c.info)

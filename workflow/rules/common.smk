@@ -42,11 +42,18 @@ _validate(config, SCHEMA, _config_layers())
 # config/config.yaml holds only what a user changes: every other stage setting
 # takes its default from the stage's settings dataclass (mogaf.settings).
 config.update(mcfg.with_defaults(config))
-# Relations between settings the schema cannot express, refused before any job runs.
-try:
-    load_mogaf(config["forecast"]["mogaf"])
-except MogafError as exc:
-    raise WorkflowError(str(exc))
+
+
+def _check_relations(cfg, where=""):
+    """Relations between settings the schema cannot express, refused before
+    any job runs (of the config and of every ablation variant)."""
+    try:
+        load_mogaf(cfg["forecast"]["mogaf"])
+    except MogafError as exc:
+        raise WorkflowError(f"{where}{exc}")
+
+
+_check_relations(config)
 
 # Every pipeline write goes to results/ or the cache folder (kernels, LPIPS).
 mpaths.use_cache_dir(config["cache_dir"])
@@ -74,11 +81,9 @@ def _load_ablations():
             raise WorkflowError(str(exc))
         # A variant's merged config must satisfy the same schema.
         overrides = data["variants"][name].get("overrides") or {}
-        _validate(
-            mcfg.variant_config(config, data["variants"], name),
-            SCHEMA,
-            _config_layers() + [(f"{path}: variant '{name}'", overrides)],
-        )
+        variant = mcfg.variant_config(config, data["variants"], name)
+        _validate(variant, SCHEMA, _config_layers() + [(f"{path}: variant '{name}'", overrides)])
+        _check_relations(variant, f"{path}: variant '{name}': ")
     return data
 
 
