@@ -42,8 +42,8 @@ STAGES: dict[str, tuple[Callable[..., Any], dict[str, str], str | None]] = {
 OPTIONAL_PATHS = {i.option for spec in registry.STAGES if spec.cli for i in spec.inputs if not i.required}
 SEEDED = {spec.cli for spec in registry.STAGES if spec.cli and spec.seeded}
 DEVICE = {spec.cli for spec in registry.STAGES if spec.cli and spec.device}
+CHECKPOINT = {spec.cli for spec in registry.STAGES if spec.cli and spec.checkpoint}
 SCHEMA_NAME = "schema.yaml"  # config/schema.yaml, the file the workflow validates against
-DEVICE = {"recon", "refine"}
 
 
 def _config_for(args: argparse.Namespace) -> dict[str, Any]:
@@ -100,7 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
         if name == "forecast-group":
             p.add_argument("--method", required=True)
             p.add_argument("--group", required=True, help="group id, or 'all'")
-        if name in DEVICE:
+        if name in CHECKPOINT:
             p.add_argument(
                 "--checkpoint", help="resumable training state (resumed when it matches, removed after success)"
             )
@@ -154,6 +154,7 @@ def _run(args: argparse.Namespace) -> int:
         kwargs["seed"] = int(cfg["seed"])
     if args.command in DEVICE:
         kwargs["device"] = cfg["device"]
+    if args.command in CHECKPOINT:
         kwargs["checkpoint"] = args.checkpoint
     if args.command == "split":
         kwargs["ratio"] = args.ratio

@@ -156,7 +156,14 @@ def _stage_value(stage: str, config: Mapping[str, Any], key: str) -> Any:
 def _sections(stage: str, config: Mapping[str, Any]) -> tuple[str, ...]:
     if stage.startswith("forecast:"):
         method = stage.split(":", 1)[1]
-        return ("seed", "forecast.input", "forecast.groupwise", "forecast.common", f"forecast.{param_section(method)}")
+        return (
+            "seed",
+            "device",
+            "forecast.input",
+            "forecast.groupwise",
+            "forecast.common",
+            f"forecast.{param_section(method)}",
+        )
     return STAGE_SECTIONS[stage]
 
 

@@ -42,7 +42,8 @@ class StageSpec:
     digest_sections: tuple[str, ...] | None = None
     upstream: tuple[str, ...] = ()
     seeded: bool = False  # takes the config's `seed`
-    device: bool = False  # takes the config's `device` and a resumable checkpoint
+    device: bool = False  # takes the config's `device`
+    checkpoint: bool = False  # takes a resumable training checkpoint
     per_scene: bool = False  # one artefact per scene (before the split), not per ratio
     cli: str | None = None  # its `python -m mogaf` subcommand, when that takes only path options
 
@@ -88,6 +89,7 @@ STAGES: tuple[StageSpec, ...] = (
         upstream=("priors",),
         seeded=True,
         device=True,
+        checkpoint=True,
         cli="recon",
     ),
     StageSpec(
@@ -128,6 +130,7 @@ STAGES: tuple[StageSpec, ...] = (
         upstream=("recon", "group", "rigid_init"),
         seeded=True,
         device=True,
+        checkpoint=True,
         cli="refine",
     ),
     StageSpec(
@@ -168,6 +171,7 @@ STAGES: tuple[StageSpec, ...] = (
         inputs=_paths("model-h5:model", "groups-h5:groups", "split-h5:split"),
         settings="forecast",
         seeded=True,
+        device=True,
         cli="forecast-group",
     ),
     StageSpec("forecast", "forecast_merge", settings="forecast", seeded=True),

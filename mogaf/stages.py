@@ -251,14 +251,24 @@ def refine(
 
 
 def forecast_group(
-    model: str, groups: str, split: str, out: str, params: Mapping[str, Any], method: str, group: str, seed: int
+    model: str,
+    groups: str,
+    split: str,
+    out: str,
+    params: Mapping[str, Any],
+    method: str,
+    group: str,
+    seed: int,
+    device: str = "cpu",
 ) -> Path:
     from .forecast.stage import run_forecast_group  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out}, [model, groups, split])
     with stage_inputs(model, groups, split):
         _check_groups_cover(model, groups)
-        return run_forecast_group(model, groups, split, out, dict(params), method=method, job=group, seed=seed)
+        return run_forecast_group(
+            model, groups, split, out, dict(params), method=method, job=group, seed=seed, device=device
+        )
 
 
 def forecast_merge(

@@ -77,6 +77,22 @@ def test_seeded_stages_get_the_config_seed(in_repo, tmp_path, monkeypatch, comma
     assert seen["seed"] == 7
 
 
+@pytest.mark.parametrize("command", sorted(cli.DEVICE))
+def test_device_stages_get_the_config_device(in_repo, tmp_path, monkeypatch, command):
+    seen = {}
+    monkeypatch.setattr(cli.stages, "run_stage", lambda fn, log, threads=None, **kw: seen.update(kw))
+    extra = ["--method", "gcn", "--group", "1"] if command == "forecast-group" else []
+    configfile = _config(tmp_path, lambda c: c.update(device="cpu"))
+    assert cli.main(_stage_args(tmp_path, command, configfile) + extra) == 0
+    assert seen["device"] == "cpu"
+    # only the training stages resume from a checkpoint
+    assert ("checkpoint" in seen) == (command in cli.CHECKPOINT)
+
+
+def test_every_stage_using_the_gpu_takes_the_device():
+    assert {"recon", "refine", "forecast-group"} <= cli.DEVICE and {"recon", "refine"} == cli.CHECKPOINT
+
+
 def test_every_stage_using_randomness_is_seeded():
     # priors (track sampling), recon, group (PCA, priority order), refine and the forecasters draw random numbers
     assert {"priors", "recon", "group", "refine", "forecast-group"} <= cli.SEEDED

@@ -263,3 +263,55 @@ def test_step_budget_gives_the_baselines_the_same_steps_on_short_and_long_groups
         per_epoch = res.info["iterations"] / res.info["epochs"]
         assert 12 <= res.info["iterations"] < 12 + per_epoch, res.info
     assert fit_and_rollout(method, traj, 2, FAST[method], seed=0).info["epochs"] == FAST[method]["epochs"]
+
+
+# ---------------------------------------------------------------- devices
+
+TORCH_METHODS = ("mogaf", "mogaf_paper", "gcn", "ode")
+
+
+def test_forecast_device_is_a_checked_choice():
+    with pytest.raises(MogafError, match=r"forecast.gcn: device must be one of auto, cpu, cuda, got 'gpu'"):
+        make_forecaster("gcn", FAST["gcn"], seed=0, device="gpu")
+
+
+@pytest.mark.parametrize("method", TORCH_METHODS)
+def test_torch_methods_record_their_device(method):
+    traj = rigid_box(48, 20, seed=3)
+    res = fit_and_rollout(method, traj, 3, FAST[method], seed=0, device="auto")
+    import torch
+
+    assert res.info["device"] == ("cuda" if torch.cuda.is_available() else "cpu")
+    # classical methods never resolve a device (they do not import torch for it)
+    assert "device" not in fit_and_rollout("constant_velocity", traj, 3, seed=0, device="auto").info
+
+
+@pytest.mark.parametrize("method", TORCH_METHODS)
+def test_cuda_asked_for_without_cuda_is_refused(method):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    with pytest.raises(MogafError, match=rf"forecast.{method}: device 'cuda' asked for, but torch sees no CUDA device"):
+        fit_and_rollout(method, rigid_box(48, 20, seed=3), 3, FAST[method], seed=0, device="cuda")
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("method", TORCH_METHODS)
+def test_cuda_forecast_agrees_with_the_cpu_one(method):
+    """Same seed, same sampling (CPU generator) and the same initial weights
+    (built on the CPU): without dropout (whose masks the GPU's own generator
+    draws), only float rounding differs between the devices."""
+    import torch
+
+    if not torch.cuda.is_available():
+        pytest.skip("needs CUDA")
+    traj = rigid_box(200, 24, seed=5)
+    no_dropout = {"mogaf": {"dropout": 0.0}, "mogaf_paper": {"dropout": 0.0}, "ode": {"encoder_dropout": 0.0}}
+    params = {**FAST[method], **no_dropout.get(method, {})}
+    cpu = fit_and_rollout(method, traj, 6, params, seed=0, device="cpu")
+    gpu = fit_and_rollout(method, traj, 6, params, seed=0, device="cuda")
+    assert gpu.info["device"] == "cuda" and cpu.info["device"] == "cpu"
+    extent = float(np.ptp(traj[..., :3].reshape(-1, 3), axis=0).max())
+    gap = np.linalg.norm(gpu.poses[..., :3] - cpu.poses[..., :3], axis=-1).mean()
+    assert gap < 1e-3 * extent, f"{method}: CUDA and CPU forecasts differ by {gap:.3g} (extent {extent:.3g})"

@@ -178,8 +178,10 @@ def test_group_job_mogaf_all(inputs, tmp_path):
         method="mogaf",
         job="all",
         seed=0,
+        device="auto",
     )
     art = read_artefact(out, "forecast_group")
+    assert art.attrs["info"]["device"] in ("cpu", "cuda")  # the device the network ran on, recorded
     dynamic = np.concatenate([members(RIGID), members(NONRIGID)])
     assert art["members"].tolist() == dynamic.tolist()
     assert art["means"].shape == (2 * N_PER, T - T_OBS, 3) and art["quats"].shape == (2 * N_PER, T - T_OBS, 4)

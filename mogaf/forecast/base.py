@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from mogaf.devices import check_device_name, resolve_device
 from mogaf.errors import MogafError, refuse_unknown_params
 from mogaf.forecast import quat
 from mogaf.forecast.params import METHOD_SETTINGS
@@ -97,16 +98,20 @@ def finish_poses(poses: np.ndarray, last_q: np.ndarray) -> np.ndarray:
 
 
 @contextlib.contextmanager
-def torch_determinism(seed: int, num_threads: int | None) -> Iterator[None]:
+def torch_determinism(seed: int, num_threads: int | None, device: Any = None) -> Iterator[None]:
     """Seed torch inside a forked RNG state (the caller's global RNG is left as
     it was), optionally pin the intra-op thread count, and ask for
-    deterministic kernels. Restores everything on exit."""
+    deterministic kernels. Restores everything on exit. `device`: the torch
+    device the caller computes on; a CUDA one's generator is forked too (only
+    that one: forking every visible GPU would open a context on each)."""
     import torch
 
     old_threads = torch.get_num_threads()
     old_det = torch.are_deterministic_algorithms_enabled()
     old_warn = torch.is_deterministic_algorithms_warn_only_enabled()
-    with torch.random.fork_rng(devices=[]):
+    dev = torch.device(device) if device is not None else torch.device("cpu")
+    cuda_devices = [dev.index if dev.index is not None else torch.cuda.current_device()] if dev.type == "cuda" else []
+    with torch.random.fork_rng(devices=cuda_devices):
         torch.manual_seed(int(seed))
         if num_threads:
             torch.set_num_threads(int(num_threads))
@@ -126,7 +131,7 @@ class Forecaster:
     DEFAULTS: Mapping[str, Any] = {}
     MIN_FRAMES = 1
 
-    def __init__(self, params: Mapping[str, Any] | None = None, seed: int = 0):
+    def __init__(self, params: Mapping[str, Any] | None = None, seed: int = 0, device: str = "cpu"):
         self.params = merge_params(self.NAME, self.DEFAULTS, params)  # the dict recorded with the forecast
         # what the method reads: its frozen settings (None for a method without settings)
         cls = METHOD_SETTINGS.get(self.NAME)
@@ -134,6 +139,10 @@ class Forecaster:
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
             raise MogafError(f"forecast.{self.NAME}: seed must be an integer, got {seed!r}")
         self.seed = int(seed)
+        # Where the torch-based methods train and roll out ("auto": CUDA when
+        # torch sees it); resolved when first needed, so classical methods never import torch.
+        self.device_name = check_device_name(device, f"forecast.{self.NAME}")
+        self._device = None
         self.info: dict[str, Any] = {"method": self.NAME}
         self._obs: np.ndarray | None = None
 
@@ -164,6 +173,14 @@ class Forecaster:
             # Never hand out NaNs: this is a bug or an unrecoverable blow-up.
             raise MogafError(f"forecast.{self.NAME}: rollout produced non-finite poses")
         return poses
+
+    @property
+    def device(self):
+        """The torch device of this forecaster's tensors (recorded in info)."""
+        if self._device is None:
+            self._device = resolve_device(self.device_name, f"forecast.{self.NAME}")
+            self.info["device"] = self._device.type
+        return self._device
 
     def _fit(self, obs: np.ndarray) -> None:  # pragma: no cover - abstract
         raise NotImplementedError

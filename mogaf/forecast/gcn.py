@@ -188,13 +188,15 @@ class GCNForecaster(Forecaster):
         rin = np.stack([r[i : i + w] for i in range(n_win)])
         rgt = np.stack([r[i + w : i + w + out_size] for i in range(n_win)])
 
-        with torch_determinism(self.seed, p.num_threads or None):
+        dev = self.device
+        with torch_determinism(self.seed, p.num_threads or None, self.device):
+            # the sampling generator stays on the CPU: the same draws on every device
             gen = torch.Generator().manual_seed(self.seed)
-            model = _build_model(k, pw)
-            XI = torch.from_numpy(xin).float().permute(0, 3, 2, 1)  # (n, 3, K, W)
-            RI = torch.from_numpy(rin).float().permute(0, 3, 2, 1)
-            XG = torch.from_numpy(xgt).float()  # (n, out, K, 3)
-            RG = torch.from_numpy(rgt).float()
+            model = _build_model(k, pw).to(dev)  # built on the CPU: the same initial weights on every device
+            XI = torch.from_numpy(xin).float().permute(0, 3, 2, 1).to(dev)  # (n, 3, K, W)
+            RI = torch.from_numpy(rin).float().permute(0, 3, 2, 1).to(dev)
+            XG = torch.from_numpy(xgt).float().to(dev)  # (n, out, K, 3)
+            RG = torch.from_numpy(rgt).float().to(dev)
             opt = torch.optim.Adam(model.parameters(), lr=p.lr, eps=p.adam_eps)
             # drop_last as upstream; with fewer windows than a batch, one batch of all.
             bs = min(p.batch_size, n_win)
@@ -207,12 +209,12 @@ class GCNForecaster(Forecaster):
                 perm = torch.randperm(n_win, generator=gen)
                 tot, nb = 0.0, 0
                 for s in range(0, n_win - bs + 1, bs):
-                    idx = perm[s : s + bs]
+                    idx = perm[s : s + bs].to(dev)
                     xi, ri = XI[idx], RI[idx]
                     if noise > 0:
-                        xi = xi + (2 * torch.rand(xi.shape, generator=gen) - 1) * noise
+                        xi = xi + ((2 * torch.rand(xi.shape, generator=gen) - 1) * noise).to(dev)
                         ri = torch.nn.functional.normalize(
-                            ri + (2 * torch.rand(ri.shape, generator=gen) - 1) * noise * 0.5, dim=1
+                            ri + ((2 * torch.rand(ri.shape, generator=gen) - 1) * noise * 0.5).to(dev), dim=1
                         )
                     xp, rp = model(xi, ri)
                     xp = xp.permute(0, 3, 2, 1)  # (B, out, K, 3)
@@ -247,14 +249,14 @@ class GCNForecaster(Forecaster):
         xyz_win = self._xyz_hist[-w:].copy()  # (W, K, 3)
         r_win = self._r_hist[-w:].copy()
         xyz_pred, r_pred = [], []
-        with torch_determinism(self.seed, p.num_threads or None), torch.no_grad():
+        with torch_determinism(self.seed, p.num_threads or None, self.device), torch.no_grad():
             made = 0
             while made < n_steps:
-                xi = torch.from_numpy(xyz_win[None]).float().permute(0, 3, 2, 1)
-                ri = torch.from_numpy(r_win[None]).float().permute(0, 3, 2, 1)
+                xi = torch.from_numpy(xyz_win[None]).float().permute(0, 3, 2, 1).to(self.device)
+                ri = torch.from_numpy(r_win[None]).float().permute(0, 3, 2, 1).to(self.device)
                 xp, rp = self.model(xi, ri)
-                xp = xp.permute(0, 3, 2, 1)[0].double().numpy()  # (out, K, 3)
-                rp = rp.permute(0, 3, 2, 1)[0].double().numpy()
+                xp = xp.permute(0, 3, 2, 1)[0].cpu().double().numpy()  # (out, K, 3)
+                rp = rp.permute(0, 3, 2, 1)[0].cpu().double().numpy()
                 for j in range(out_size):
                     rq = quat.align_to(quat.normalize(rp[j]), r_win[-1])
                     xyz_pred.append(xp[j])

@@ -192,14 +192,16 @@ class LatentODEForecaster(Forecaster):
         cap_hits = 0
         steps_done = 0
         loss_val = float("nan")
-        with torch_determinism(self.seed, p.num_threads or None):
+        dev = self.device
+        with torch_determinism(self.seed, p.num_threads or None, self.device):
+            # the sampling generator stays on the CPU: the same draws on every device
             gen = torch.Generator().manual_seed(self.seed)
-            model = _build_model(p, obs_len)
-            OBS = torch.from_numpy(obs).float()  # (G, T, 7)
-            OI = torch.from_numpy(obs_idx)
-            TI = torch.from_numpy(tgt_idx)
-            TM = torch.from_numpy(tgt_mask)
-            times = torch.arange(extrap + 1, dtype=torch.float32) * dt  # last obs frame, then targets
+            model = _build_model(p, obs_len).to(dev)  # built on the CPU: the same initial weights on every device
+            OBS = torch.from_numpy(obs).float().to(dev)  # (G, T, 7)
+            OI = torch.from_numpy(obs_idx).to(dev)
+            TI = torch.from_numpy(tgt_idx).to(dev)
+            TM = torch.from_numpy(tgt_mask).to(dev)
+            times = (torch.arange(extrap + 1, dtype=torch.float32) * dt).to(dev)  # last obs frame, then targets
             opt = torch.optim.Adam(model.parameters(), lr=p.lr)
             per_epoch = math.ceil(n_win * min(g, p.max_gaussians_per_epoch) / p.batch_size)
             epochs = epochs_for(p.epochs, p.steps, per_epoch)
@@ -213,10 +215,10 @@ class LatentODEForecaster(Forecaster):
                 pairs = pairs[torch.randperm(len(pairs), generator=gen)]
                 tot, nb = 0.0, 0
                 for s in range(0, len(pairs), p.batch_size):
-                    wi, gi = pairs[s : s + p.batch_size].unbind(1)
+                    wi, gi = pairs[s : s + p.batch_size].to(dev).unbind(1)
                     x_obs = OBS[gi[:, None], OI[wi]]  # (B, L, 7)
                     x_tgt = torch.cat([x_obs[:, -1:], OBS[gi[:, None], TI[wi]]], 1)  # (B, E+1, 7)
-                    m = torch.cat([torch.ones(len(wi), 1, dtype=torch.bool), TM[wi]], 1)  # (B, E+1)
+                    m = torch.cat([torch.ones(len(wi), 1, dtype=torch.bool, device=dev), TM[wi]], 1)  # (B, E+1)
                     try:
                         z0 = model.encode(x_obs)
                         z = _solve(model, z0, times, p).transpose(0, 1)  # (B, E+1, latent)
@@ -300,14 +302,15 @@ class LatentODEForecaster(Forecaster):
         obs = self._obs
         g = obs.shape[0]
         out = np.empty((g, n_steps, 7))
-        times = torch.arange(n_steps + 1, dtype=torch.float32) * self.dt
+        dev = self.device
+        times = (torch.arange(n_steps + 1, dtype=torch.float32) * self.dt).to(dev)
         chunks_failed = 0
-        with torch_determinism(self.seed, p.num_threads or None), torch.no_grad():
+        with torch_determinism(self.seed, p.num_threads or None, self.device), torch.no_grad():
             for s in range(0, g, p.rollout_chunk):
-                x = torch.from_numpy(obs[s : s + p.rollout_chunk, -self.obs_len :]).float()
+                x = torch.from_numpy(obs[s : s + p.rollout_chunk, -self.obs_len :]).float().to(dev)
                 try:
                     z = _solve(self.model, self.model.encode(x), times, p)  # (n+1, B, latent)
-                    pred = self.model.decoder(z[1:]).transpose(0, 1).double().numpy()
+                    pred = self.model.decoder(z[1:]).transpose(0, 1).cpu().double().numpy()
                     if not np.isfinite(pred).all():
                         raise _StepCapHit("non-finite decoded state")
                     q = quat.normalize(pred[..., 3:])

@@ -31,11 +31,14 @@ def _registry() -> dict[str, type[Forecaster]]:
     }
 
 
-def make_forecaster(method: str, params: Mapping[str, Any] | None = None, seed: int = 0) -> Forecaster:
+def make_forecaster(
+    method: str, params: Mapping[str, Any] | None = None, seed: int = 0, device: str = "cpu"
+) -> Forecaster:
+    """`device`: auto | cpu | cuda, where the torch-based methods compute."""
     reg = _registry()
     if method not in reg:
         raise MogafError(f"forecast: unknown method '{method}' (choose from {', '.join(METHODS)})")
-    return reg[method](params, seed)
+    return reg[method](params, seed, device)
 
 
 def defaults(method: str) -> dict[str, Any]:
@@ -53,10 +56,12 @@ def fit_and_rollout(
     params: Mapping[str, Any] | None = None,
     seed: int = 0,
     rigid: bool | None = None,
+    device: str = "cpu",
 ) -> ForecastResult:
     """Fit `method` on one group's observed poses and roll out n_steps.
-    `rigid`: the grouping's rigid flag of the group (None: unknown)."""
-    fc = make_forecaster(method, params, seed)
+    `rigid`: the grouping's rigid flag of the group (None: unknown);
+    `device`: auto | cpu | cuda, where the torch-based methods compute."""
+    fc = make_forecaster(method, params, seed, device)
     fc.fit(observed, rigid=rigid)
     poses = fc.rollout(n_steps)
     return ForecastResult(poses=poses, info=dict(fc.info))

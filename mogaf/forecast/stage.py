@@ -154,13 +154,15 @@ def forecast_job(
     job: str,
     seed: int,
     rigid: bool | None = None,
+    device: str = "cpu",
 ) -> tuple[np.ndarray, dict[str, Any], float]:
     """Fit `method` on the members' observed trajectories; (poses (G, horizon, 7), info, wall seconds).
-    `rigid`: the grouping's rigid flag of the job's group (None for the job of every dynamic Gaussian)."""
+    `rigid`: the grouping's rigid flag of the job's group (None for the job of every dynamic Gaussian);
+    `device`: auto | cpu | cuda, where a torch-based method computes."""
     observed = observed_states(model, members)
     start = time.perf_counter()
     result = fit_and_rollout(
-        method, observed, horizon, method_params(params, method), _job_seed(seed, job), rigid=rigid
+        method, observed, horizon, method_params(params, method), _job_seed(seed, job), rigid=rigid, device=device
     )
     wall = time.perf_counter() - start
     poses = np.asarray(result.poses, np.float64)
@@ -181,6 +183,7 @@ def run_forecast_group(
     method: str,
     job: str,
     seed: int,
+    device: str = "cpu",
 ) -> Path:
     model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
     members = job_members(job, group_id, group_static, groups_h5)
@@ -193,13 +196,21 @@ def run_forecast_group(
         job,
         seed,
         job_rigid_hint(job, group_rigid_flags(groups_h5)),
+        device,
     )
     return write_artefact(
         out,
         GROUP_STAGE,
         {"members": members, "means": poses[..., :3].astype(np.float32), "quats": poses[..., 3:].astype(np.float32)},
         config_digest=config_digest(
-            {"method": method, "params": method_params(params, method), "job": job, "seed": seed}
+            {
+                "method": method,
+                "params": method_params(params, method),
+                "job": job,
+                "seed": seed,
+                # the device it ran on ("auto" resolved): CPU and GPU round differently
+                "device": info.get("device"),
+            }
         ),
         attrs={
             "method": method,

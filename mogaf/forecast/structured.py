@@ -71,6 +71,7 @@ from typing import Any
 
 import numpy as np
 
+from mogaf.devices import resolve_device
 from mogaf.errors import MogafError
 from mogaf.forecast import quat
 from mogaf.forecast.base import torch_determinism
@@ -203,9 +204,11 @@ class ChannelForecaster:
     """One shared network over independent scalar series (S, T): context ->
     next `horizon` values, a residual over each series' constant velocity."""
 
-    def __init__(self, run: StructuredRun, seed: int) -> None:
+    def __init__(self, run: StructuredRun, seed: int, device: Any = "cpu") -> None:
         self.run = run
         self.seed = int(seed)
+        # the torch device the network trains and runs on (a name is resolved: "auto" too)
+        self.device = resolve_device(device, "forecast.mogaf") if isinstance(device, str) else device
 
     @staticmethod
     def normalise(ctx: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -240,12 +243,15 @@ class ChannelForecaster:
         yn = (win[:, L:] - anchor) / scale
         steps_ahead = np.arange(1, H + 1, dtype=np.float64)
 
-        with torch_determinism(self.seed, net.num_threads or None):
+        dev = self.device
+        with torch_determinism(self.seed, net.num_threads or None, self.device):
+            # the sampling generator stays on the CPU: the same draws on every device
             gen = torch.Generator().manual_seed(self.seed)
-            model = _build_model(L, net, in_dim=1, out_dim=H, zero_head=True)
-            X = torch.from_numpy(xn).float()[..., None]
-            Y = torch.from_numpy(yn).float()
-            K = torch.from_numpy(steps_ahead).float()
+            # built on the CPU: the same initial weights on every device
+            model = _build_model(L, net, in_dim=1, out_dim=H, zero_head=True).to(dev)
+            X = torch.from_numpy(xn).float()[..., None].to(dev)
+            Y = torch.from_numpy(yn).float().to(dev)
+            K = torch.from_numpy(steps_ahead).float().to(dev)
             n = X.shape[0]
             opt = torch.optim.Adam(model.parameters(), lr=net.lr, weight_decay=own.weight_decay)
             sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=net.iterations, eta_min=net.lr_min)
@@ -253,13 +259,14 @@ class ChannelForecaster:
             model.train()
             loss_val = float("nan")
             for it, b in minibatches(n, bs, net.iterations, gen):
+                b = b.to(dev)
                 x = X[b]
                 mask = None
                 span = int(round(mask_ratio(net, it) * (L - 2)))  # the last two values carry the prior
                 if span > 0:
                     starts = torch.randint(0, L - 2 - span + 1, (bs,), generator=gen)
                     pos = torch.arange(L)[None, :]
-                    mask = (pos >= starts[:, None]) & (pos < starts[:, None] + span)
+                    mask = ((pos >= starts[:, None]) & (pos < starts[:, None] + span)).to(dev)
                 velocity = x[:, -1, 0] - x[:, -2, 0]
                 pred = K[None, :] * velocity[:, None] + model(x, mask)
                 l_pred = ((pred - Y[b]) ** 2).mean()
@@ -284,14 +291,13 @@ class ChannelForecaster:
         chunk = int(self.run.net.rollout_chunk)
         steps_ahead = np.arange(1, H + 1, dtype=np.float64)
         done = 0
-        with torch_determinism(self.seed, self.run.net.num_threads or None), torch.no_grad():
+        with torch_determinism(self.seed, self.run.net.num_threads or None, self.device), torch.no_grad():
             while done < n_steps:
                 xn, anchor, scale = self.normalise(hist[:, -L:], floor)
                 res = np.empty((hist.shape[0], H))
                 for s in range(0, hist.shape[0], chunk):
-                    res[s : s + chunk] = (
-                        self.model(torch.from_numpy(xn[s : s + chunk]).float()[..., None]).double().numpy()
-                    )
+                    x = torch.from_numpy(xn[s : s + chunk]).float()[..., None].to(self.device)
+                    res[s : s + chunk] = self.model(x).cpu().double().numpy()
                 pred = steps_ahead[None, :] * (xn[:, -1:] - xn[:, -2:-1]) + res
                 values = pred * scale + anchor
                 take = min(H, n_steps - done)
@@ -436,12 +442,12 @@ def backtest_weights(scores: Mapping[str, float]) -> dict[str, float]:
 class FittedCandidate:
     """A candidate fitted on a GroupMotion; rollout(n) gives member poses (G, n, 7)."""
 
-    def __init__(self, name: str, motion: GroupMotion, run: StructuredRun, seed: int) -> None:
+    def __init__(self, name: str, motion: GroupMotion, run: StructuredRun, seed: int, device: Any = "cpu") -> None:
         self.name, self.motion = name, motion
         self.info: dict[str, Any] = {}
         self.model: ChannelForecaster | None = None
         if name == "learned" and motion.series.shape[0]:  # (no series: every Gaussian still)
-            self.model = ChannelForecaster(run, seed).fit(motion.series, motion.floor)
+            self.model = ChannelForecaster(run, seed, device).fit(motion.series, motion.floor)
             self.info = {
                 "final_loss": self.model.final_loss,
                 "context": self.model.context,
@@ -482,12 +488,19 @@ def _score(pred: np.ndarray, truth: np.ndarray) -> float:
 
 
 def fit_structured(
-    obs: np.ndarray, p: Mapping[str, Any] | MogafSettings, seed: int, rigid_hint: bool | None, n_steps: int
+    obs: np.ndarray,
+    p: Mapping[str, Any] | MogafSettings,
+    seed: int,
+    rigid_hint: bool | None,
+    n_steps: int,
+    device: Any = "cpu",
 ) -> tuple[FittedCandidate | WeightedCandidates, dict[str, Any]]:
     """The structured mode's fit of one group (G, T, 7) for a forecast of
     n_steps: the chosen candidate (combine: weighted, every candidate and its
     backtest weight), fitted on every observed frame, and what was decided
-    (info; `choice` is the heaviest candidate under weighting). `p`: the MoGaF settings (forecast.mogaf, a mapping or MogafSettings)."""
+    (info; `choice` is the heaviest candidate under weighting). `p`: the MoGaF
+    settings (forecast.mogaf, a mapping or MogafSettings); `device`: the torch
+    device (or its name) of the learned candidate's network."""
     run = structured_settings(p)
     own = run.own
     G, T, _ = obs.shape
@@ -519,7 +532,7 @@ def fit_structured(
         past = GroupMotion(obs[:, : T - h], rigid, own.still_factor)
         scores = {}
         for name in CANDIDATES:
-            scores[name] = _score(FittedCandidate(name, past, run, seed).rollout(h), obs[:, T - h :])
+            scores[name] = _score(FittedCandidate(name, past, run, seed, device).rollout(h), obs[:, T - h :])
             info[f"backtest_epe_{name}"] = scores[name]
         simple = min(CANDIDATES[:2], key=lambda c: (scores[c], CANDIDATES.index(c)))
         choice = "learned" if scores["learned"] < (1.0 - own.backtest_margin) * scores[simple] else simple
@@ -532,10 +545,10 @@ def fit_structured(
     info["still_fraction"] = float(motion.still.mean())
     info["choice"] = choice
     if weights is not None and max(weights.values()) < 1.0:
-        fitted_all = [FittedCandidate(c, motion, run, seed) for c in CANDIDATES if weights[c] > 0.0]
+        fitted_all = [FittedCandidate(c, motion, run, seed, device) for c in CANDIDATES if weights[c] > 0.0]
         for c in fitted_all:
             info.update(c.info)
         return WeightedCandidates(fitted_all, weights), info
-    fitted = FittedCandidate(choice, motion, run, seed)
+    fitted = FittedCandidate(choice, motion, run, seed, device)
     info.update(fitted.info)
     return fitted, info

@@ -89,7 +89,7 @@ class MoGaFForecaster(Forecaster):
     def _rollout(self, n_steps: int) -> np.ndarray:
         if self.settings.mode == "structured":
             start = time.perf_counter()
-            fitted, info = fit_structured(self._obs, self.settings, self.seed, self.rigid_hint, n_steps)
+            fitted, info = fit_structured(self._obs, self.settings, self.seed, self.rigid_hint, n_steps, self.device)
             self.info.update(info)
             self.info["train_time_s"] = self.info.get("train_time_s", 0.0) + time.perf_counter() - start
             return fitted.rollout(n_steps)
@@ -106,17 +106,19 @@ class MoGaFForecaster(Forecaster):
         target = obs[:, window]
         xn, mean, std = instance_norm(xin, p.norm_eps)
 
-        with torch_determinism(self.seed, p.num_threads or None):
+        dev = self.device
+        with torch_determinism(self.seed, p.num_threads or None, self.device):
+            # the sampling generator stays on the CPU: the same draws on every device
             gen = torch.Generator().manual_seed(self.seed)
-            model = _build_model(window, p)
-            X = torch.from_numpy(xn).float()
-            M = torch.from_numpy(mean).float()
-            S = torch.from_numpy(std).float()
-            Y = torch.from_numpy(target).float()
-            Yn = torch.from_numpy((target - mean) / std).float()
+            model = _build_model(window, p).to(dev)  # built on the CPU: the same initial weights on every device
+            X = torch.from_numpy(xn).float().to(dev)
+            M = torch.from_numpy(mean).float().to(dev)
+            S = torch.from_numpy(std).float().to(dev)
+            Y = torch.from_numpy(target).float().to(dev)
+            Yn = torch.from_numpy((target - mean) / std).float().to(dev)
             normalized_loss = p.loss_space == "normalized"
-            mu1 = torch.from_numpy(obs[:, window - 1, :3]).float()
-            mu2 = torch.from_numpy(obs[:, window - 2, :3]).float()
+            mu1 = torch.from_numpy(obs[:, window - 1, :3]).float().to(dev)
+            mu2 = torch.from_numpy(obs[:, window - 2, :3]).float().to(dev)
             opt = torch.optim.Adam(model.parameters(), lr=p.lr, weight_decay=p.weight_decay)
             sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=p.iterations, eta_min=p.lr_min)
             bs = min(batch_for_window(p.batch_size, p.batch_tokens, window), g)
@@ -124,13 +126,14 @@ class MoGaFForecaster(Forecaster):
             loss_val = float("nan")
             pred_val = acc_val = float("nan")
             for it, idx in minibatches(g, bs, p.iterations, gen):
+                idx = idx.to(dev)
                 x = X[idx]
                 mask = None
                 span = int(round(self.mask_ratio(it) * window))
                 if span > 0:
                     starts = torch.randint(0, window - span + 1, (bs,), generator=gen)
                     steps = torch.arange(window)[None, :]
-                    mask = (steps >= starts[:, None]) & (steps < starts[:, None] + span)
+                    mask = ((steps >= starts[:, None]) & (steps < starts[:, None] + span)).to(dev)
                 out = model(x, mask)  # normalised prediction of x_T
                 if normalized_loss:
                     # Both terms in the instance-normalised representation (the
@@ -171,7 +174,7 @@ class MoGaFForecaster(Forecaster):
         chunk = p.rollout_chunk
         with torch.no_grad():
             for s in range(0, window.shape[0], chunk):
-                y = self.model(torch.from_numpy(xn[s : s + chunk]).float()).double().numpy()
+                y = self.model(torch.from_numpy(xn[s : s + chunk]).float().to(self.device)).cpu().double().numpy()
                 out[s : s + chunk] = y
         out = out * std + mean
         q = quat.normalize(out[:, 3:])
@@ -182,7 +185,7 @@ class MoGaFForecaster(Forecaster):
         p = self.settings
         win = self._obs[:, -self.window :].copy()
         out = np.empty((win.shape[0], n_steps, 7))
-        with torch_determinism(self.seed, p.num_threads or None):
+        with torch_determinism(self.seed, p.num_threads or None, self.device):
             for k in range(n_steps):
                 nxt = self.predict_next(win)
                 out[:, k] = nxt
@@ -197,7 +200,7 @@ class MoGaFPaperForecaster(MoGaFForecaster):
     NAME = "mogaf_paper"
     DEFAULTS = {**DEFAULTS, "mode": "paper"}
 
-    def __init__(self, params=None, seed: int = 0):
-        super().__init__(params, seed)
+    def __init__(self, params=None, seed: int = 0, device: str = "cpu"):
+        super().__init__(params, seed, device)
         self.params["mode"] = "paper"  # whatever forecast.mogaf.mode says
         self.settings = dataclasses.replace(self.settings, mode="paper")

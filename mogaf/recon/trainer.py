@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from ..camera import camera_centers
-from ..errors import MogafError
+from ..devices import resolve_device
 from ..rendering import rasterize
 from .checkpoint import CHECKPOINT_VERSION, Curve, load_checkpoint, save_checkpoint  # noqa: F401  (load_checkpoint re-exported)
 from .data import TrainData
@@ -44,14 +44,6 @@ from .model import ReconModel, gaussian_colors
 from .params import load_settings
 from .schedule import TrainerSchedule, _lr_names
 from .silhouette import SilhouetteTargets
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "cuda" or (name == "auto" and torch.cuda.is_available()):
-        if not torch.cuda.is_available():
-            raise MogafError("recon: device 'cuda' asked for, but torch sees no CUDA device")
-        return torch.device("cuda")
-    return torch.device("cpu")
 
 
 class Trainer(TrainerSchedule, FrameLosses):
@@ -69,7 +61,7 @@ class Trainer(TrainerSchedule, FrameLosses):
         params = load_settings(params)
         self.p = params
         self.seed = int(seed)
-        self.dev = resolve_device(params.device)
+        self.dev = resolve_device(params.device, "recon")
         d = self.dev
         self.w2c = torch.tensor(data.w2c, dtype=torch.float32, device=d)
         self.cam_centers = torch.tensor(camera_centers(data.w2c), dtype=torch.float32, device=d)

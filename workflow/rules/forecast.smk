@@ -21,9 +21,11 @@ rule forecast_group:
     resources:
         mem_mb=4000,
         runtime=30,
+        gpu=lambda wildcards: 1 if device(wildcards) == "cuda" else 0,
     params:
         forecast=forecast_params,
         seed=seed,
+        device=device,
     script:
         "../scripts/forecast_group.py"
 

@@ -14,4 +14,5 @@ run_stage(
     method=snakemake.wildcards.method,
     group=snakemake.wildcards.group,
     seed=snakemake.params.seed,
+    device=snakemake.params.device,
 )
