@@ -619,3 +619,37 @@ def test_scenes_table_compares_the_methods_every_scene_ran(metrics_files):
     assert rows[0][1:3] == [METHOD_LABELS["ode"] + "*", METHOD_LABELS["mogaf"]]
     assert rows[1][1:3] == ["21.50 / 0.0900", "**22.25** / **0.0812**"]
     assert "ran off its paper's settings" in second
+
+
+def test_tables_say_how_many_optimiser_steps_each_group_trained(tmp_path):
+    from mogaf.report.scenes import scenes_table
+    from mogaf.report.tables import forecast_table, optimiser_steps
+
+    def with_steps(method: str, steps: list[int]) -> dict[str, Any]:
+        section = method_section({"psnr": 20.0, "lpips": 0.2}, method=method, wall=10.0)
+        section["forecast"]["jobs"] = {str(k): {"iterations": n} for k, n in enumerate(steps)}
+        return section
+
+    files = [
+        write_metrics(
+            tmp_path / f"mujoco/{scene}/metrics.json",
+            dataset="mujoco",
+            scene=scene,
+            ratio=0.8,
+            protocol="dnerf",
+            methods={
+                "gcn": with_steps("gcn", gcn),
+                "mogaf_paper": with_steps("mogaf_paper", [800]),
+                "constant_velocity": method_section({"psnr": 19.0, "lpips": 0.3}, method="constant_velocity", wall=1.0),
+            },
+        )
+        for scene, gcn in (("s1", [800, 806]), ("s2", [802]))
+    ]
+    results = load_metrics(files)
+    # over every group of every scene; a method that trains nothing records no steps
+    assert optimiser_steps(results, "gcn") == (800, 806)
+    assert optimiser_steps(results, "constant_velocity") is None
+    # in the tables' column order
+    note = f"Optimiser steps per motion group (recorded): {METHOD_LABELS['gcn']} 800-806; {METHOD_LABELS['mogaf_paper']} 800"
+    assert note + "." in scenes_table(results)
+    assert note in forecast_table(results).notes

@@ -449,6 +449,7 @@ class FittedCandidate:
         if name == "learned" and motion.series.shape[0]:  # (no series: every Gaussian still)
             self.model = ChannelForecaster(run, seed, device).fit(motion.series, motion.floor)
             self.info = {
+                "iterations": int(run.net.iterations),
                 "final_loss": self.model.final_loss,
                 "context": self.model.context,
                 "horizon": self.model.horizon,
@@ -518,6 +519,7 @@ def fit_structured(
     h = max(1, min(int(n_steps), int(round(own.backtest_frac * T))))
     backtest_sizes = window_sizes(T - h, context, horizon)
     weights: dict[str, float] | None = None  # combine: weighted, once backtested
+    backtest_steps = 0  # the backtest's network fit, counted in the group's optimiser steps
     if not own.gate:
         choice = "learned" if window_sizes(T, context, horizon) else "constant_velocity"
     else:
@@ -532,8 +534,10 @@ def fit_structured(
         past = GroupMotion(obs[:, : T - h], rigid, own.still_factor)
         scores = {}
         for name in CANDIDATES:
-            scores[name] = _score(FittedCandidate(name, past, run, seed, device).rollout(h), obs[:, T - h :])
+            candidate = FittedCandidate(name, past, run, seed, device)
+            scores[name] = _score(candidate.rollout(h), obs[:, T - h :])
             info[f"backtest_epe_{name}"] = scores[name]
+            backtest_steps += candidate.info.get("iterations", 0)
         simple = min(CANDIDATES[:2], key=lambda c: (scores[c], CANDIDATES.index(c)))
         choice = "learned" if scores["learned"] < (1.0 - own.backtest_margin) * scores[simple] else simple
         info["backtest_frames"] = h
@@ -548,7 +552,9 @@ def fit_structured(
         fitted_all = [FittedCandidate(c, motion, run, seed, device) for c in CANDIDATES if weights[c] > 0.0]
         for c in fitted_all:
             info.update(c.info)
+        info["iterations"] = backtest_steps + sum(c.info.get("iterations", 0) for c in fitted_all)
         return WeightedCandidates(fitted_all, weights), info
     fitted = FittedCandidate(choice, motion, run, seed, device)
     info.update(fitted.info)
+    info["iterations"] = backtest_steps + fitted.info.get("iterations", 0)
     return fitted, info

@@ -18,7 +18,7 @@ from typing import Any
 from ..errors import MogafError
 from .glance import _methods, best_text
 from .metrics_files import load_metrics
-from .tables import _mean, _metric, _variant, budget_differences, fmt, method_label
+from .tables import _mean, _metric, _variant, budget_differences, fmt, method_label, steps_note
 
 
 def _choice_text(info: dict[str, Any]) -> str:
@@ -80,6 +80,9 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
     lines.append("| " + " | ".join(cells) + " |")
     if any(starred.values()):
         lines += ["", "\\* ran off its paper's settings; `metrics.json` records what each ran with."]
+    note = steps_note(results, methods)
+    if note:
+        lines += ["", note + "."]
     return "\n".join(lines)
 
 

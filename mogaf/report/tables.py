@@ -238,6 +238,31 @@ def _differs(used: Any, ref: Any) -> bool:
     return used != ref
 
 
+def optimiser_steps(results: list[dict[str, Any]], method: str) -> tuple[int, int] | None:
+    """Fewest and most optimiser steps one motion group of `method` trained for
+    over these results (each forecast job's recorded `iterations`); None when
+    the method records none (it trains nothing)."""
+    steps = []
+    for r in results:
+        jobs = ((r.get("methods", {}).get(method, {}).get("forecast") or {}).get("jobs")) or {}
+        for info in jobs.values():
+            n = info.get("iterations") if isinstance(info, dict) else None
+            if isinstance(n, (int, float)) and not isinstance(n, bool):
+                steps.append(int(n))
+    return (min(steps), max(steps)) if steps else None
+
+
+def steps_note(results: list[dict[str, Any]], methods: list[str]) -> str | None:
+    """'Optimiser steps per motion group: <method> <min>-<max>; ...' for the methods that train."""
+    parts = []
+    for m in methods:
+        span = optimiser_steps(results, m)
+        if span is not None:
+            name = next((method_label(r, m) for r in results if m in r.get("methods", {})), METHOD_LABELS.get(m, m))
+            parts.append(f"{name} {span[0]:,}" + (f"-{span[1]:,}" if span[1] != span[0] else ""))
+    return "Optimiser steps per motion group (recorded): " + "; ".join(parts) if parts else None
+
+
 def _mark_budgets(t: Table, results: list[dict[str, Any]], methods: list[str]) -> dict[str, str]:
     """Method labels, with '*' (and a note) where a result ran a method off its defaults."""
     labels = {}
@@ -253,6 +278,9 @@ def _mark_budgets(t: Table, results: list[dict[str, Any]], methods: list[str]) -
                 f"* {name}: run off its defaults: "
                 + "; ".join(f"{k} = {', '.join(sorted(v))}" for k, v in sorted(diffs.items()))
             )
+    note = steps_note(results, methods)
+    if note:
+        t.notes.append(note)
     return labels
 
 
