@@ -109,6 +109,16 @@ def test_cli_resume_keeps_finished_rows_and_only_filters(tmp_path, capsys):
     capsys.readouterr()
     assert bench.main(base + ["--methods", "frozen", "--resume", "--seed", "1"]) == 1
     assert "written with another seed" in capsys.readouterr().err
+    doc = json.loads(out_json.read_text())
+    assert doc["device"] == "cpu"
+    # rows from another device do not mix with these ("auto" is resolved before comparing)
+    out_json.write_text(json.dumps({**doc, "device": "cuda"}))
+    assert bench.main(base + ["--methods", "frozen", "--resume", "--device", "cpu"]) == 1
+    assert "written with another device ('cuda')" in capsys.readouterr().err
+    # a file from before --device was recorded counts as a CPU run
+    del doc["device"]
+    out_json.write_text(json.dumps(doc))
+    assert bench.main(base + ["--methods", "frozen", "--resume"]) == 0
     assert bench.main(base + ["--methods", "frozen"]) == 1  # no silent overwrite without --resume
     assert "exists; pass --resume" in capsys.readouterr().err
     longer = [a if a != "20" else "30" for a in base]  # other trajectories under the same set name

@@ -19,7 +19,7 @@ Budgets: the baselines at their upstream settings (--budget paper) take about
 an hour (GCN: 2001 epochs of a 6-block GCN over 100 control points) and 5-33 min
 (ODE: 40 epochs of a 4-layer d=128 transformer encoder over every (window,
 Gaussian) pair of a 256-Gaussian set, 36-72 observed frames) per group on one
-loaded CPU core; --json with
+loaded CPU core (--device auto runs them on a GPU where torch sees one); --json with
 --resume keeps finished rows across runs. The default --budget cpu shortens only their
 epochs (REDUCED in _forecast_report.py) and marks them with '*' in the table; MoGaF always runs
 at its defaults.
@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from mogaf.artefact import atomic_path
+from mogaf.devices import resolve_device
 from mogaf.errors import MogafError
 from mogaf.forecast import METHODS, fit_and_rollout, quat
 from mogaf.forecast.synthetic import TRAJECTORY_SETS
@@ -98,16 +99,17 @@ def evaluate_trajectories(
     params: Mapping[str, Mapping[str, Any]] | None = None,
     seed: int = 0,
     progress: Callable[[dict[str, Any]], None] | None = None,
+    device: str = "cpu",
 ) -> list[dict[str, Any]]:
     """Fit every method on the observed part of `traj` (G, T_total, 7) and
     score its forecast of the rest. One row per method, each passed to
-    `progress` as soon as it is scored."""
+    `progress` as soon as it is scored. `device`: where the torch-based methods compute."""
     obs, fut = split(traj, ratio)
     rows = []
     for method in methods:
         p = dict((params or {}).get(method, {}))
         t0 = time.perf_counter()
-        res = fit_and_rollout(method, obs, fut.shape[1], p, seed=seed)
+        res = fit_and_rollout(method, obs, fut.shape[1], p, seed=seed, device=device)
         wall = time.perf_counter() - t0
         epe, rot = errors(res.poses, fut)
         flags = [k for k in ("ode_step_cap_hit", "window_clipped") if res.info.get(k)]
@@ -140,6 +142,7 @@ def run_benchmark(
     seed: int = 0,
     progress: Callable[[dict[str, Any]], None] | None = None,
     done: Sequence[Mapping[str, Any]] = (),
+    device: str = "cpu",
 ) -> list[dict[str, Any]]:
     """Rows of every (set, ratio, method); rows in `done` (same set, ratio and
     method) are kept as they are and not recomputed."""
@@ -170,7 +173,7 @@ def run_benchmark(
                     if progress:
                         progress(row)
 
-                evaluate_trajectories(traj, ratio, todo, params, seed, report)
+                evaluate_trajectories(traj, ratio, todo, params, seed, report, device)
             rows.extend(fresh.get(m) or finished[(name, float(ratio), m)] for m in methods)
     return rows
 
@@ -192,6 +195,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--threads", type=int, default=1, help="torch intra-op threads for every method (0 = torch default)"
     )
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--device",
+        choices=("cpu", "auto", "cuda"),
+        default="cpu",
+        help="where the torch-based methods compute (auto: CUDA where torch sees it); the device used is recorded in --json",
+    )
     ap.add_argument(
         "--only", default="", help="comma-separated glob patterns: keep only the sets whose name matches one"
     )
@@ -263,7 +272,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             sources = {k: v for k, v in sources.items() if any(fnmatch.fnmatchcase(k, pat) for pat in patterns)}
         if not sources:
             raise MogafError("bench forecast: no trajectory sets selected")
-        header = {"budget": args.budget, "params": params, "seed": args.seed}
+        # the device the rows are computed on ("auto" resolved: a CPU-only machine's rows are CPU rows)
+        device = resolve_device(args.device, "bench forecast").type
+        header = {"budget": args.budget, "params": params, "seed": args.seed, "device": device}
         done: list[dict[str, Any]] = []
         if args.resume:  # may widen header["params"] by the file's other methods
             if not args.json:
@@ -273,7 +284,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             # rows of a paper-budget run cost hours: never overwrite them by accident
             raise MogafError(f"{args.json}: exists; pass --resume to go on with it, or remove it")
 
-        print(f"forecast benchmark: budget={args.budget}, threads={args.threads}, seed={args.seed}", flush=True)
+        print(
+            f"forecast benchmark: budget={args.budget}, threads={args.threads}, seed={args.seed}, device={device}",
+            flush=True,
+        )
 
         kept = list(done)
 
@@ -288,7 +302,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 flush=True,
             )
 
-        rows = run_benchmark(sources, ratios, methods, params, args.seed, progress, done)
+        rows = run_benchmark(sources, ratios, methods, params, args.seed, progress, done, device)
     except MogafError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -321,6 +335,11 @@ def _resumable_rows(path: Path, header: dict[str, Any]) -> list[dict[str, Any]]:
             raise MogafError(f"{path}: has no '{key}' (written before --resume existed); remove it or drop --resume")
         if old.get(key) != want[key]:
             raise MogafError(f"{path}: written with another {key} ({old.get(key)!r}); remove it or drop --resume")
+    # files from before --device ran on the CPU
+    if old.get("device", "cpu") != want["device"]:
+        raise MogafError(
+            f"{path}: written with another device ({old.get('device', 'cpu')!r}); remove it or drop --resume"
+        )
     old_params = old.get("params") or {}
     for method, p in want["params"].items():
         if method in old_params and old_params[method] != p:
