@@ -18,7 +18,7 @@ from typing import Any
 from ..errors import MogafError
 from .glance import _methods, best_text
 from .metrics_files import load_metrics
-from .tables import _mean, _metric, _variant, budget_differences, fmt, method_label, steps_note
+from .tables import _mean, _metric, _variant, budget_differences, fmt, forecast_record, method_label, steps_note
 
 
 def _choice_text(info: dict[str, Any]) -> str:
@@ -30,7 +30,7 @@ def _choice_text(info: dict[str, Any]) -> str:
 
 
 def _choices(result: dict[str, Any]) -> str:
-    jobs = ((result["methods"].get("mogaf") or {}).get("forecast") or {}).get("jobs") or {}
+    jobs = forecast_record(result, "mogaf").get("jobs") or {}
     infos = [info for info in jobs.values() if isinstance(info, dict)]
     if any(any(k.startswith("backtest_weight_") for k in info) for info in infos):
         return ", ".join(_choice_text(info) for info in infos) or "–"
@@ -39,7 +39,7 @@ def _choices(result: dict[str, Any]) -> str:
 
 
 def _coherence(result: dict[str, Any]) -> str:
-    c = ((result["methods"].get("mogaf") or {}).get("forecast") or {}).get("coherence") or {}
+    c = forecast_record(result, "mogaf").get("coherence") or {}
     rigid, still = c.get("rigid_distance_change"), c.get("still_displacement")
     return f"{fmt(rigid, 'coherence')} / {fmt(still, 'coherence')} ({c.get('still_gaussians', 0)})"
 

@@ -41,9 +41,14 @@ METHOD_LABELS = {
 METHOD_ORDER = ["gcn", "ode", "mogaf", "mogaf_paper", "constant_velocity", "frozen"]
 
 
+def forecast_record(result: dict[str, Any], method: str) -> dict[str, Any]:
+    """methods.<method>.forecast of a metrics.json ({} where the method or its record is absent)."""
+    return (result.get("methods", {}).get(method) or {}).get("forecast") or {}
+
+
 def method_label(result: dict[str, Any], method: str) -> str:
     """The method's label; MoGaF run in its paper mode (config/paper.yaml) is "MoGaF (paper)"."""
-    params = (result.get("methods", {}).get(method, {}).get("forecast") or {}).get("params") or {}
+    params = forecast_record(result, method).get("params") or {}
     if method == "mogaf" and params.get("mode") == "paper":
         return METHOD_LABELS["mogaf_paper"]
     return METHOD_LABELS.get(method, method)
@@ -219,7 +224,7 @@ def _key(result: dict[str, Any]) -> tuple[str, str, float]:
 def budget_differences(result: dict[str, Any], method: str) -> dict[str, tuple[Any, Any]]:
     """Forecaster parameters of this result that differ from the method's
     defaults (the papers' settings): {key: (used, default)}."""
-    params = (result.get("methods", {}).get(method, {}).get("forecast") or {}).get("params")
+    params = forecast_record(result, method).get("params")
     if not params:
         return {}
     if method not in METHODS:
@@ -238,13 +243,20 @@ def _differs(used: Any, ref: Any) -> bool:
     return used != ref
 
 
+def _results_label(results: list[dict[str, Any]], method: str) -> str:
+    """The method's label in the first result that ran it (its plain label if none did)."""
+    return next(
+        (method_label(r, method) for r in results if method in r.get("methods", {})), METHOD_LABELS.get(method, method)
+    )
+
+
 def optimiser_steps(results: list[dict[str, Any]], method: str) -> tuple[int, int] | None:
     """Fewest and most optimiser steps one motion group of `method` trained for
     over these results (each forecast job's recorded `iterations`); None when
     the method records none (it trains nothing)."""
     steps = []
     for r in results:
-        jobs = ((r.get("methods", {}).get(method, {}).get("forecast") or {}).get("jobs")) or {}
+        jobs = forecast_record(r, method).get("jobs") or {}
         for info in jobs.values():
             n = info.get("iterations") if isinstance(info, dict) else None
             if isinstance(n, (int, float)) and not isinstance(n, bool):
@@ -258,8 +270,7 @@ def steps_note(results: list[dict[str, Any]], methods: list[str]) -> str | None:
     for m in methods:
         span = optimiser_steps(results, m)
         if span is not None:
-            name = next((method_label(r, m) for r in results if m in r.get("methods", {})), METHOD_LABELS.get(m, m))
-            parts.append(f"{name} {span[0]:,}" + (f"-{span[1]:,}" if span[1] != span[0] else ""))
+            parts.append(f"{_results_label(results, m)} {span[0]:,}" + (f"-{span[1]:,}" if span[1] != span[0] else ""))
     return "Optimiser steps per motion group (recorded): " + "; ".join(parts) if parts else None
 
 
@@ -271,7 +282,7 @@ def _mark_budgets(t: Table, results: list[dict[str, Any]], methods: list[str]) -
         for r in results:
             for k, (used, ref) in budget_differences(r, m).items():
                 diffs[f"{k} (default {ref})"].add(str(used))
-        name = next((method_label(r, m) for r in results if m in r.get("methods", {})), METHOD_LABELS.get(m, m))
+        name = _results_label(results, m)
         labels[m] = name + ("*" if diffs else "")
         if diffs:
             t.notes.append(
