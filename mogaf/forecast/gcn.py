@@ -189,7 +189,7 @@ class GCNForecaster(Forecaster):
         rgt = np.stack([r[i + w : i + w + out_size] for i in range(n_win)])
 
         dev = self.device
-        with torch_determinism(self.seed, p.num_threads or None, self.device):
+        with torch_determinism(self.seed, p.num_threads or None, dev):
             # the sampling generator stays on the CPU: the same draws on every device
             gen = torch.Generator().manual_seed(self.seed)
             model = _build_model(k, pw).to(dev)  # built on the CPU: the same initial weights on every device

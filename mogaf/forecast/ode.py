@@ -193,7 +193,7 @@ class LatentODEForecaster(Forecaster):
         steps_done = 0
         loss_val = float("nan")
         dev = self.device
-        with torch_determinism(self.seed, p.num_threads or None, self.device):
+        with torch_determinism(self.seed, p.num_threads or None, dev):
             # the sampling generator stays on the CPU: the same draws on every device
             gen = torch.Generator().manual_seed(self.seed)
             model = _build_model(p, obs_len).to(dev)  # built on the CPU: the same initial weights on every device
@@ -305,7 +305,7 @@ class LatentODEForecaster(Forecaster):
         dev = self.device
         times = (torch.arange(n_steps + 1, dtype=torch.float32) * self.dt).to(dev)
         chunks_failed = 0
-        with torch_determinism(self.seed, p.num_threads or None, self.device), torch.no_grad():
+        with torch_determinism(self.seed, p.num_threads or None, dev), torch.no_grad():
             for s in range(0, g, p.rollout_chunk):
                 x = torch.from_numpy(obs[s : s + p.rollout_chunk, -self.obs_len :]).float().to(dev)
                 try:

@@ -77,7 +77,7 @@ from mogaf.forecast import quat
 from mogaf.forecast.base import torch_determinism
 from mogaf.forecast.classical import constant_twist_rollout
 from mogaf.forecast.params import MogafSettings, StructuredSettings, load_mogaf
-from mogaf.forecast.transformer_net import _build_model, mask_ratio, minibatches, optimiser_step
+from mogaf.forecast.transformer_net import _build_model, mask_ratio, minibatches, optimiser_step, span_masks
 
 # forecast.mogaf.mode picks the forecaster; forecast.mogaf.structured holds the
 # structured mode's own settings (the paper mode ignores them). Everything else
@@ -244,7 +244,7 @@ class ChannelForecaster:
         steps_ahead = np.arange(1, H + 1, dtype=np.float64)
 
         dev = self.device
-        with torch_determinism(self.seed, net.num_threads or None, self.device):
+        with torch_determinism(self.seed, net.num_threads or None, dev):
             # the sampling generator stays on the CPU: the same draws on every device
             gen = torch.Generator().manual_seed(self.seed)
             # built on the CPU: the same initial weights on every device
@@ -264,9 +264,7 @@ class ChannelForecaster:
                 mask = None
                 span = int(round(mask_ratio(net, it) * (L - 2)))  # the last two values carry the prior
                 if span > 0:
-                    starts = torch.randint(0, L - 2 - span + 1, (bs,), generator=gen)
-                    pos = torch.arange(L)[None, :]
-                    mask = ((pos >= starts[:, None]) & (pos < starts[:, None] + span)).to(dev)
+                    mask = span_masks(bs, L, span, L - 2, gen, dev)
                 velocity = x[:, -1, 0] - x[:, -2, 0]
                 pred = K[None, :] * velocity[:, None] + model(x, mask)
                 l_pred = ((pred - Y[b]) ** 2).mean()

@@ -43,7 +43,7 @@ from mogaf.forecast import quat
 from mogaf.forecast.base import Forecaster, torch_determinism
 from mogaf.forecast.params import MOGAF_DEFAULTS
 from mogaf.forecast.structured import fit_structured, structured_settings
-from mogaf.forecast.transformer_net import _build_model, mask_ratio, minibatches, optimiser_step
+from mogaf.forecast.transformer_net import _build_model, mask_ratio, minibatches, optimiser_step, span_masks
 
 DEFAULTS: dict[str, Any] = MOGAF_DEFAULTS  # forecast.params.MogafSettings
 
@@ -107,7 +107,7 @@ class MoGaFForecaster(Forecaster):
         xn, mean, std = instance_norm(xin, p.norm_eps)
 
         dev = self.device
-        with torch_determinism(self.seed, p.num_threads or None, self.device):
+        with torch_determinism(self.seed, p.num_threads or None, dev):
             # the sampling generator stays on the CPU: the same draws on every device
             gen = torch.Generator().manual_seed(self.seed)
             model = _build_model(window, p).to(dev)  # built on the CPU: the same initial weights on every device
@@ -131,9 +131,7 @@ class MoGaFForecaster(Forecaster):
                 mask = None
                 span = int(round(self.mask_ratio(it) * window))
                 if span > 0:
-                    starts = torch.randint(0, window - span + 1, (bs,), generator=gen)
-                    steps = torch.arange(window)[None, :]
-                    mask = ((steps >= starts[:, None]) & (steps < starts[:, None] + span)).to(dev)
+                    mask = span_masks(bs, window, span, window, gen, dev)
                 out = model(x, mask)  # normalised prediction of x_T
                 if normalized_loss:
                     # Both terms in the instance-normalised representation (the

@@ -130,6 +130,17 @@ def mask_ratio(p: dict[str, Any], it: int) -> float:
     return (1.0 - a) * p.mask_ratio_start + a * p.mask_ratio_end
 
 
+def span_masks(batch: int, length: int, span: int, maskable: int, gen, device):
+    """(batch, length) bool masks, each one contiguous run of `span` positions
+    starting at a random position in [0, maskable - span] (drawn from the
+    CPU generator `gen`, so every device masks the same frames), on `device`."""
+    import torch
+
+    starts = torch.randint(0, maskable - span + 1, (batch,), generator=gen)
+    pos = torch.arange(length)[None, :]
+    return ((pos >= starts[:, None]) & (pos < starts[:, None] + span)).to(device)
+
+
 def minibatches(n: int, batch: int, iterations: int, gen):
     """(iteration, indices) of every optimiser step: batches drawn without
     replacement from a permutation of range(n), a fresh one when it runs out."""
