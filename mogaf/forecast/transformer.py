@@ -81,8 +81,8 @@ class MoGaFForecaster(Forecaster):
     def _fit(self, obs: np.ndarray) -> None:
         self._check()
         if self.settings.mode == "structured":
-            # The backtest's length depends on the forecast horizon: fitted in _rollout.
-            structured_settings(self.settings)
+            # The backtest's length depends on the forecast horizon: fitted in _rollout
+            # (the settings are checked above).
             return
         self._fit_paper(obs)
 
