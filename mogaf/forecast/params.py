@@ -25,7 +25,7 @@ class StructuredSettings:
     horizon: int = setting(8, "values predicted per forward pass (multi-step head and loss)", minimum=1)
     weight_decay: float = setting(
         0.0,
-        "replaces the paper mode's 0.03: decay shrinks the residual over the prior, so a thrown sphere's fall is not learned (GT benchmark, default/sphere at 0.8: 0.102 m with 0.03, 0.021 m without)",
+        "replaces the paper mode's 0.03: decay shrinks the residual over the prior, so a thrown sphere's fall is not learned (GT benchmark, default/sphere at 0.8: 0.102 m with 0.03, 0.021 m without, measured when the backtest kept one candidate)",
         minimum=0,
     )
     rigid_residual: float = setting(
@@ -123,7 +123,7 @@ class MogafSettings:
     # --- optimisation: not in the paper; ours, sized for <= 60 s per group on 2 CPU cores ---
     iterations: int = setting(
         800,
-        "Adam steps; cost does not grow with the group size: ~20 s CPU at 1 thread for T = 36 (~28 s for T = 48), leaving ~2-3x headroom under the 60 s/group budget on a loaded 2-core machine",
+        "Adam steps per fit of the learned forecaster, both modes (structured: the backtest fit, then the refit where the learned candidate keeps a weight); cost does not grow with the group size: paper mode ~20 s CPU at 1 thread for T = 36 (~28 s for T = 48), leaving ~2-3x headroom under the 60 s/group budget on a loaded 2-core machine",
         minimum=1,
     )
     batch_size: int = setting(
