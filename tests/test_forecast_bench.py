@@ -181,6 +181,30 @@ def test_comparison_table_merges_files_and_refuses_disagreement(tmp_path, capsys
     assert "broken.json: row 0 has no epe, train_s" in capsys.readouterr().err
 
 
+def test_a_step_budget_is_its_own_column_and_only_keeps_the_named_sets(tmp_path, capsys):
+    box, cloth = {"set": "default/box", "ratio": 0.6}, {"set": "default/cloth", "ratio": 0.6}
+    paper = _bench_file(
+        tmp_path / "paper.json",
+        "paper",
+        [
+            {**box, "method": "ode", "epe": 0.3, "train_s": 300.0},
+            {**cloth, "method": "ode", "epe": 0.27, "train_s": 1.0},
+        ],
+    )
+    steps = tmp_path / "steps.json"
+    doc = json.loads(_bench_file(steps, "paper", [{**box, "method": "ode", "epe": 0.2, "train_s": 1700.0}]).read_text())
+    steps.write_text(json.dumps({**doc, "params": {"ode": {"num_threads": 1, "steps": 800}}}))
+    # the same (set, ratio, method) at two budgets: two columns, not a disagreement
+    assert bench.main(["--from-json", str(paper), "--from-json", str(steps), "--only", "*/box"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "| set | ratio | ode EPE | ode@800 EPE | ode train s | ode@800 train s |"
+    assert lines[2] == "| default/box | 0.60 | 0.3000 | **0.2000** | 300 | 1,700 |"
+    assert len([x for x in lines if x.startswith("| default/")]) == 1  # cloth left out by --only
+    assert lines[-1].startswith("@N: trained for") and lines[-1].endswith("ode@800")
+    assert bench.column_name({"budget": "cpu", "params": {"ode": {"steps": 0}}}, "ode") == "ode*"
+    assert bench.column_name({"budget": "paper", "params": {"mogaf": {"steps": 5}}}, "mogaf") == "mogaf"
+
+
 def test_docs_forecast_tables_are_made_from_the_committed_rows():
     from support.paths import REPO
 
@@ -190,6 +214,14 @@ def test_docs_forecast_tables_are_made_from_the_committed_rows():
     shown = page[page.index(start) + len(start) : page.index(end)]
     files = [bench_dir / f"forecast_gt_{name}.json" for name in ("defaults", "paper_gcn", "paper_ode")]
     assert shown == bench.markdown_report(files)
+    # the latent ODE at 800 steps beside its paper budget, on the rows it ran
+    start, end = "<!-- forecast-gt-ode-steps-table -->\n", "\n<!-- /forecast-gt-ode-steps-table -->"
+    shown = page[page.index(start) + len(start) : page.index(end)]
+    files = [bench_dir / f"forecast_gt_{name}.json" for name in ("defaults", "paper_ode")]
+    files += sorted(bench_dir.glob("forecast_gt_steps_ode_*.json"))
+    assert shown == bench.markdown_report(
+        files, only=["default/box", "default/sphere", "default/cloth", "hard/box", "hard/sphere", "hard/cloth"]
+    )
 
 
 def test_summary_counts_wins_over_the_references(tmp_path):

@@ -2,11 +2,14 @@
 the Markdown tables made from its --json files (--from-json, --summary).
 
 A baseline shortened for a CPU run (--budget cpu, the settings in REDUCED)
-is its own column, marked '*'; the same row in two files must agree.
+is its own column, marked '*'; one trained for a step budget (--params
+'{"ode": {"steps": 800}}') is its own column too, 'ode@800'. The same row in
+two files must agree.
 """
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -42,8 +45,28 @@ def format_table(rows: Sequence[Mapping[str, Any]], reduced: Mapping[str, Mappin
     return "\n".join(lines)
 
 
-def read_rows(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """(header, rows) of a --json file written by this benchmark."""
+def column_name(header: Mapping[str, Any], method: str) -> str:
+    """The table column of a method's rows in a file with this header: 'gcn*'
+    for a --budget cpu baseline, 'ode@800' for one given a step budget
+    (forecast.{gcn,ode}.steps), else the method's name."""
+    col = method + ("*" if header.get("budget") == "cpu" and method in REDUCED else "")
+    steps = ((header.get("params") or {}).get(method) or {}).get("steps") or 0
+    return col + (f"@{int(steps)}" if method in REDUCED and int(steps) > 0 else "")
+
+
+def method_of(column: str) -> str:
+    """The method a column shows ('ode@800' -> 'ode', 'gcn*' -> 'gcn')."""
+    return column.split("@")[0].rstrip("*")
+
+
+def _column_order(columns: set[str]) -> list[str]:
+    """Methods in METHODS order, each name before its shortened and its step-budget columns."""
+    return sorted(columns, key=lambda c: (METHODS.index(method_of(c)) if method_of(c) in METHODS else 99, c))
+
+
+def read_rows(path: Path, only: Sequence[str] = ()) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """(header, rows) of a --json file written by this benchmark; with `only`
+    (glob patterns), just the rows of the sets whose name matches one."""
     try:
         doc = json.loads(Path(path).read_text())
         rows = [dict(r) for r in doc["rows"]]
@@ -53,6 +76,8 @@ def read_rows(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
         missing = [k for k in ("set", "ratio", "method", "epe", "train_s") if k not in r]
         if missing:
             raise MogafError(f"{path}: row {i} has no {', '.join(missing)}")
+    if only:
+        rows = [r for r in rows if any(fnmatch.fnmatchcase(str(r["set"]), pat) for pat in only)]
     return {k: v for k, v in doc.items() if k != "rows"}, rows
 
 
@@ -60,7 +85,7 @@ def _same_number(a: float, b: float) -> bool:
     return a == b or (math.isnan(a) and math.isnan(b))
 
 
-def comparison_table(paths: Sequence[str | Path]) -> str:
+def comparison_table(paths: Sequence[str | Path], only: Sequence[str] = ()) -> str:
     """One Markdown table from several --json files: a line per (set, ratio),
     a future-EPE column per method (lowest in bold) and the training time of
     the learned methods. A baseline from a --budget cpu file is its own column,
@@ -70,12 +95,11 @@ def comparison_table(paths: Sequence[str | Path]) -> str:
     shapes: dict[tuple[str, float], tuple[Any, Any]] = {}
     columns: set[str] = set()
     for path in paths:
-        header, rows = read_rows(Path(path))
+        header, rows = read_rows(Path(path), only)
         if header.get("budget") not in ("cpu", "paper"):
             raise MogafError(f"{path}: has no budget 'cpu' or 'paper' (written before budgets were recorded?)")
         for r in rows:
-            key, method = (str(r["set"]), float(r["ratio"])), str(r["method"])
-            col = method + ("*" if header.get("budget") == "cpu" and method in REDUCED else "")
+            key, col = (str(r["set"]), float(r["ratio"])), column_name(header, str(r["method"]))
             shape = (r.get("gaussians"), r.get("observed_frames"))
             if shapes.setdefault(key, shape) != shape:
                 raise MogafError(
@@ -92,9 +116,8 @@ def comparison_table(paths: Sequence[str | Path]) -> str:
             columns.add(col)
     if not cells:
         raise MogafError("bench forecast: the --from-json files hold no rows")
-    known = [c for m in METHODS for c in (m, m + "*")]
-    order = [c for c in known if c in columns] + sorted(columns - set(known))  # methods of other versions last
-    timed = [c for c in order if c.rstrip("*") in TORCH_METHODS]
+    order = _column_order(columns)  # methods of other versions last
+    timed = [c for c in order if method_of(c) in TORCH_METHODS]
     head = ["set", "ratio"] + [f"{c} EPE" for c in order] + [f"{c} train s" for c in timed]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for (name, ratio), row in cells.items():
@@ -113,30 +136,35 @@ def comparison_table(paths: Sequence[str | Path]) -> str:
     if any(c.endswith("*") for c in order):
         lines.append("")
         lines.append("\\* shortened training (--budget cpu): " + "; ".join(f"{m}: {REDUCED[m]}" for m in REDUCED))
+    budgets = [c for c in order if "@" in c]
+    if budgets:
+        lines.append("")
+        lines.append(
+            "@N: trained for the fewest whole epochs that give each group at least N optimiser steps "
+            "(forecast.{gcn,ode}.steps): " + ", ".join(budgets)
+        )
     return "\n".join(lines)
 
 
-def _cells(paths: Sequence[str | Path]) -> dict[tuple[str, float], dict[str, dict[str, Any]]]:
+def _cells(paths: Sequence[str | Path], only: Sequence[str] = ()) -> dict[tuple[str, float], dict[str, dict[str, Any]]]:
     """(set, ratio) -> column -> row, columns named as in comparison_table
-    (a --budget cpu baseline is 'method*'); the files are checked there."""
+    (column_name); the files are checked there."""
     cells: dict[tuple[str, float], dict[str, dict[str, Any]]] = {}
     for path in paths:
-        header, rows = read_rows(Path(path))
+        header, rows = read_rows(Path(path), only)
         for r in rows:
-            col = str(r["method"]) + ("*" if header.get("budget") == "cpu" and r["method"] in REDUCED else "")
-            cells.setdefault((str(r["set"]), float(r["ratio"])), {})[col] = r
+            cells.setdefault((str(r["set"]), float(r["ratio"])), {})[column_name(header, str(r["method"]))] = r
     return cells
 
 
-def summary_table(paths: Sequence[str | Path], against: Sequence[str] = ("constant_velocity", "frozen")) -> str:
+def summary_table(
+    paths: Sequence[str | Path], against: Sequence[str] = ("constant_velocity", "frozen"), only: Sequence[str] = ()
+) -> str:
     """Per method: the mean future EPE over the rows every method in the table
     has, and on how many of its rows it beats each reference in `against`."""
-    comparison_table(paths)  # the same checks (agreeing files)
-    cells = _cells(paths)
-    columns = sorted(
-        {c for row in cells.values() for c in row},
-        key=lambda c: (METHODS.index(c.rstrip("*")) if c.rstrip("*") in METHODS else 99, c),
-    )
+    comparison_table(paths, only)  # the same checks (agreeing files)
+    cells = _cells(paths, only)
+    columns = _column_order({c for row in cells.values() for c in row})
     shared = [k for k, row in cells.items() if all(c in row for c in columns)]
     head = ["method", f"mean EPE ({len(shared)} rows with every method)"] + [f"beats {a}" for a in against]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -158,14 +186,13 @@ def summary_table(paths: Sequence[str | Path], against: Sequence[str] = ("consta
     return "\n".join(lines)
 
 
-def per_step_table(paths: Sequence[str | Path], fractions: Sequence[float] = (0.0, 0.5, 1.0)) -> str:
+def per_step_table(
+    paths: Sequence[str | Path], fractions: Sequence[float] = (0.0, 0.5, 1.0), only: Sequence[str] = ()
+) -> str:
     """Future EPE at the first, middle and last forecast step of every row and
     method that kept its per-step EPE: where a rollout goes wrong."""
-    cells = _cells(paths)
-    columns = sorted(
-        {c for row in cells.values() for c, r in row.items() if r.get("epe_per_step")},
-        key=lambda c: (METHODS.index(c.rstrip("*")) if c.rstrip("*") in METHODS else 99, c),
-    )
+    cells = _cells(paths, only)
+    columns = _column_order({c for row in cells.values() for c, r in row.items() if r.get("epe_per_step")})
     head = ["set", "ratio", "steps"] + [f"{c} EPE at steps" for c in columns]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for (name, ratio), row in cells.items():
@@ -181,7 +208,9 @@ def per_step_table(paths: Sequence[str | Path], fractions: Sequence[float] = (0.
     return "\n".join(lines)
 
 
-def markdown_report(paths: Sequence[str | Path]) -> str:
+def markdown_report(paths: Sequence[str | Path], only: Sequence[str] = ()) -> str:
     """What --from-json --summary prints: the comparison table, the summary
     (mean EPE, win counts) and the per-step EPE (docs/forecasting.md keeps it)."""
-    return "\n\n".join([comparison_table(paths), summary_table(paths), per_step_table(paths)])
+    return "\n\n".join(
+        [comparison_table(paths, only), summary_table(paths, only=only), per_step_table(paths, only=only)]
+    )

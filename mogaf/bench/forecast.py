@@ -27,7 +27,7 @@ at its defaults.
 --from-json A.json B.json ... runs nothing and prints one Markdown comparison
 table (a line per set and ratio, a column per method) from such files, e.g.
 MoGaF and the references at defaults from one run and each baseline at its
-paper budget from another.
+paper budget from another; --only keeps the rows of the sets it names.
 """
 
 from __future__ import annotations
@@ -49,9 +49,10 @@ from mogaf.errors import MogafError
 from mogaf.forecast import METHODS, fit_and_rollout, quat
 from mogaf.forecast.synthetic import TRAJECTORY_SETS
 
-from ._forecast_report import (  # noqa: F401  (read_rows, summary_table, per_step_table re-exported)
+from ._forecast_report import (  # noqa: F401  (read_rows, summary_table, per_step_table, column_name re-exported)
     REDUCED,
     TORCH_METHODS,
+    column_name,
     comparison_table,
     format_table,
     markdown_report,
@@ -202,7 +203,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="where the torch-based methods compute (auto: CUDA where torch sees it); the device used is recorded in --json",
     )
     ap.add_argument(
-        "--only", default="", help="comma-separated glob patterns: keep only the sets whose name matches one"
+        "--only",
+        default="",
+        help="comma-separated glob patterns: keep only the sets whose name matches one (with --from-json: their rows)",
     )
     ap.add_argument("--json", help="also write the rows here (rewritten after every row)")
     ap.add_argument(
@@ -225,8 +228,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(list(argv) if argv is not None else None)
 
     try:
+        patterns = [x.strip() for x in args.only.split(",") if x.strip()]
         if args.from_json:
-            print(markdown_report(args.from_json) if args.summary else comparison_table(args.from_json))
+            report = markdown_report if args.summary else comparison_table
+            print(report(args.from_json, patterns))
             return 0
         methods = [m.strip() for m in args.methods.split(",") if m.strip()]
         bad = [m for m in methods if m not in METHODS]
@@ -267,8 +272,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 raise MogafError(f"{path}: cannot read ({exc})") from None
         for spec in args.source:
             sources.update(_load_source(spec))
-        if args.only:
-            patterns = [x.strip() for x in args.only.split(",") if x.strip()]
+        if patterns:
             sources = {k: v for k, v in sources.items() if any(fnmatch.fnmatchcase(k, pat) for pat in patterns)}
         if not sources:
             raise MogafError("bench forecast: no trajectory sets selected")
