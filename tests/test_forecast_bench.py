@@ -205,21 +205,23 @@ def test_a_step_budget_is_its_own_column_and_only_keeps_the_named_sets(tmp_path,
     assert bench.column_name({"budget": "paper", "params": {"mogaf": {"steps": 5}}}, "mogaf") == "mogaf"
 
 
+def _marked_block(page, tag):
+    """The text of docs between <!-- tag --> and <!-- /tag --> lines."""
+    start, end = f"<!-- {tag} -->\n", f"\n<!-- /{tag} -->"
+    return page[page.index(start) + len(start) : page.index(end)]
+
+
 def test_docs_forecast_tables_are_made_from_the_committed_rows():
     from support.paths import REPO
 
     bench_dir = REPO / "results" / "bench"
     page = (REPO / "docs" / "forecasting.md").read_text()
-    start, end = "<!-- forecast-gt-table -->\n", "\n<!-- /forecast-gt-table -->"
-    shown = page[page.index(start) + len(start) : page.index(end)]
     files = [bench_dir / f"forecast_gt_{name}.json" for name in ("defaults", "paper_gcn", "paper_ode")]
-    assert shown == bench.markdown_report(files)
+    assert _marked_block(page, "forecast-gt-table") == bench.markdown_report(files)
     # the latent ODE at 800 steps beside its paper budget, on the rows it ran
-    start, end = "<!-- forecast-gt-ode-steps-table -->\n", "\n<!-- /forecast-gt-ode-steps-table -->"
-    shown = page[page.index(start) + len(start) : page.index(end)]
     files = [bench_dir / f"forecast_gt_{name}.json" for name in ("defaults", "paper_ode")]
     files += sorted(bench_dir.glob("forecast_gt_steps_ode_*.json"))
-    assert shown == bench.markdown_report(
+    assert _marked_block(page, "forecast-gt-ode-steps-table") == bench.markdown_report(
         files, only=["default/box", "default/sphere", "default/cloth", "hard/box", "hard/sphere", "hard/cloth"]
     )
 

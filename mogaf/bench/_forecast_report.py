@@ -45,6 +45,11 @@ def format_table(rows: Sequence[Mapping[str, Any]], reduced: Mapping[str, Mappin
     return "\n".join(lines)
 
 
+def set_selected(name: str, patterns: Sequence[str]) -> bool:
+    """Whether a set's name matches one of --only's glob patterns."""
+    return any(fnmatch.fnmatchcase(name, pat) for pat in patterns)
+
+
 def column_name(header: Mapping[str, Any], method: str) -> str:
     """The table column of a method's rows in a file with this header: 'gcn*'
     for a --budget cpu baseline, 'ode@800' for one given a step budget
@@ -77,7 +82,7 @@ def read_rows(path: Path, only: Sequence[str] = ()) -> tuple[dict[str, Any], lis
         if missing:
             raise MogafError(f"{path}: row {i} has no {', '.join(missing)}")
     if only:
-        rows = [r for r in rows if any(fnmatch.fnmatchcase(str(r["set"]), pat) for pat in only)]
+        rows = [r for r in rows if set_selected(str(r["set"]), only)]
     return {k: v for k, v in doc.items() if k != "rows"}, rows
 
 

@@ -33,7 +33,6 @@ paper budget from another; --only keeps the rows of the sets it names.
 from __future__ import annotations
 
 import argparse
-import fnmatch
 import json
 import sys
 import time
@@ -58,6 +57,7 @@ from ._forecast_report import (  # noqa: F401  (read_rows, summary_table, per_st
     markdown_report,
     per_step_table,
     read_rows,
+    set_selected,
     summary_table,
 )
 from ._forecast_sources import (  # noqa: F401  (the synthetic_* --source functions re-exported)
@@ -273,7 +273,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for spec in args.source:
             sources.update(_load_source(spec))
         if patterns:
-            sources = {k: v for k, v in sources.items() if any(fnmatch.fnmatchcase(k, pat) for pat in patterns)}
+            sources = {k: v for k, v in sources.items() if set_selected(k, patterns)}
         if not sources:
             raise MogafError("bench forecast: no trajectory sets selected")
         # the device the rows are computed on ("auto" resolved: a CPU-only machine's rows are CPU rows)
