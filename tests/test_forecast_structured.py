@@ -11,6 +11,7 @@ from mogaf.errors import MogafError
 from mogaf.forecast import fit_and_rollout, make_forecaster, quat
 from mogaf.forecast.coherence import coherence, rigid_distance_change
 from mogaf.forecast.structured import (
+    CANDIDATES,
     GroupMotion,
     WeightedCandidates,
     accumulated_rotvec,
@@ -18,6 +19,7 @@ from mogaf.forecast.structured import (
     blend_trajectories,
     fit_structured,
     integrate_rotvec,
+    local_parabola,
     rigid_decomposition,
     rigid_group_still,
     still_gaussians,
@@ -27,6 +29,9 @@ from mogaf.forecast.synthetic import add_noise, ballistic_sphere, rigid_box, wav
 
 # Small budgets: behaviour, not converged accuracy.
 QUICK = {"iterations": 60, "batch_size": 32}
+# The candidates before constant_acceleration: the tests of the network and the
+# margin use them (on a thrown sphere the exact parabola would win every backtest).
+WITHOUT_PARABOLA = ["frozen", "constant_velocity", "learned"]
 
 
 def _pairwise_change(poses: np.ndarray, last: np.ndarray) -> float:
@@ -191,7 +196,11 @@ def test_gate_keeps_the_learned_forecaster_only_by_a_margin():
             "mogaf",
             obs,
             8,
-            {**QUICK, "iterations": 60, "structured": {"combine": "select", "backtest_margin": m}},
+            {
+                **QUICK,
+                "iterations": 60,
+                "structured": {"combine": "select", "backtest_margin": m, "candidates": WITHOUT_PARABOLA},
+            },
             seed=0,
         )
         for m in (0.0, 0.1)
@@ -216,7 +225,7 @@ def test_learned_rigid_forecast_learns_a_fall():
     constant velocity misses, and the gate keeps it."""
     traj = ballistic_sphere(64, 48)
     obs, fut = traj[:, :36], traj[:, 36:]
-    res = fit_and_rollout("mogaf", obs, 12, {"iterations": 300}, seed=0)
+    res = fit_and_rollout("mogaf", obs, 12, {"iterations": 300, "structured": {"candidates": WITHOUT_PARABOLA}}, seed=0)
     cv = fit_and_rollout("constant_velocity", obs, 12)
 
     def epe(p):
@@ -267,7 +276,7 @@ def test_weighted_combination_blends_the_candidates_and_stays_rigid():
     settings = {**QUICK, "structured": {"combine": "weighted"}}  # the default
     res = fit_and_rollout("mogaf", obs, 12, settings, seed=0)
     info = res.info
-    weights = {c: info[f"backtest_weight_{c}"] for c in ("frozen", "constant_velocity", "learned")}
+    weights = {c: info[f"backtest_weight_{c}"] for c in CANDIDATES}  # every candidate, by default
     assert sum(weights.values()) == pytest.approx(1.0)
     assert info["choice"] == max(weights, key=weights.get)
     errors = {c: info[f"backtest_epe_{c}"] for c in weights}
@@ -286,7 +295,7 @@ def test_weighted_blend_is_the_weighted_mean_of_the_candidates_forecasts():
     member turns by the weighted quaternion mean of the candidates' turns."""
     obs = add_noise(rigid_box(48, 30), pos_sigma=0.002, rot_sigma=0.0)
     blend, info = fit_structured(obs, {**QUICK, "structured": {"combine": "weighted"}}, 0, True, 12)
-    assert isinstance(blend, WeightedCandidates) and len(blend.candidates) == 3
+    assert isinstance(blend, WeightedCandidates) and len(blend.candidates) == len(CANDIDATES)
     assert blend.motion.still.sum() == 0
     poses = blend.rollout(12)
     each = [c.rollout(12) for c in blend.candidates]
@@ -325,6 +334,7 @@ def test_info_records_the_decision():
         "backtest_epe_learned",
         "backtest_epe_constant_velocity",
         "backtest_epe_frozen",
+        "backtest_epe_constant_acceleration",
         "still_fraction",
     ):
         assert key in info, key
@@ -363,6 +373,54 @@ def test_bad_structured_settings_are_refused_by_name():
         make_forecaster("mogaf", {"structured": {"combine": "mean"}}).fit(obs)
     with pytest.raises(MogafError, match="backtest_margin applies to combine: select"):
         make_forecaster("mogaf", {"structured": {"backtest_margin": 0.1}}).fit(obs)
+    for bad in (["frozen", "kalman"], [], ["frozen", "frozen"]):
+        with pytest.raises(MogafError, match="candidates must be distinct names"):
+            make_forecaster("mogaf", {"structured": {"candidates": bad}}).fit(obs)
+
+
+# ---------------------------------------------------------------- constant acceleration
+def test_local_parabola_continues_a_parabola_exactly_and_averages_jitter_out():
+    t = np.arange(20, dtype=np.float64)
+    series = np.stack([3.0 - 0.5 * t + 0.02 * t**2, 1.0 + 0.1 * t, np.full(20, 7.0)])
+    future = np.arange(20, 32, dtype=np.float64)
+    want = np.stack([3.0 - 0.5 * future + 0.02 * future**2, 1.0 + 0.1 * future, np.full(12, 7.0)])
+    np.testing.assert_allclose(local_parabola(series, 16, 12), want, atol=1e-9)
+    # short series: a line through two values, the value itself for one
+    np.testing.assert_allclose(local_parabola(np.array([[1.0, 3.0]]), 16, 3), [[5.0, 7.0, 9.0]])
+    np.testing.assert_allclose(local_parabola(np.array([[4.0]]), 16, 2), [[4.0, 4.0]])
+    # a jittered last frame moves the two-frame velocity by the jitter, the fit by much less
+    rng = np.random.default_rng(0)
+    line = 0.01 * np.arange(30, dtype=np.float64)
+    noisy = line + rng.normal(0.0, 1e-3, 30)
+    noisy[-1] += 5e-3
+    truth = 0.01 * np.arange(30, 42, dtype=np.float64)
+    parabola_err = np.abs(local_parabola(noisy[None], 16, 12)[0] - truth).max()
+    velocity_err = np.abs(noisy[-1] + (noisy[-1] - noisy[-2]) * np.arange(1, 13) - truth).max()
+    assert parabola_err < 0.5 * velocity_err
+
+
+def test_constant_acceleration_carries_a_thrown_sphere_exactly_and_rigidly():
+    """A thrown, spinning sphere: its accumulated spin is a line, so the turn
+    is exact; its members' centroid (off the spin's centre) falls on a parabola
+    plus a small circle, so the fall is close. The candidate alone trains no
+    network, and the backtest of all four weighs it most."""
+    traj = ballistic_sphere(64, 48)
+    obs, fut = traj[:, :36], traj[:, 36:]
+    only, info = fit_structured(obs, {**QUICK, "structured": {"candidates": ["constant_acceleration"]}}, 0, True, 12)
+    poses = only.rollout(12)
+    assert np.all(quat.angle_between(poses[..., 3:], fut[..., 3:]) < 1e-7)
+    cv = fit_and_rollout("constant_velocity", obs, 12).poses
+
+    def epe(p):
+        return np.linalg.norm(p[..., :3] - fut[..., :3], axis=-1).mean()
+
+    assert epe(poses) < 0.1 * epe(cv)
+    assert info["choice"] == "constant_acceleration" and info["iterations"] == 0
+    assert "backtest_epe_learned" not in info
+    res = fit_and_rollout("mogaf", obs, 12, QUICK, seed=0)
+    assert res.info["choice"] == "constant_acceleration"
+    assert res.info["backtest_weight_constant_acceleration"] > 0.5
+    assert _pairwise_change(res.poses, obs[:, -1]) < 1e-9
 
 
 # ---------------------------------------------------------------- coherence figure

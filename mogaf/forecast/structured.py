@@ -40,8 +40,16 @@ output is used:
     `context` -> the next `horizon` values) of every channel, batch_size
     windows a step (`batch_tokens` is the paper mode's), and the rollout
     advances `horizon` steps per forward pass.
-  * A per-group backtest on observed frames only: each candidate (the learned
-    forecaster, constant velocity, frozen) is fitted on the first T - h frames
+  * A fourth candidate, constant acceleration: each series' least-squares
+    parabola over its last `context` values (local_parabola). A thrown body's
+    centroid and a steady spin's accumulated rotation vector are parabolas
+    (a line is one), and a fit over 16 frames is moved much less by the
+    jitter of a reconstruction's last frames than a velocity from two frames
+    or a network anchored at the last value (the demo's sphere: its
+    reconstructed apex wobbles, and both carried the wobble on).
+  * A per-group backtest on observed frames only: each candidate
+    (`candidates`: frozen, constant velocity, constant acceleration, the
+    learned forecaster) is fitted on the first T - h frames
     and scored on the last h (h = backtest_frac * T, at most the forecast
     horizon: a short backtest favours constant velocity, whose error grows
     with the horizon, over frozen and the learned forecaster). With
@@ -76,7 +84,7 @@ from mogaf.errors import MogafError
 from mogaf.forecast import quat
 from mogaf.forecast.base import torch_determinism
 from mogaf.forecast.classical import constant_twist_rollout
-from mogaf.forecast.params import MogafSettings, StructuredSettings, load_mogaf
+from mogaf.forecast.params import STRUCTURED_CANDIDATES, MogafSettings, StructuredSettings, load_mogaf
 from mogaf.forecast.transformer_net import _build_model, mask_ratio, minibatches, optimiser_step, span_masks
 
 # forecast.mogaf.mode picks the forecaster; forecast.mogaf.structured holds the
@@ -102,7 +110,7 @@ def structured_settings(p: Mapping[str, Any] | MogafSettings) -> StructuredRun:
     return StructuredRun(*load_mogaf(p))
 
 
-CANDIDATES = ("frozen", "constant_velocity", "learned")  # tie order: the simpler wins
+CANDIDATES = STRUCTURED_CANDIDATES  # tie order: the simpler wins
 
 
 # ---------------------------------------------------------------- geometry
@@ -189,6 +197,23 @@ def rigid_group_still(positions: np.ndarray, factor: float) -> np.ndarray:
     if (~still).sum() < 3:
         still[:] = False
     return still
+
+
+def local_parabola(series: np.ndarray, window: int, n_steps: int) -> np.ndarray:
+    """(S, n_steps) values after the end of `series` (S, T) on each row's
+    least-squares parabola through its last `window` values (a line through
+    two, the last value repeated with one). The fit, not the last value,
+    starts the forecast: a parabola through 16 values is less moved by the
+    jitter of the last frame than a velocity taken from two."""
+    values = np.asarray(series, dtype=np.float64)
+    W = min(int(window), values.shape[1])
+    degree = min(2, W - 1)
+    # time in units of the window, last value at 0: a well-conditioned design
+    t = np.arange(-W + 1, 1, dtype=np.float64) / max(W - 1, 1)
+    design = np.vander(t, degree + 1, increasing=True)  # (W, degree + 1)
+    coef, *_ = np.linalg.lstsq(design, values[:, -W:].T, rcond=None)  # (degree + 1, S)
+    future = np.arange(1, n_steps + 1, dtype=np.float64) / max(W - 1, 1)
+    return (np.vander(future, degree + 1, increasing=True) @ coef).T
 
 
 # ---------------------------------------------------------------- the learned part
@@ -374,6 +399,13 @@ class GroupMotion:
         m = self.obs[self.moving]
         return constant_twist_rollout(m[:, -2], m[:, -1], n)
 
+    def constant_acceleration_trajectory(self, n: int, window: int) -> np.ndarray:
+        """Each series' least-squares parabola over its last `window` values
+        (rigid: the group's centroid and accumulated rotation vector)."""
+        if not len(self.moving):
+            return self.frozen_trajectory(n)
+        return self.series_trajectory(local_parabola(self.series, window, n))
+
     def series_trajectory(self, future_series: np.ndarray) -> np.ndarray:
         """The trajectory of forecast series (same rows as self.series)."""
         n = future_series.shape[1]
@@ -442,6 +474,7 @@ class FittedCandidate:
 
     def __init__(self, name: str, motion: GroupMotion, run: StructuredRun, seed: int, device: Any = "cpu") -> None:
         self.name, self.motion = name, motion
+        self.window = int(run.own.context)  # constant_acceleration's fit window: the network's context
         self.info: dict[str, Any] = {}
         self.model: ChannelForecaster | None = None
         if name == "learned" and motion.series.shape[0]:  # (no series: every Gaussian still)
@@ -459,6 +492,8 @@ class FittedCandidate:
         m = self.motion
         if self.name == "frozen":
             return m.frozen_trajectory(n)
+        if self.name == "constant_acceleration":
+            return m.constant_acceleration_trajectory(n, self.window)
         if self.name == "constant_velocity" or self.model is None:
             return m.constant_velocity_trajectory(n)
         return m.series_trajectory(self.model.rollout(m.series, m.floor, n))
@@ -518,6 +553,7 @@ def fit_structured(
     backtest_sizes = window_sizes(T - h, context, horizon)
     weights: dict[str, float] | None = None  # combine: weighted, once backtested
     backtest_steps = 0  # the backtest's network fit, counted in the group's optimiser steps
+    candidates = [c for c in CANDIDATES if c in own.candidates]  # in tie order
     if not own.gate:
         choice = "learned" if window_sizes(T, context, horizon) else "constant_velocity"
     else:
@@ -531,23 +567,28 @@ def fit_structured(
         # backtest's size instead measured worse (GT cloth at 0.6: 0.0059 -> 0.0135 m).
         past = GroupMotion(obs[:, : T - h], rigid, own.still_factor)
         scores = {}
-        for name in CANDIDATES:
+        for name in candidates:
             candidate = FittedCandidate(name, past, run, seed, device)
             scores[name] = _score(candidate.rollout(h), obs[:, T - h :])
             info[f"backtest_epe_{name}"] = scores[name]
             backtest_steps += candidate.info.get("iterations", 0)
-        simple = min(CANDIDATES[:2], key=lambda c: (scores[c], CANDIDATES.index(c)))
-        choice = "learned" if scores["learned"] < (1.0 - own.backtest_margin) * scores[simple] else simple
+        simple = min(
+            (c for c in candidates if c != "learned"), key=lambda c: (scores[c], CANDIDATES.index(c)), default=None
+        )
+        if simple is None or ("learned" in scores and scores["learned"] < (1.0 - own.backtest_margin) * scores[simple]):
+            choice = "learned" if "learned" in scores else simple
+        else:
+            choice = simple
         info["backtest_frames"] = h
         if own.combine == "weighted":
             weights = backtest_weights(scores)
             info.update({f"backtest_weight_{c}": w for c, w in weights.items()})
-            choice = max(CANDIDATES, key=lambda c: weights[c])
+            choice = max(candidates, key=lambda c: weights[c])
     motion = GroupMotion(obs, rigid, own.still_factor, decomposition)
     info["still_fraction"] = float(motion.still.mean())
     info["choice"] = choice
     if weights is not None and max(weights.values()) < 1.0:
-        fitted_all = [FittedCandidate(c, motion, run, seed, device) for c in CANDIDATES if weights[c] > 0.0]
+        fitted_all = [FittedCandidate(c, motion, run, seed, device) for c in candidates if weights[c] > 0.0]
         for c in fitted_all:
             info.update(c.info)
         info["iterations"] = backtest_steps + sum(c.info.get("iterations", 0) for c in fitted_all)
