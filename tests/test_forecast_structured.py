@@ -29,8 +29,8 @@ from mogaf.forecast.synthetic import add_noise, ballistic_sphere, rigid_box, wav
 
 # Small budgets: behaviour, not converged accuracy.
 QUICK = {"iterations": 60, "batch_size": 32}
-# The candidates before constant_acceleration: the tests of the network and the
-# margin use them (on a thrown sphere the exact parabola would win every backtest).
+# The default candidates, named where a test depends on them (on a thrown sphere
+# the parabola of constant_acceleration would win every backtest).
 WITHOUT_PARABOLA = ["frozen", "constant_velocity", "learned"]
 
 
@@ -276,7 +276,7 @@ def test_weighted_combination_blends_the_candidates_and_stays_rigid():
     settings = {**QUICK, "structured": {"combine": "weighted"}}  # the default
     res = fit_and_rollout("mogaf", obs, 12, settings, seed=0)
     info = res.info
-    weights = {c: info[f"backtest_weight_{c}"] for c in CANDIDATES}  # every candidate, by default
+    weights = {c: info[f"backtest_weight_{c}"] for c in WITHOUT_PARABOLA}  # the default candidates
     assert sum(weights.values()) == pytest.approx(1.0)
     assert info["choice"] == max(weights, key=weights.get)
     errors = {c: info[f"backtest_epe_{c}"] for c in weights}
@@ -295,7 +295,7 @@ def test_weighted_blend_is_the_weighted_mean_of_the_candidates_forecasts():
     member turns by the weighted quaternion mean of the candidates' turns."""
     obs = add_noise(rigid_box(48, 30), pos_sigma=0.002, rot_sigma=0.0)
     blend, info = fit_structured(obs, {**QUICK, "structured": {"combine": "weighted"}}, 0, True, 12)
-    assert isinstance(blend, WeightedCandidates) and len(blend.candidates) == len(CANDIDATES)
+    assert isinstance(blend, WeightedCandidates) and len(blend.candidates) == len(WITHOUT_PARABOLA)
     assert blend.motion.still.sum() == 0
     poses = blend.rollout(12)
     each = [c.rollout(12) for c in blend.candidates]
@@ -334,11 +334,11 @@ def test_info_records_the_decision():
         "backtest_epe_learned",
         "backtest_epe_constant_velocity",
         "backtest_epe_frozen",
-        "backtest_epe_constant_acceleration",
         "still_fraction",
     ):
         assert key in info, key
     assert info["mode"] == "structured" and info["rigid_source"] == "residual"
+    assert "backtest_epe_constant_acceleration" not in info  # not a default candidate
 
 
 def test_short_observations_fall_back_without_failing():
@@ -417,7 +417,8 @@ def test_constant_acceleration_carries_a_thrown_sphere_exactly_and_rigidly():
     assert epe(poses) < 0.1 * epe(cv)
     assert info["choice"] == "constant_acceleration" and info["iterations"] == 0
     assert "backtest_epe_learned" not in info
-    res = fit_and_rollout("mogaf", obs, 12, QUICK, seed=0)
+    every = {**QUICK, "structured": {"candidates": list(CANDIDATES)}}
+    res = fit_and_rollout("mogaf", obs, 12, every, seed=0)
     assert res.info["choice"] == "constant_acceleration"
     assert res.info["backtest_weight_constant_acceleration"] > 0.5
     assert _pairwise_change(res.poses, obs[:, -1]) < 1e-9

@@ -40,16 +40,18 @@ output is used:
     `context` -> the next `horizon` values) of every channel, batch_size
     windows a step (`batch_tokens` is the paper mode's), and the rollout
     advances `horizon` steps per forward pass.
-  * A fourth candidate, constant acceleration: each series' least-squares
-    parabola over its last `context` values (local_parabola). A thrown body's
-    centroid and a steady spin's accumulated rotation vector are parabolas
-    (a line is one), and a fit over 16 frames is moved much less by the
-    jitter of a reconstruction's last frames than a velocity from two frames
-    or a network anchored at the last value (the demo's sphere: its
-    reconstructed apex wobbles, and both carried the wobble on).
+  * An optional fourth candidate (`candidates`; not in the default),
+    constant acceleration: each series' least-squares parabola over its last
+    `context` values (local_parabola). A thrown body's centroid and a steady
+    spin's accumulated rotation vector are parabolas (a line is one), and a
+    fit over 16 frames is moved much less by the jitter of a reconstruction's
+    last frames than a velocity from two frames or a network anchored at the
+    last value. It wins on ground-truth trajectories and the demo, and loses
+    on the MuJoCo scenes, whose contacts bend a parabola off within the
+    forecast (docs/forecasting.md).
   * A per-group backtest on observed frames only: each candidate
-    (`candidates`: frozen, constant velocity, constant acceleration, the
-    learned forecaster) is fitted on the first T - h frames
+    (`candidates`: by default the learned forecaster, constant velocity and
+    frozen) is fitted on the first T - h frames
     and scored on the last h (h = backtest_frac * T, at most the forecast
     horizon: a short backtest favours constant velocity, whose error grows
     with the horizon, over frozen and the learned forecaster). With
