@@ -14,6 +14,9 @@ from typing import Any, Literal
 from ..errors import MogafError
 from ..settings import defaults, load, section_schema, setting
 
+# The structured mode's candidates, simplest first: a tie goes to the simpler.
+STRUCTURED_CANDIDATES = ("frozen", "constant_velocity", "constant_acceleration", "learned")
+
 
 @dataclass(frozen=True)
 class StructuredSettings:
@@ -62,15 +65,13 @@ class StructuredSettings:
         "0.0455 and demo tracking EPE 0.127 against 0.157 m, but MuJoCo at 0.8 19.40 dB / 0.2166 against "
         "19.65 / 0.2092 (docs/forecasting.md), so it is not in the default",
         schema={
-            "items": {"enum": ["frozen", "constant_velocity", "constant_acceleration", "learned"]},
+            "items": {"enum": list(STRUCTURED_CANDIDATES)},
             "minItems": 1,
             "uniqueItems": True,
         },
     )
 
 
-# The structured mode's candidates, simplest first: a tie goes to the simpler.
-STRUCTURED_CANDIDATES = ("frozen", "constant_velocity", "constant_acceleration", "learned")
 STRUCTURED_DEFAULTS: dict[str, Any] = defaults(StructuredSettings)
 
 

@@ -577,10 +577,10 @@ def fit_structured(
         simple = min(
             (c for c in candidates if c != "learned"), key=lambda c: (scores[c], CANDIDATES.index(c)), default=None
         )
-        if simple is None or ("learned" in scores and scores["learned"] < (1.0 - own.backtest_margin) * scores[simple]):
-            choice = "learned" if "learned" in scores else simple
-        else:
-            choice = simple
+        learned_wins = "learned" in scores and (
+            simple is None or scores["learned"] < (1.0 - own.backtest_margin) * scores[simple]
+        )
+        choice = "learned" if learned_wins else simple
         info["backtest_frames"] = h
         if own.combine == "weighted":
             weights = backtest_weights(scores)
