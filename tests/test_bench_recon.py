@@ -24,6 +24,7 @@ def test_score_results_folder(tmp_path, capsys):
     # the GT points sit 0.01 from the rigid group's Gaussians and move with them
     assert row["traj_err"] == pytest.approx(0.01, abs=1e-6)
     assert row["ratio"] == 0.5 and row["wall_s"] is None and row["unseen_pct"] is None
+    assert row["vel_err_mid"] == pytest.approx(0.0, abs=1e-6) and row["vel_err_last"] == pytest.approx(0.0, abs=1e-6)
     # an ablation variant's folder: split and scene are found above it
     variant = ratio_dir / "ablation" / "rt_fast"
     variant.mkdir(parents=True)
@@ -38,3 +39,15 @@ def test_score_refuses_a_folder_that_is_not_a_results_folder(tmp_path, capsys):
         "no split.h5 and scene.h5 above it (--score takes a results/<dataset>/<scene>/ratio<r> folder"
         in capsys.readouterr().err
     )
+
+
+def test_velocity_error_sees_an_error_of_the_last_step_alone(tmp_path):
+    """A model exact but for its last observed step, shifted by 0.02: the
+    mid-window velocity error is nil, the last step's is the shift."""
+    scene_h5, split_h5 = write_scene(tmp_path / "fc", with_gt=True)
+    steps = read_split(split_h5).observed_timesteps
+    model_h5 = write_model(tmp_path / "shifted.h5", steps, last_step_shift=0.02)
+    mid, last = bench.velocity_error(scene_h5, split_h5, model_h5)
+    assert mid == pytest.approx(0.0, abs=1e-6) and last == pytest.approx(0.02, abs=1e-6)
+    # the mean position error sees it only as one step in many
+    assert bench.trajectory_error(scene_h5, split_h5, model_h5)[0] < 0.01 + 0.02 / 4

@@ -169,11 +169,31 @@ def test_layered_configs_and_ablation_variants_validate():
     import mogaf.config as mcfg
 
     base = load_config()
-    for overlay in ("paper.yaml", "demo.yaml", "mujoco.yaml", "baselines_steps.yaml"):  # overlays the docs name
-        validate(mcfg.deep_merge(base, mcfg.load_yaml(REPO / "config" / overlay)))
+    for overlay in ("paper.yaml", "demo.yaml", "mujoco.yaml", "baselines_steps.yaml", "demo_seeds.yaml"):
+        validate(mcfg.deep_merge(base, mcfg.load_yaml(REPO / "config" / overlay)))  # overlays the docs name
     variants = mcfg.load_yaml(REPO / "config" / "ablations.yaml")["variants"]
     for name in variants:
         validate(mcfg.variant_config(base, variants, name))
+
+
+def test_demo_seeds_layer_adds_scenes_and_leaves_the_demo_as_it_is():
+    """config/demo_seeds.yaml over the demo's config adds the seeded scenes and
+    changes nothing the demo scene's jobs read: its metrics.json stays make demo's."""
+    import mogaf.config as mcfg
+
+    demo = mcfg.deep_merge(load_config(), mcfg.load_yaml(REPO / "config" / "demo.yaml"))
+    seeds = mcfg.deep_merge(demo, mcfg.load_yaml(REPO / "config" / "demo_seeds.yaml"))
+    added = {"default_s1", "default_s2", "default_s3", "default_s4"}
+    assert set(seeds["datasets"]["synthetic"]["scenes"]) == set(demo["datasets"]["synthetic"]["scenes"]) | added
+    for name in demo["synthetic"]:
+        assert seeds["synthetic"][name] == demo["synthetic"][name], name
+    for name in added:
+        assert seeds["synthetic"][name]["preset"] == "default" and seeds["synthetic"][name]["seed"] > 0
+    assert {k: v for k, v in seeds["datasets"]["synthetic"].items() if k != "scenes"} == {
+        k: v for k, v in demo["datasets"]["synthetic"].items() if k != "scenes"
+    }
+    changed = {k for k in seeds if seeds[k] != demo[k]}
+    assert changed == {"datasets", "synthetic", "grid"}
 
 
 @pytest.mark.parametrize(

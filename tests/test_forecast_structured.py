@@ -19,7 +19,7 @@ from mogaf.forecast.structured import (
     blend_trajectories,
     fit_structured,
     integrate_rotvec,
-    local_parabola,
+    local_polynomial,
     rigid_decomposition,
     rigid_group_still,
     still_gaussians,
@@ -29,9 +29,11 @@ from mogaf.forecast.synthetic import add_noise, ballistic_sphere, rigid_box, wav
 
 # Small budgets: behaviour, not converged accuracy.
 QUICK = {"iterations": 60, "batch_size": 32}
-# The default candidates, named where a test depends on them (on a thrown sphere
-# the parabola of constant_acceleration would win every backtest).
-WITHOUT_PARABOLA = ["frozen", "constant_velocity", "learned"]
+# The default candidates, named where a test depends on them.
+DEFAULT_CANDIDATES = ["frozen", "linear_trend", "learned"]
+# The previous default, where a test is about the two-frame velocity (on a thrown
+# sphere the parabola of constant_acceleration would win every backtest).
+WITH_VELOCITY = ["frozen", "constant_velocity", "learned"]
 
 
 def _pairwise_change(poses: np.ndarray, last: np.ndarray) -> float:
@@ -199,7 +201,12 @@ def test_gate_keeps_the_learned_forecaster_only_by_a_margin():
             {
                 **QUICK,
                 "iterations": 60,
-                "structured": {"combine": "select", "backtest_margin": m, "candidates": WITHOUT_PARABOLA},
+                "structured": {
+                    "combine": "select",
+                    "backtest_margin": m,
+                    "candidates": WITH_VELOCITY,
+                    "drift_check": False,
+                },
             },
             seed=0,
         )
@@ -225,7 +232,7 @@ def test_learned_rigid_forecast_learns_a_fall():
     constant velocity misses, and the gate keeps it."""
     traj = ballistic_sphere(64, 48)
     obs, fut = traj[:, :36], traj[:, 36:]
-    res = fit_and_rollout("mogaf", obs, 12, {"iterations": 300, "structured": {"candidates": WITHOUT_PARABOLA}}, seed=0)
+    res = fit_and_rollout("mogaf", obs, 12, {"iterations": 300, "structured": {"candidates": WITH_VELOCITY}}, seed=0)
     cv = fit_and_rollout("constant_velocity", obs, 12)
 
     def epe(p):
@@ -276,10 +283,12 @@ def test_weighted_combination_blends_the_candidates_and_stays_rigid():
     settings = {**QUICK, "structured": {"combine": "weighted"}}  # the default
     res = fit_and_rollout("mogaf", obs, 12, settings, seed=0)
     info = res.info
-    weights = {c: info[f"backtest_weight_{c}"] for c in WITHOUT_PARABOLA}  # the default candidates
+    weights = {c: info[f"backtest_weight_{c}"] for c in DEFAULT_CANDIDATES}
     assert sum(weights.values()) == pytest.approx(1.0)
     assert info["choice"] == max(weights, key=weights.get)
     errors = {c: info[f"backtest_epe_{c}"] for c in weights}
+    # the learned candidate is scored with its refit drift (drift_check, on by default)
+    errors["learned"] = float(np.hypot(errors["learned"], info["learned_refit_drift"]))
     assert weights == pytest.approx(backtest_weights(errors))
     assert _pairwise_change(res.poses, obs[:, -1]) < 1e-9
     # the blend lies between the candidates: not the selected one alone
@@ -295,7 +304,7 @@ def test_weighted_blend_is_the_weighted_mean_of_the_candidates_forecasts():
     member turns by the weighted quaternion mean of the candidates' turns."""
     obs = add_noise(rigid_box(48, 30), pos_sigma=0.002, rot_sigma=0.0)
     blend, info = fit_structured(obs, {**QUICK, "structured": {"combine": "weighted"}}, 0, True, 12)
-    assert isinstance(blend, WeightedCandidates) and len(blend.candidates) == len(WITHOUT_PARABOLA)
+    assert isinstance(blend, WeightedCandidates) and len(blend.candidates) == len(DEFAULT_CANDIDATES)
     assert blend.motion.still.sum() == 0
     poses = blend.rollout(12)
     each = [c.rollout(12) for c in blend.candidates]
@@ -315,7 +324,7 @@ def test_an_exact_backtest_takes_all_the_weight():
     exactly."""
     obs = _resting_box(64, 30, 10)  # a 10-step forecast backtests the last 10 frames
     res = fit_and_rollout("mogaf", obs, 10, {**QUICK, "structured": {"combine": "weighted"}}, seed=0)
-    assert res.info["backtest_epe_frozen"] == 0.0 and res.info["backtest_epe_constant_velocity"] > 1e-3
+    assert res.info["backtest_epe_frozen"] == 0.0 and res.info["backtest_epe_linear_trend"] > 1e-3
     assert res.info["backtest_weight_frozen"] == 1.0 and res.info["choice"] == "frozen"
     np.testing.assert_array_equal(res.poses[..., :3], np.repeat(obs[:, -1:, :3], 10, axis=1))
     np.testing.assert_allclose(res.poses, np.repeat(obs[:, -1:], 10, axis=1), atol=1e-12)  # quaternions renormalised
@@ -332,13 +341,18 @@ def test_info_records_the_decision():
         "choice",
         "backtest_frames",
         "backtest_epe_learned",
-        "backtest_epe_constant_velocity",
+        "backtest_epe_linear_trend",
         "backtest_epe_frozen",
+        "learned_refit_drift",
         "still_fraction",
+        "iterations",
     ):
         assert key in info, key
     assert info["mode"] == "structured" and info["rigid_source"] == "residual"
-    assert "backtest_epe_constant_acceleration" not in info  # not a default candidate
+    for other in ("constant_velocity", "constant_acceleration"):  # not default candidates
+        assert f"backtest_epe_{other}" not in info
+    # the backtest's network, then the refit the drift check compares it with (kept, not fitted again)
+    assert info["iterations"] == 2 * QUICK["iterations"]
 
 
 def test_short_observations_fall_back_without_failing():
@@ -371,6 +385,8 @@ def test_bad_structured_settings_are_refused_by_name():
         make_forecaster("mogaf", {"structured": {"context": 1}}).fit(obs)
     with pytest.raises(MogafError, match="combine"):
         make_forecaster("mogaf", {"structured": {"combine": "mean"}}).fit(obs)
+    with pytest.raises(MogafError, match="trend_window"):
+        make_forecaster("mogaf", {"structured": {"trend_window": 1}}).fit(obs)
     with pytest.raises(MogafError, match="backtest_margin applies to combine: select"):
         make_forecaster("mogaf", {"structured": {"backtest_margin": 0.1}}).fit(obs)
     for bad in (["frozen", "kalman"], [], ["frozen", "frozen"]):
@@ -378,25 +394,92 @@ def test_bad_structured_settings_are_refused_by_name():
             make_forecaster("mogaf", {"structured": {"candidates": bad}}).fit(obs)
 
 
-# ---------------------------------------------------------------- constant acceleration
-def test_local_parabola_continues_a_parabola_exactly_and_averages_jitter_out():
+# ---------------------------------------------------------------- polynomial candidates
+def test_local_polynomial_continues_its_curve_exactly_and_averages_jitter_out():
     t = np.arange(20, dtype=np.float64)
     series = np.stack([3.0 - 0.5 * t + 0.02 * t**2, 1.0 + 0.1 * t, np.full(20, 7.0)])
     future = np.arange(20, 32, dtype=np.float64)
     want = np.stack([3.0 - 0.5 * future + 0.02 * future**2, 1.0 + 0.1 * future, np.full(12, 7.0)])
-    np.testing.assert_allclose(local_parabola(series, 16, 12), want, atol=1e-9)
+    np.testing.assert_allclose(local_polynomial(series, 16, 2, 12), want, atol=1e-9)
+    # a line continues the lines exactly (the parabola is no line: its row is not)
+    np.testing.assert_allclose(local_polynomial(series, 8, 1, 12)[1:], want[1:], atol=1e-9)
     # short series: a line through two values, the value itself for one
-    np.testing.assert_allclose(local_parabola(np.array([[1.0, 3.0]]), 16, 3), [[5.0, 7.0, 9.0]])
-    np.testing.assert_allclose(local_parabola(np.array([[4.0]]), 16, 2), [[4.0, 4.0]])
-    # a jittered last frame moves the two-frame velocity by the jitter, the fit by much less
+    np.testing.assert_allclose(local_polynomial(np.array([[1.0, 3.0]]), 16, 2, 3), [[5.0, 7.0, 9.0]])
+    np.testing.assert_allclose(local_polynomial(np.array([[4.0]]), 16, 1, 2), [[4.0, 4.0]])
+    # a jittered last frame moves the two-frame velocity by the jitter, either fit by much less
     rng = np.random.default_rng(0)
     line = 0.01 * np.arange(30, dtype=np.float64)
     noisy = line + rng.normal(0.0, 1e-3, 30)
     noisy[-1] += 5e-3
     truth = 0.01 * np.arange(30, 42, dtype=np.float64)
-    parabola_err = np.abs(local_parabola(noisy[None], 16, 12)[0] - truth).max()
     velocity_err = np.abs(noisy[-1] + (noisy[-1] - noisy[-2]) * np.arange(1, 13) - truth).max()
-    assert parabola_err < 0.5 * velocity_err
+    for window, degree in ((16, 2), (8, 1)):
+        fit_err = np.abs(local_polynomial(noisy[None], window, degree, 12)[0] - truth).max()
+        assert fit_err < 0.5 * velocity_err, (window, degree)
+
+
+def _uniform_box(g: int, t: int) -> np.ndarray:
+    """A box sliding at a constant velocity while it spins at a constant rate
+    about its own centre: each series (centroid, accumulated rotation vector)
+    is a line, though the body's twist is not constant."""
+    from mogaf.forecast.synthetic import rigid_motion
+
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-0.2, 0.2, (g, 3))
+    pts -= pts.mean(axis=0)  # it spins about its centroid
+    q0 = quat.canonical_sign(quat.normalize(rng.normal(size=(g, 4))))
+    k = np.arange(t, dtype=np.float64)
+    rot = quat.from_axis_angle(np.broadcast_to([0.3, 1.0, -0.2], (t, 3)), 0.06 * k)
+    return rigid_motion(pts, q0, np.zeros(3), rot, k[:, None] * np.array([0.02, -0.01, 0.005]))
+
+
+def test_linear_trend_is_exact_on_uniform_motion_and_steadier_than_the_last_step():
+    """The linear_trend candidate continues a sliding, spinning box exactly and
+    rigidly; when the last observed frame is off (a reconstruction's least
+    constrained frame), it moves much less than the last step's velocity does."""
+    traj = _uniform_box(48, 40)
+    obs, fut = traj[:, :30], traj[:, 30:]
+    settings = {**QUICK, "structured": {"candidates": ["linear_trend"]}}
+    trend, info = fit_structured(obs, settings, 0, True, 10)
+    poses = trend.rollout(10)
+    np.testing.assert_allclose(poses[..., :3], fut[..., :3], atol=1e-9)
+    assert np.all(quat.angle_between(poses[..., 3:], fut[..., 3:]) < 1e-9)
+    assert info["iterations"] == 0 and _pairwise_change(poses, obs[:, -1]) < 1e-9
+    # the last frame displaced by 1.5 steps' travel along x
+    bad = obs.copy()
+    bad[:, -1, 0] += 0.03
+
+    def epe(p):
+        return np.linalg.norm(p[..., :3] - fut[..., :3], axis=-1).mean()
+
+    trend_err = epe(fit_structured(bad, settings, 0, True, 10)[0].rollout(10))
+    velocity_err = epe(fit_and_rollout("constant_velocity", bad, 10).poses)
+    assert trend_err < 0.25 * velocity_err
+
+
+def test_drift_check_discounts_a_refit_that_learns_the_last_frames_artefact():
+    """A box that slides uniformly, but whose last frames speed up (an end
+    artefact of a reconstruction): the network backtested on the first frames
+    saw none of it, the refit learns it. Their forecasts part far more than on
+    the clean box; the drift raises the learned candidate's score, so it weighs
+    less than without the check, and the weights are those of the combined
+    scores."""
+    traj = _uniform_box(48, 36)
+    ramp = np.zeros(36)
+    ramp[-8:] = 0.008 * np.arange(1, 9) ** 2  # the last 8 frames accelerate away along x
+    obs = traj.copy()
+    obs[:, :, 0] += ramp
+    base = {**QUICK, "iterations": 200}
+    on = fit_and_rollout("mogaf", obs, 12, base, seed=0, rigid=True).info
+    off = fit_and_rollout("mogaf", obs, 12, {**base, "structured": {"drift_check": False}}, seed=0, rigid=True).info
+    clean = fit_and_rollout("mogaf", traj, 12, base, seed=0, rigid=True).info
+    assert "learned_refit_drift" not in off
+    assert on["backtest_epe_learned"] == off["backtest_epe_learned"]  # the same backtested network
+    assert clean["learned_refit_drift"] < 0.1 * on["learned_refit_drift"]
+    assert on["backtest_weight_learned"] < off["backtest_weight_learned"]
+    scores = {c: on[f"backtest_epe_{c}"] for c in DEFAULT_CANDIDATES}
+    scores["learned"] = float(np.hypot(scores["learned"], on["learned_refit_drift"]))
+    assert {c: on[f"backtest_weight_{c}"] for c in DEFAULT_CANDIDATES} == pytest.approx(backtest_weights(scores))
 
 
 def test_constant_acceleration_carries_a_thrown_sphere_exactly_and_rigidly():

@@ -18,7 +18,11 @@ the scene has one), and for the synthetic scene the 3D trajectory error:
 for every ground-truth surface point, the nearest fg Gaussian (opacity >
 0.1) at the canonical time step; the mean distance between the two
 trajectories over the observed steps, in metres and in % of the scene extent
-(diagonal of the bounding box of the ground-truth points over those steps).
+(diagonal of the bounding box of the ground-truth points over those steps),
+and the error of those trajectories' per-step displacement (their velocity)
+over the middle half of the observed steps and at the last one: forecasts
+extrapolate from the last step, which a reconstruction constrains from one
+side only.
 """
 
 from __future__ import annotations
@@ -99,8 +103,9 @@ def heldout_psnr(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[float,
     return float(np.mean(ps)), (float(np.mean(mps)) if mps else None), (float(np.mean(unseen)) if unseen else None)
 
 
-def trajectory_error(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[float, float] | None:
-    """Mean 3D distance (scene units, % of extent) between GT surface-point and matched Gaussian trajectories."""
+def _matched_trajectories(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """GT surface-point trajectories (P, T_obs, 3) and those of their nearest fg
+    Gaussians (opacity > 0.1) at the canonical step; None without GT points."""
     from scipy.spatial import cKDTree
 
     split = read_split(split_h5)
@@ -115,10 +120,35 @@ def trajectory_error(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[fl
     sel = np.flatnonzero(opac > 0.1)
     traj = np.asarray(model.trajectory_means, dtype=np.float64)[sel]  # (N, T, 3)
     _, nn = cKDTree(traj[:, k]).query(pts[:, k])
-    err = np.linalg.norm(traj[nn] - pts, axis=-1).mean()
+    return pts, traj[nn]
+
+
+def trajectory_error(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[float, float] | None:
+    """Mean 3D distance (scene units, % of extent) between GT surface-point and matched Gaussian trajectories."""
+    matched = _matched_trajectories(scene_h5, split_h5, recon_h5)
+    if matched is None:
+        return None
+    pts, traj = matched
+    err = np.linalg.norm(traj - pts, axis=-1).mean()
     flat = pts.reshape(-1, 3)
     extent = float(np.linalg.norm(flat.max(0) - flat.min(0)))
     return float(err), float(100.0 * err / extent)
+
+
+def velocity_error(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[float, float] | None:
+    """Error of the matched Gaussians' per-step displacement against the GT
+    points' (scene units per step), averaged over the points: over the middle
+    half of the observed steps, and at the last step, the one forecasts
+    extrapolate from (a reconstruction constrains it from one side only).
+    None without GT points or with fewer than 4 observed steps."""
+    matched = _matched_trajectories(scene_h5, split_h5, recon_h5)
+    if matched is None or matched[0].shape[1] < 4:
+        return None
+    pts, traj = matched
+    err = np.linalg.norm(np.diff(traj, axis=1) - np.diff(pts, axis=1), axis=-1).mean(axis=0)  # (T - 1,)
+    interior = err[1:-1]  # without the steps at either end (at least one is left)
+    n = interior.size
+    return float(interior[n // 4 : n - n // 4].mean()), float(err[-1])
 
 
 def run_case(
@@ -139,6 +169,7 @@ def score_model(name: str, scene_h5: Path, split_h5: Path, model_h5: Path) -> di
     model = load_model(model_h5)
     ho, mho, unseen = heldout_psnr(scene_h5, split_h5, model_h5)
     traj = trajectory_error(scene_h5, split_h5, model_h5)
+    vel = velocity_error(scene_h5, split_h5, model_h5)
     return {
         "scene": name,
         "ratio": read_split(split_h5).ratio,
@@ -151,6 +182,8 @@ def score_model(name: str, scene_h5: Path, split_h5: Path, model_h5: Path) -> di
         "unseen_pct": unseen,
         "traj_err": None if traj is None else traj[0],
         "traj_err_pct": None if traj is None else traj[1],
+        "vel_err_mid": None if vel is None else vel[0],
+        "vel_err_last": None if vel is None else vel[1],
         "load": None,
     }
 
@@ -178,7 +211,7 @@ def _fmt(v: Any, spec: str) -> str:
 def print_table(rows: list[dict[str, Any]]) -> None:
     head = (
         f"{'scene':28s} {'ratio':>5s} {'iters':>6s} {'gauss':>7s} {'wall s':>7s} {'train':>6s} {'heldout':>7s} "
-        f"{'h-mPSNR':>7s} {'unseen%':>7s} {'traj err':>9s} {'traj %':>6s} {'load':>9s}"
+        f"{'h-mPSNR':>7s} {'unseen%':>7s} {'traj err':>9s} {'traj %':>6s} {'vel mid':>8s} {'vel last':>8s} {'load':>9s}"
     )
     print(head)
     print("-" * len(head))
@@ -187,12 +220,14 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         print(
             f"{r['scene']:28s} {r['ratio']:5.2f} {r['iterations']:6d} {r['gaussians']:7d} {_fmt(r['wall_s'], '7.1f')} "
             f"{r['train_psnr']:6.2f} {r['heldout_psnr']:7.2f} {_fmt(r['heldout_mpsnr'], '7.2f')} "
-            f"{_fmt(r['unseen_pct'], '7.1f')} {_fmt(r['traj_err'], '9.4f')} {_fmt(r['traj_err_pct'], '6.2f')} {load:>9s}"
+            f"{_fmt(r['unseen_pct'], '7.1f')} {_fmt(r['traj_err'], '9.4f')} {_fmt(r['traj_err_pct'], '6.2f')} "
+            f"{_fmt(r.get('vel_err_mid'), '8.4f')} {_fmt(r.get('vel_err_last'), '8.4f')} {load:>9s}"
         )
     print(
         "PSNR in dB; held-out = evaluation_observed frames; h-mPSNR with the co-visibility mask; unseen% = held-out "
         "pixels the training camera never sees (outside that mask); traj err in scene units (synthetic: metres) and % "
-        "of the GT points' bounding-box diagonal; load = 1-min load average at start/end."
+        "of the GT points' bounding-box diagonal; vel mid / vel last = error of the per-step displacement (scene units) "
+        "over the middle half of the observed steps / at the last one; load = 1-min load average at start/end."
     )
 
 

@@ -15,7 +15,7 @@ from ..errors import MogafError
 from ..settings import defaults, load, section_schema, setting
 
 # The structured mode's candidates, simplest first: a tie goes to the simpler.
-STRUCTURED_CANDIDATES = ("frozen", "constant_velocity", "constant_acceleration", "learned")
+STRUCTURED_CANDIDATES = ("frozen", "constant_velocity", "linear_trend", "constant_acceleration", "learned")
 
 
 @dataclass(frozen=True)
@@ -37,7 +37,7 @@ class StructuredSettings:
     still_factor: float = setting(
         3.0, "non-rigid groups: a Gaussian moving less than this x the noise level stays still", minimum=0
     )
-    gate: bool = setting(True, "backtest the learned forecaster against constant velocity and frozen per group")
+    gate: bool = setting(True, "backtest the candidates per group (false: the learned forecaster alone)")
     backtest_frac: float = setting(
         0.5,
         "the backtest holds back this share of the observed frames, at most the forecast horizon",
@@ -58,17 +58,32 @@ class StructuredSettings:
         65536, "training windows kept per fit (random, seeded): bounds memory for big groups", minimum=1
     )
     candidates: list = setting(
-        ["frozen", "constant_velocity", "learned"],
-        "what the backtest weighs (or selects among): any of frozen, constant_velocity, constant_acceleration "
-        "(each series' least-squares parabola over its last `context` values) and learned, at least one. "
-        "Adding constant_acceleration (the `constant_acceleration` variant) measured: GT mean EPE 0.0391 m against "
-        "0.0455 and demo tracking EPE 0.127 against 0.157 m, but MuJoCo at 0.8 19.40 dB / 0.2166 against "
-        "19.65 / 0.2092 (docs/forecasting.md), so it is not in the default",
+        ["frozen", "linear_trend", "learned"],
+        "what the backtest weighs (or selects among): any of frozen, constant_velocity (the last step's velocity; "
+        "a rigid group's last twist), linear_trend (each series' least-squares line through its last `trend_window` "
+        "values), constant_acceleration (each series' least-squares parabola through its last `context` values) and "
+        "learned, at least one. linear_trend replaced constant_velocity in the default: a reconstruction's last "
+        "step is its least constrained (docs/benchmarks.md, 'Where reconstructed motion is least accurate'); "
+        "measured in docs/forecasting.md ('Robust to the reconstruction's last frames'). constant_acceleration "
+        "(the `constant_acceleration` variant) won on GT trajectories and lost on the MuJoCo scenes",
         schema={
             "items": {"enum": list(STRUCTURED_CANDIDATES)},
             "minItems": 1,
             "uniqueItems": True,
         },
+    )
+    trend_window: int = setting(
+        8,
+        "values the linear_trend candidate fits its line through (2 = constant velocity per series). 16 (the "
+        "network's context) measured worse: GT mean EPE 0.059 against 0.049 m (docs/forecasting.md)",
+        minimum=2,
+    )
+    drift_check: bool = setting(
+        True,
+        "the learned candidate's backtest error is combined (root sum of squares) with its refit drift: the mean "
+        "distance, over the backtest's length, between the forecasts of the network refitted on every observed "
+        "frame and of the backtested network. The backtest judges a network fitted on the first T - h frames; "
+        "the refit also learns the last h, where a reconstruction is least accurate, and can run off there",
     )
 
 

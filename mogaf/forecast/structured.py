@@ -35,38 +35,48 @@ output is used:
     untrained model is that per-channel constant velocity. (For a rigid group
     this is not the body's constant twist when it turns about an axis away
     from its centroid, a hinged lid say: the centroid then moves on a circle.
-    The constant-twist candidate below carries such a motion exactly, and the
-    backtest weighs the two.) It trains on every sub-window (context
-    `context` -> the next `horizon` values) of every channel, batch_size
-    windows a step (`batch_tokens` is the paper mode's), and the rollout
-    advances `horizon` steps per forward pass.
-  * An optional fourth candidate (`candidates`; not in the default),
-    constant acceleration: each series' least-squares parabola over its last
-    `context` values (local_parabola). A thrown body's centroid and a steady
-    spin's accumulated rotation vector are parabolas (a line is one), and a
-    fit over 16 frames is moved much less by the jitter of a reconstruction's
-    last frames than a velocity from two frames or a network anchored at the
-    last value. It wins on ground-truth trajectories and the demo, and loses
-    on the MuJoCo scenes, whose contacts bend a parabola off within the
-    forecast (docs/forecasting.md).
+    The constant_velocity candidate below, a rigid group's last twist,
+    carries such a motion exactly; it is not in the default.) It trains on
+    every sub-window (context `context` -> the next `horizon` values) of
+    every channel, batch_size windows a step (`batch_tokens` is the paper
+    mode's), and the rollout advances `horizon` steps per forward pass.
+  * Candidates the network is weighed against, all fitted per series like it
+    (a rigid group's centroid and accumulated rotation vector): frozen, and a
+    least-squares line through each series' last `trend_window` values
+    (linear_trend, the default's) rather than the last step's velocity
+    (constant_velocity, a rigid group's last twist; selectable). A
+    reconstruction's last frames are its least constrained (one-sided
+    smoothing, occlusion at the end: the last step's velocity error measured
+    1.6-2.7x the mid-window one on five reconstructions of the demo scene,
+    `python -m mogaf.bench recon --score`), and a line through 8 values is
+    much less moved by them than a velocity from two. Optional,
+    not in the default: constant acceleration, each series' least-squares
+    parabola over its last `context` values. It wins on ground-truth
+    trajectories and loses on the MuJoCo scenes, whose contacts bend a
+    parabola off within the forecast (docs/forecasting.md).
   * A per-group backtest on observed frames only: each candidate
-    (`candidates`: by default the learned forecaster, constant velocity and
-    frozen) is fitted on the first T - h frames
-    and scored on the last h (h = backtest_frac * T, at most the forecast
-    horizon: a short backtest favours constant velocity, whose error grows
-    with the horizon, over frozen and the learned forecaster). With
+    (`candidates`) is fitted on the first T - h frames and scored on the
+    last h (h = backtest_frac * T, at most the forecast horizon: a short
+    backtest favours extrapolation, whose error grows with the horizon, over
+    frozen and the learned forecaster). The learned candidate's score is
+    combined (root sum of squares) with its refit drift (`drift_check`): the
+    distance over h steps between the forecasts of the network refitted on
+    all T frames and of the backtested one. The backtest judges a network
+    that never saw the last h frames; the refit learns them too, and on a
+    reconstruction can learn their artefacts as motion and run off. With
     `combine: weighted` (the default) every candidate is refitted on all T
     frames and the forecast is their mean weighted by the inverse squared
-    backtest error: one backtest window is a noisy judge, and a choice won
-    by a few percent often does not hold in the future. A rigid group's
-    candidates blend as one group pose, so the blend stays rigid. With
-    `combine: select` the best alone is refitted and rolled out (with
+    score: one backtest window is a noisy judge, and a choice won by a few
+    percent often does not hold in the future. A rigid group's candidates
+    blend as one group pose, so the blend stays rigid. With `combine:
+    select` the best alone is refitted and rolled out (with
     `backtest_margin` > 0, the learned forecaster only when it scores that
-    share below the better of the other two). The scores, the weights and
-    the choice (the heaviest candidate) are recorded in the forecast's info.
-    Without enough frames for a backtest the group keeps constant velocity.
-    The decision depends on the forecast length (h does), so the first k
-    steps of a longer forecast need not equal a k-step forecast.
+    share below the best other candidate). The scores, the drift, the
+    weights and the choice (the heaviest candidate) are recorded in the
+    forecast's info. Without enough frames for a backtest the group keeps
+    constant velocity. The decision depends on the forecast length (h
+    does), so the first k steps of a longer forecast need not equal a
+    k-step forecast.
 
 Known limit: a rigid group whose members lie on one line has no observable
 rotation about that line; Procrustes then picks one, which can turn the
@@ -201,15 +211,16 @@ def rigid_group_still(positions: np.ndarray, factor: float) -> np.ndarray:
     return still
 
 
-def local_parabola(series: np.ndarray, window: int, n_steps: int) -> np.ndarray:
+def local_polynomial(series: np.ndarray, window: int, degree: int, n_steps: int) -> np.ndarray:
     """(S, n_steps) values after the end of `series` (S, T) on each row's
-    least-squares parabola through its last `window` values (a line through
-    two, the last value repeated with one). The fit, not the last value,
-    starts the forecast: a parabola through 16 values is less moved by the
-    jitter of the last frame than a velocity taken from two."""
+    least-squares polynomial of `degree` (1: a line, 2: a parabola) through
+    its last `window` values (of lower degree when fewer values are there:
+    a line through two, the last value repeated with one). The fit, not the
+    last value, starts the forecast: a fit through several values is less
+    moved by the error of the last frame than a velocity taken from two."""
     values = np.asarray(series, dtype=np.float64)
     W = min(int(window), values.shape[1])
-    degree = min(2, W - 1)
+    degree = min(int(degree), W - 1)
     # time in units of the window, last value at 0: a well-conditioned design
     t = np.arange(-W + 1, 1, dtype=np.float64) / max(W - 1, 1)
     design = np.vander(t, degree + 1, increasing=True)  # (W, degree + 1)
@@ -401,12 +412,13 @@ class GroupMotion:
         m = self.obs[self.moving]
         return constant_twist_rollout(m[:, -2], m[:, -1], n)
 
-    def constant_acceleration_trajectory(self, n: int, window: int) -> np.ndarray:
-        """Each series' least-squares parabola over its last `window` values
-        (rigid: the group's centroid and accumulated rotation vector)."""
+    def polynomial_trajectory(self, n: int, window: int, degree: int) -> np.ndarray:
+        """Each series' least-squares polynomial through its last `window`
+        values (rigid: the group's centroid and accumulated rotation vector):
+        degree 1 is the linear_trend candidate, 2 constant_acceleration."""
         if not len(self.moving):
             return self.frozen_trajectory(n)
-        return self.series_trajectory(local_parabola(self.series, window, n))
+        return self.series_trajectory(local_polynomial(self.series, window, degree, n))
 
     def series_trajectory(self, future_series: np.ndarray) -> np.ndarray:
         """The trajectory of forecast series (same rows as self.series)."""
@@ -471,15 +483,33 @@ def backtest_weights(scores: Mapping[str, float]) -> dict[str, float]:
     return {c: float(v) for c, v in zip(names, w, strict=True)}
 
 
-class FittedCandidate:
-    """A candidate fitted on a GroupMotion; rollout(n) gives member poses (G, n, 7)."""
+# Least-squares polynomial candidates: (degree, the setting naming their window).
+POLYNOMIAL_CANDIDATES = {"linear_trend": (1, "trend_window"), "constant_acceleration": (2, "context")}
 
-    def __init__(self, name: str, motion: GroupMotion, run: StructuredRun, seed: int, device: Any = "cpu") -> None:
+
+class FittedCandidate:
+    """A candidate fitted on a GroupMotion; rollout(n) gives member poses (G, n, 7).
+    `model`: for learned, a network already fitted (on other frames) to use
+    instead of fitting one on `motion`."""
+
+    def __init__(
+        self,
+        name: str,
+        motion: GroupMotion,
+        run: StructuredRun,
+        seed: int,
+        device: Any = "cpu",
+        model: ChannelForecaster | None = None,
+    ) -> None:
         self.name, self.motion = name, motion
-        self.window = int(run.own.context)  # constant_acceleration's fit window: the network's context
+        self.polynomial = (
+            (POLYNOMIAL_CANDIDATES[name][0], int(getattr(run.own, POLYNOMIAL_CANDIDATES[name][1])))
+            if name in POLYNOMIAL_CANDIDATES
+            else None
+        )
         self.info: dict[str, Any] = {}
-        self.model: ChannelForecaster | None = None
-        if name == "learned" and motion.series.shape[0]:  # (no series: every Gaussian still)
+        self.model = model
+        if name == "learned" and model is None and motion.series.shape[0]:  # (no series: every Gaussian still)
             self.model = ChannelForecaster(run, seed, device).fit(motion.series, motion.floor)
             self.info = {
                 "iterations": int(run.net.iterations),
@@ -494,8 +524,9 @@ class FittedCandidate:
         m = self.motion
         if self.name == "frozen":
             return m.frozen_trajectory(n)
-        if self.name == "constant_acceleration":
-            return m.constant_acceleration_trajectory(n, self.window)
+        if self.polynomial is not None:
+            degree, window = self.polynomial
+            return m.polynomial_trajectory(n, window, degree)
         if self.name == "constant_velocity" or self.model is None:
             return m.constant_velocity_trajectory(n)
         return m.series_trajectory(self.model.rollout(m.series, m.floor, n))
@@ -562,6 +593,8 @@ def fit_structured(
         # Too few frames to backtest: nothing shows the learned forecaster is
         # better, so the group keeps its constant velocity.
         choice = "constant_velocity"
+    motion = GroupMotion(obs, rigid, own.still_factor, decomposition)
+    refit_learned: FittedCandidate | None = None  # the drift check's refit, kept for the forecast
     if own.gate and backtest_sizes is not None:
         # Backtest on observed frames only: fit on the first T - h, score on the last h.
         # On short observations the backtested network reads a shorter context
@@ -569,11 +602,23 @@ def fit_structured(
         # backtest's size instead measured worse (GT cloth at 0.6: 0.0059 -> 0.0135 m).
         past = GroupMotion(obs[:, : T - h], rigid, own.still_factor)
         scores = {}
+        backtested = {}
         for name in candidates:
-            candidate = FittedCandidate(name, past, run, seed, device)
-            scores[name] = _score(candidate.rollout(h), obs[:, T - h :])
+            backtested[name] = FittedCandidate(name, past, run, seed, device)
+            scores[name] = _score(backtested[name].rollout(h), obs[:, T - h :])
             info[f"backtest_epe_{name}"] = scores[name]
-            backtest_steps += candidate.info.get("iterations", 0)
+            backtest_steps += backtested[name].info.get("iterations", 0)
+        learned_net = backtested["learned"].model if "learned" in backtested else None
+        if own.drift_check and learned_net is not None and motion.series.shape[0] and np.isfinite(scores["learned"]):
+            # The backtest judged a network that never saw the last h frames; the one
+            # deployed is refitted on them. How far the two forecasts part is error
+            # the backtest could not see (a reconstruction's last frames are its least
+            # accurate, and a network can learn their artefacts as motion).
+            refit_learned = FittedCandidate("learned", motion, run, seed, device)
+            judged = FittedCandidate("learned", motion, run, seed, device, model=learned_net)
+            drift = _score(refit_learned.rollout(h), judged.rollout(h))
+            scores["learned"] = float(np.hypot(scores["learned"], drift))
+            info["learned_refit_drift"] = drift
         simple = min(
             (c for c in candidates if c != "learned"), key=lambda c: (scores[c], CANDIDATES.index(c)), default=None
         )
@@ -586,16 +631,23 @@ def fit_structured(
             weights = backtest_weights(scores)
             info.update({f"backtest_weight_{c}": w for c, w in weights.items()})
             choice = max(candidates, key=lambda c: weights[c])
-    motion = GroupMotion(obs, rigid, own.still_factor, decomposition)
     info["still_fraction"] = float(motion.still.mean())
     info["choice"] = choice
+
+    def fitted_on_all(name: str) -> FittedCandidate:
+        if name == "learned" and refit_learned is not None:
+            return refit_learned
+        return FittedCandidate(name, motion, run, seed, device)
+
+    # every network fitted counts once: the backtest's, the drift check's refit (kept or not), any other
+    steps = backtest_steps + (refit_learned.info.get("iterations", 0) if refit_learned is not None else 0)
     if weights is not None and max(weights.values()) < 1.0:
-        fitted_all = [FittedCandidate(c, motion, run, seed, device) for c in candidates if weights[c] > 0.0]
+        fitted_all = [fitted_on_all(c) for c in candidates if weights[c] > 0.0]
         for c in fitted_all:
             info.update(c.info)
-        info["iterations"] = backtest_steps + sum(c.info.get("iterations", 0) for c in fitted_all)
+        info["iterations"] = steps + sum(c.info.get("iterations", 0) for c in fitted_all if c is not refit_learned)
         return WeightedCandidates(fitted_all, weights), info
-    fitted = FittedCandidate(choice, motion, run, seed, device)
+    fitted = fitted_on_all(choice)
     info.update(fitted.info)
-    info["iterations"] = backtest_steps + fitted.info.get("iterations", 0)
+    info["iterations"] = steps + (0 if fitted is refit_learned else fitted.info.get("iterations", 0))
     return fitted, info

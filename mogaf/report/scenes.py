@@ -1,5 +1,6 @@
 """Per-scene comparison: one Markdown table per observation ratio, a row per
-scene with every method's PSNR / LPIPS, the mean over the scenes, what
+scene with every method's PSNR / LPIPS (and tracking EPE on scenes with
+ground-truth tracks), the mean over the scenes, what
 MoGaF's backtest chose per motion group and its coherence figures
 (docs/forecasting.md, the MuJoCo tables):
 
@@ -44,16 +45,25 @@ def _coherence(result: dict[str, Any]) -> str:
     return f"{fmt(rigid, 'coherence')} / {fmt(still, 'coherence')} ({c.get('still_gaussians', 0)})"
 
 
-def _cell(value: tuple[float | None, float | None], best: tuple[str | None, str | None]) -> str:
-    texts = (fmt(value[0], "psnr"), fmt(value[1], "lpips"))
-    return " / ".join(f"**{t}**" if t == b else t for t, b in zip(texts, best))
+# Each cell: these metrics, and the tracking EPE where every scene of the ratio has it (synthetic scenes).
+CELL_METRICS = ("psnr", "lpips")
+CELL_NAMES = {"psnr": "PSNR", "lpips": "LPIPS", "epe_3d": "tracking EPE (m)"}
 
 
-def _best(rows: list[dict[str, tuple[float | None, float | None]]]) -> list[tuple[str | None, str | None]]:
-    return [
-        (best_text([v[0] for v in row.values()], "psnr"), best_text([v[1] for v in row.values()], "lpips"))
-        for row in rows
-    ]
+def _cell(value: tuple[float | None, ...], best: tuple[str | None, ...], metrics: tuple[str, ...]) -> str:
+    texts = [fmt(v, m) for v, m in zip(value, metrics, strict=True)]
+    return " / ".join(f"**{t}**" if t == b else t for t, b in zip(texts, best, strict=True))
+
+
+def _best(rows: list[dict[str, tuple[float | None, ...]]], metrics: tuple[str, ...]) -> list[tuple[str | None, ...]]:
+    return [tuple(best_text([v[i] for v in row.values()], m) for i, m in enumerate(metrics)) for row in rows]
+
+
+def cell_metrics(results: list[dict[str, Any]], methods: list[str]) -> tuple[str, ...]:
+    """What the cells of one ratio's table give: PSNR / LPIPS, and the tracking
+    EPE where every result has it for every method compared."""
+    tracked = all(_metric(r, m, "epe_3d") is not None for r in results for m in methods)
+    return CELL_METRICS + (("epe_3d",) if tracked else ())
 
 
 def ratio_table(results: list[dict[str, Any]]) -> str:
@@ -61,22 +71,23 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
     methods = [m for m in _methods(results[0]) if all(m in r["methods"] for r in results)]
     if not methods:
         raise MogafError("no method was run on every scene of ratio " + str(results[0]["ratio"]))
-    rows = [{m: (_metric(r, m, "psnr"), _metric(r, m, "lpips")) for m in methods} for r in results]
-    means = {m: (_mean([row[m][0] for row in rows]), _mean([row[m][1] for row in rows])) for m in methods}
+    metrics = cell_metrics(results, methods)
+    rows = [{m: tuple(_metric(r, m, k) for k in metrics) for m in methods} for r in results]
+    means = {m: tuple(_mean([row[m][i] for row in rows]) for i in range(len(metrics))) for m in methods}
     mogaf = "mogaf" in methods
     starred = {m: any(budget_differences(r, m) for r in results) for m in methods}
     header = ["scene"] + [method_label(results[0], m) + ("*" if starred[m] else "") for m in methods]
     header += ["MoGaF's choice per group (weight)", "MoGaF coherence: rigid / still (m, still count)"] if mogaf else []
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    for r, row, best in zip(results, rows, _best(rows)):
+    for r, row, best in zip(results, rows, _best(rows, metrics)):
         variant = _variant(r)
         cells = [r["scene"] + ("" if variant == "default" else f" ({variant})")] + [
-            _cell(row[m], best) for m in methods
+            _cell(row[m], best, metrics) for m in methods
         ]
         cells += [_choices(r), _coherence(r)] if mogaf else []
         lines.append("| " + " | ".join(cells) + " |")
-    (best,) = _best([means])
-    cells = ["**mean**"] + [_cell(means[m], best) for m in methods] + (["", ""] if mogaf else [])
+    (best,) = _best([means], metrics)
+    cells = ["**mean**"] + [_cell(means[m], best, metrics) for m in methods] + (["", ""] if mogaf else [])
     lines.append("| " + " | ".join(cells) + " |")
     if any(starred.values()):
         lines += ["", "\\* ran off its paper's settings; `metrics.json` records what each ran with."]
@@ -88,14 +99,17 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
 
 def scenes_table(results: list[dict[str, Any]]) -> str:
     """One table per ratio (PSNR / LPIPS at the held-out views and forecast
-    times, best per row in bold), Markdown ending in a newline."""
+    times, and the tracking EPE where every scene has ground-truth tracks;
+    best per row in bold), Markdown ending in a newline."""
     if not results:
         raise MogafError("scenes: no metrics.json given")
     out = []
     for ratio in sorted({float(r["ratio"]) for r in results}):
         of_ratio = sorted((r for r in results if float(r["ratio"]) == ratio), key=lambda r: r["scene"])
         datasets = sorted({r["dataset"] for r in of_ratio})
-        out += [f"Ratio {ratio:g} ({', '.join(datasets)}; PSNR / LPIPS):", "", ratio_table(of_ratio), ""]
+        methods = [m for m in _methods(of_ratio[0]) if all(m in r["methods"] for r in of_ratio)]
+        names = " / ".join(CELL_NAMES[k] for k in cell_metrics(of_ratio, methods))
+        out += [f"Ratio {ratio:g} ({', '.join(datasets)}; {names}):", "", ratio_table(of_ratio), ""]
     return "\n".join(out)
 
 

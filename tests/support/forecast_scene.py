@@ -88,10 +88,14 @@ def write_scene(folder: Path, *, with_gt: bool) -> tuple[Path, Path]:
     return scene_h5, split_h5
 
 
-def write_model(path: Path, observed_timesteps: np.ndarray) -> Path:
+def write_model(path: Path, observed_timesteps: np.ndarray, last_step_shift: float = 0.0) -> Path:
+    """The world's fg Gaussians moving as in world(); `last_step_shift` moves
+    them along x at the last observed step only (a reconstruction's end error)."""
     pos, quats, _ = world()
     steps = np.asarray(observed_timesteps)
     Tm = steps.size
+    traj = pos[:, steps].copy()
+    traj[:, -1, 0] += last_step_shift
     rng = np.random.default_rng(1)
     fg = GaussianSet(
         means=pos[:, 0].astype(np.float32),
@@ -106,7 +110,7 @@ def write_model(path: Path, observed_timesteps: np.ndarray) -> Path:
         rot6d=np.tile(np.array([1.0, 0, 0, 0, 1, 0], np.float32), (1, Tm, 1)),
         translations=np.zeros((1, Tm, 3), np.float32),
         timesteps=steps.astype(np.int64),
-        trajectory_means=pos[:, steps].astype(np.float32),
+        trajectory_means=traj.astype(np.float32),
         trajectory_quats=np.repeat(quats[:, None], Tm, axis=1).astype(np.float32),
     )
     return save_model(path, "refine", model, config_digest="fc-test")
