@@ -178,7 +178,8 @@ def test_layered_configs_and_ablation_variants_validate():
 
 def test_demo_seeds_layer_adds_scenes_and_leaves_the_demo_as_it_is():
     """config/demo_seeds.yaml over the demo's config adds the seeded scenes and
-    changes nothing the demo scene's jobs read: its metrics.json stays make demo's."""
+    their grid and changes no other setting, so the demo scene's jobs read the
+    same config (a run beside `make demo` reused its metrics.json, 2026-11-25)."""
     import mogaf.config as mcfg
 
     demo = mcfg.deep_merge(load_config(), mcfg.load_yaml(REPO / "config" / "demo.yaml"))

@@ -621,6 +621,37 @@ def test_scenes_table_compares_the_methods_every_scene_ran(metrics_files):
     assert "ran off its paper's settings" in second
 
 
+def test_scenes_table_adds_tracking_epe_only_where_every_scene_has_it(tmp_path):
+    from mogaf.report.scenes import scenes_table
+
+    def scene(name: str, ratio: float, frozen_epe: float | None) -> Path:
+        return write_metrics(
+            tmp_path / f"synthetic/{name}/{ratio}/metrics.json",
+            dataset="synthetic",
+            scene=name,
+            ratio=ratio,
+            protocol="dnerf",
+            methods={
+                "mogaf": method_section({"psnr": 17.0, "lpips": 0.20}, method="mogaf", wall=10.0, epe=0.10),
+                "frozen": method_section({"psnr": 16.0, "lpips": 0.25}, method="frozen", wall=1.0, epe=frozen_epe),
+            },
+        )
+
+    # ratio 0.6: both scenes track every method; frozen wins scene b's EPE, MoGaF the mean
+    # ratio 0.8: frozen has no tracking on scene d, so that ratio's cells stay PSNR / LPIPS
+    files = [scene("a", 0.6, 0.30), scene("b", 0.6, 0.05), scene("c", 0.8, 0.30), scene("d", 0.8, None)]
+    first, second = scenes_table(load_metrics(files)).split("Ratio ")[1:]
+    assert first.startswith("0.6 (synthetic; PSNR / LPIPS / tracking EPE (m))")
+    rows = md_rows(first)
+    assert [r[1:3] for r in rows[1:]] == [
+        ["**17.00** / **0.2000** / **0.100**", "16.00 / 0.2500 / 0.300"],
+        ["**17.00** / **0.2000** / 0.100", "16.00 / 0.2500 / **0.050**"],
+        ["**17.00** / **0.2000** / **0.100**", "16.00 / 0.2500 / 0.175"],
+    ]
+    assert second.startswith("0.8 (synthetic; PSNR / LPIPS)")
+    assert md_rows(second)[1][1:3] == ["**17.00** / **0.2000**", "16.00 / 0.2500"]
+
+
 def test_tables_say_how_many_optimiser_steps_each_group_trained(tmp_path):
     from mogaf.report.scenes import scenes_table
     from mogaf.report.tables import forecast_table, optimiser_steps

@@ -46,13 +46,13 @@ class StructuredSettings:
     )
     backtest_margin: float = setting(
         0.0,
-        "combine: select: the learned forecaster is chosen only when its backtest error is this share below the better of constant velocity and frozen (0 = the lowest score wins). 0.1 measured: MuJoCo 0.8 mean +0.07 dB, but GT default/sphere 0.6 falls from 0.146 m to constant velocity's 0.196 m",
+        "combine: select: the learned forecaster is chosen only when its backtest error is this share below the best other candidate's (0 = the lowest score wins). 0.1 measured: MuJoCo 0.8 mean +0.07 dB, but GT default/sphere 0.6 falls from 0.146 m to constant velocity's 0.196 m",
         minimum=0,
         exclusive_maximum=1,
     )
     combine: Literal["select", "weighted"] = setting(
         "weighted",
-        "how the backtest decides: 'weighted' (every candidate's forecast, weighted by its inverse squared backtest error; a rigid group blends as one pose, so it stays rigid) or 'select' (the lowest score wins). Weighted has the best mean of the four methods at both MuJoCo ratios (0.8: 20.40 dB / 0.1802 against constant velocity's 20.23 / 0.1899, where select has 20.16 / 0.1923); select is ahead of it at MuJoCo 0.6 (20.66 against 20.41 dB), on the demo (by 0.05 dB) and in GT mean EPE (0.0435 against 0.0489 m), but behind constant velocity on 4 GT rows, weighted on none (docs/forecasting.md)",
+        "how the backtest decides: 'weighted' (every candidate's forecast, weighted by its inverse squared backtest error; a rigid group blends as one pose, so it stays rigid) or 'select' (the lowest score wins). Measured with the previous candidates (the last_step_velocity variant), not again since: weighted had the best mean of the four methods at both MuJoCo ratios (0.8: 20.40 dB / 0.1802 against constant velocity's 20.23 / 0.1899, where select had 20.16 / 0.1923); select was ahead of it at MuJoCo 0.6 (20.66 against 20.41 dB), on the demo (by 0.05 dB) and in GT mean EPE (0.0435 against 0.0489 m), but behind constant velocity on 4 GT rows, weighted on none (docs/forecasting.md)",
     )
     max_train_windows: int = setting(
         65536, "training windows kept per fit (random, seeded): bounds memory for big groups", minimum=1
@@ -75,7 +75,7 @@ class StructuredSettings:
     trend_window: int = setting(
         8,
         "values the linear_trend candidate fits its line through (2 = constant velocity per series). 16 (the "
-        "network's context) measured worse: GT mean EPE 0.059 against 0.049 m (docs/forecasting.md)",
+        "network's context) measured worse: GT mean EPE over the 22 rows 0.059 against 0.049 m (docs/forecasting.md)",
         minimum=2,
     )
     drift_check: bool = setting(
@@ -154,7 +154,7 @@ class MogafSettings:
     # --- optimisation: not in the paper; ours, sized for <= 60 s per group on 2 CPU cores ---
     iterations: int = setting(
         800,
-        "Adam steps per fit of the learned forecaster, both modes (structured: the backtest fit, then the refit where the learned candidate keeps a weight); cost does not grow with the group size: paper mode ~20 s CPU at 1 thread for T = 36 (~28 s for T = 48), leaving ~2-3x headroom under the 60 s/group budget on a loaded 2-core machine",
+        "Adam steps per fit of the learned forecaster, both modes (structured: the backtest fit, then the refit on every observed frame: with drift_check always, before the decision; without it, where the learned candidate keeps a weight); cost does not grow with the group size: paper mode ~20 s CPU at 1 thread for T = 36 (~28 s for T = 48), leaving ~2-3x headroom under the 60 s/group budget on a loaded 2-core machine",
         minimum=1,
     )
     batch_size: int = setting(
