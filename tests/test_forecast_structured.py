@@ -36,6 +36,14 @@ DEFAULT_CANDIDATES = ["frozen", "linear_trend", "learned"]
 WITH_VELOCITY = ["frozen", "constant_velocity", "learned"]
 
 
+def _weights_of_the_scores(info: dict) -> dict[str, float]:
+    """The default candidates' weights as backtest_weights gives them for the
+    recorded scores, the learned one's combined with its refit drift."""
+    scores = {c: info[f"backtest_epe_{c}"] for c in DEFAULT_CANDIDATES}
+    scores["learned"] = float(np.hypot(scores["learned"], info["learned_refit_drift"]))
+    return backtest_weights(scores)
+
+
 def _pairwise_change(poses: np.ndarray, last: np.ndarray) -> float:
     return rigid_distance_change(last[:, :3], poses[..., :3], np.random.default_rng(0))[0]
 
@@ -286,10 +294,8 @@ def test_weighted_combination_blends_the_candidates_and_stays_rigid():
     weights = {c: info[f"backtest_weight_{c}"] for c in DEFAULT_CANDIDATES}
     assert sum(weights.values()) == pytest.approx(1.0)
     assert info["choice"] == max(weights, key=weights.get)
-    errors = {c: info[f"backtest_epe_{c}"] for c in weights}
     # the learned candidate is scored with its refit drift (drift_check, on by default)
-    errors["learned"] = float(np.hypot(errors["learned"], info["learned_refit_drift"]))
-    assert weights == pytest.approx(backtest_weights(errors))
+    assert weights == pytest.approx(_weights_of_the_scores(info))
     assert _pairwise_change(res.poses, obs[:, -1]) < 1e-9
     # the blend lies between the candidates: not the selected one alone
     chosen = fit_and_rollout("mogaf", obs, 12, {**QUICK, "structured": {"combine": "select"}}, seed=0)
@@ -477,9 +483,7 @@ def test_drift_check_discounts_a_refit_that_learns_the_last_frames_artefact():
     assert on["backtest_epe_learned"] == off["backtest_epe_learned"]  # the same backtested network
     assert clean["learned_refit_drift"] < 0.1 * on["learned_refit_drift"]
     assert on["backtest_weight_learned"] < off["backtest_weight_learned"]
-    scores = {c: on[f"backtest_epe_{c}"] for c in DEFAULT_CANDIDATES}
-    scores["learned"] = float(np.hypot(scores["learned"], on["learned_refit_drift"]))
-    assert {c: on[f"backtest_weight_{c}"] for c in DEFAULT_CANDIDATES} == pytest.approx(backtest_weights(scores))
+    assert {c: on[f"backtest_weight_{c}"] for c in DEFAULT_CANDIDATES} == pytest.approx(_weights_of_the_scores(on))
 
 
 def test_constant_acceleration_carries_a_thrown_sphere_exactly_and_rigidly():

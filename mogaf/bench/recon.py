@@ -103,7 +103,7 @@ def heldout_psnr(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[float,
     return float(np.mean(ps)), (float(np.mean(mps)) if mps else None), (float(np.mean(unseen)) if unseen else None)
 
 
-def _matched_trajectories(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[np.ndarray, np.ndarray] | None:
+def matched_trajectories(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[np.ndarray, np.ndarray] | None:
     """GT surface-point trajectories (P, T_obs, 3) and those of their nearest fg
     Gaussians (opacity > 0.1) at the canonical step; None without GT points."""
     from scipy.spatial import cKDTree
@@ -123,28 +123,23 @@ def _matched_trajectories(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tup
     return pts, traj[nn]
 
 
-def trajectory_error(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[float, float] | None:
-    """Mean 3D distance (scene units, % of extent) between GT surface-point and matched Gaussian trajectories."""
-    matched = _matched_trajectories(scene_h5, split_h5, recon_h5)
-    if matched is None:
-        return None
-    pts, traj = matched
+def trajectory_error(pts: np.ndarray, traj: np.ndarray) -> tuple[float, float]:
+    """Mean 3D distance (scene units, % of extent) between GT surface-point
+    trajectories `pts` and their matched Gaussians' `traj` (P, T_obs, 3)."""
     err = np.linalg.norm(traj - pts, axis=-1).mean()
     flat = pts.reshape(-1, 3)
     extent = float(np.linalg.norm(flat.max(0) - flat.min(0)))
     return float(err), float(100.0 * err / extent)
 
 
-def velocity_error(scene_h5: Path, split_h5: Path, recon_h5: Path) -> tuple[float, float] | None:
-    """Error of the matched Gaussians' per-step displacement against the GT
-    points' (scene units per step), averaged over the points: over the middle
-    half of the observed steps, and at the last step, the one forecasts
-    extrapolate from (a reconstruction constrains it from one side only).
-    None without GT points or with fewer than 4 observed steps."""
-    matched = _matched_trajectories(scene_h5, split_h5, recon_h5)
-    if matched is None or matched[0].shape[1] < 4:
+def velocity_error(pts: np.ndarray, traj: np.ndarray) -> tuple[float, float] | None:
+    """Error of the matched Gaussians' per-step displacement (`traj`) against
+    the GT points' (`pts`, both (P, T_obs, 3); scene units per step), averaged
+    over the points: over the middle half of the observed steps, and at the
+    last step, the one forecasts extrapolate from (a reconstruction constrains
+    it from one side only). None with fewer than 4 observed steps."""
+    if pts.shape[1] < 4:
         return None
-    pts, traj = matched
     err = np.linalg.norm(np.diff(traj, axis=1) - np.diff(pts, axis=1), axis=-1).mean(axis=0)  # (T - 1,)
     interior = err[1:-1]  # without the steps at either end (at least one is left)
     n = interior.size
@@ -168,8 +163,9 @@ def score_model(name: str, scene_h5: Path, split_h5: Path, model_h5: Path) -> di
     """Every column but wall time and load, for a stored model (recon.h5 or refined.h5)."""
     model = load_model(model_h5)
     ho, mho, unseen = heldout_psnr(scene_h5, split_h5, model_h5)
-    traj = trajectory_error(scene_h5, split_h5, model_h5)
-    vel = velocity_error(scene_h5, split_h5, model_h5)
+    matched = matched_trajectories(scene_h5, split_h5, model_h5)  # None without GT points
+    traj = None if matched is None else trajectory_error(*matched)
+    vel = None if matched is None else velocity_error(*matched)
     return {
         "scene": name,
         "ratio": read_split(split_h5).ratio,

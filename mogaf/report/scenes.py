@@ -67,7 +67,7 @@ def cell_metrics(results: list[dict[str, Any]], methods: list[str]) -> tuple[str
 
 
 def ratio_table(results: list[dict[str, Any]]) -> str:
-    """The table of results of one ratio (Markdown lines)."""
+    """The table of results of one ratio under its caption (Markdown lines)."""
     methods = [m for m in _methods(results[0]) if all(m in r["methods"] for r in results)]
     if not methods:
         raise MogafError("no method was run on every scene of ratio " + str(results[0]["ratio"]))
@@ -78,7 +78,9 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
     starred = {m: any(budget_differences(r, m) for r in results) for m in methods}
     header = ["scene"] + [method_label(results[0], m) + ("*" if starred[m] else "") for m in methods]
     header += ["MoGaF's choice per group (weight)", "MoGaF coherence: rigid / still (m, still count)"] if mogaf else []
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    datasets = ", ".join(sorted({r["dataset"] for r in results}))
+    caption = f"Ratio {float(results[0]['ratio']):g} ({datasets}; {' / '.join(CELL_NAMES[k] for k in metrics)}):"
+    lines = [caption, "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for r, row, best in zip(results, rows, _best(rows, metrics)):
         variant = _variant(r)
         cells = [r["scene"] + ("" if variant == "default" else f" ({variant})")] + [
@@ -106,10 +108,7 @@ def scenes_table(results: list[dict[str, Any]]) -> str:
     out = []
     for ratio in sorted({float(r["ratio"]) for r in results}):
         of_ratio = sorted((r for r in results if float(r["ratio"]) == ratio), key=lambda r: r["scene"])
-        datasets = sorted({r["dataset"] for r in of_ratio})
-        methods = [m for m in _methods(of_ratio[0]) if all(m in r["methods"] for r in of_ratio)]
-        names = " / ".join(CELL_NAMES[k] for k in cell_metrics(of_ratio, methods))
-        out += [f"Ratio {ratio:g} ({', '.join(datasets)}; {names}):", "", ratio_table(of_ratio), ""]
+        out += [ratio_table(of_ratio), ""]
     return "\n".join(out)
 
 
