@@ -20,6 +20,8 @@ from mogaf.forecast.structured import (
     fit_structured,
     integrate_rotvec,
     local_polynomial,
+    nearest_members,
+    neighbour_mean,
     rigid_decomposition,
     rigid_group_still,
     still_gaussians,
@@ -262,6 +264,83 @@ def test_backtest_weights_are_inverse_squared_errors():
     assert backtest_weights({"frozen": 0.3, "constant_velocity": 0.3, "learned": float("nan")})["learned"] == 0.0
     with pytest.raises(MogafError, match="non-finite"):
         backtest_weights({"frozen": float("inf"), "learned": float("nan")})
+
+
+def test_backtest_weights_of_arrays_are_each_elements_weights():
+    scores = {
+        "frozen": np.array([0.4, 0.0, 0.3, 0.2]),
+        "linear_trend": np.array([0.1, 0.1, 0.3, np.nan]),
+        "learned": np.array([0.2, 0.0, np.nan, np.inf]),
+    }
+    w = backtest_weights(scores)
+    for i in range(4):
+        one = backtest_weights({c: float(v[i]) for c, v in scores.items()})
+        assert {c: float(v[i]) for c, v in w.items()} == pytest.approx(one)
+    with pytest.raises(MogafError, match="non-finite"):
+        backtest_weights({"frozen": np.array([0.1, np.nan]), "learned": np.array([0.2, np.inf])})
+
+
+def test_neighbour_mean_is_local_and_the_group_mean_when_k_covers_it():
+    positions = np.concatenate([np.zeros((5, 3)), np.full((5, 3), 10.0)]) + np.arange(10)[:, None] * 1e-3
+    values = np.array([1.0] * 5 + [3.0] * 5)
+    np.testing.assert_allclose(neighbour_mean(values, nearest_members(positions, 5)), values)
+    assert nearest_members(positions, 10) is None
+    np.testing.assert_allclose(neighbour_mean(values, nearest_members(positions, 10)), 2.0)
+
+
+def test_blend_with_member_weights_blends_each_row_on_its_own():
+    rng = np.random.default_rng(2)
+    a, b = (np.concatenate([rng.normal(size=(4, 5, 3)), quat.normalize(rng.normal(size=(4, 5, 4)))], -1) for _ in "ab")
+    w = np.array([[1.0, 0.0, 0.3, 0.5], [0.0, 1.0, 0.7, 0.5]])
+    got = blend_trajectories([a, b], w)
+    for m in range(4):
+        np.testing.assert_allclose(got[m], blend_trajectories([a[m], b[m]], w[:, m]), atol=1e-12)
+    np.testing.assert_allclose(got[0], a[0], atol=1e-12)
+    np.testing.assert_allclose(got[1, :, :3], b[1, :, :3], atol=1e-12)
+
+
+def test_member_backtest_weighs_each_part_of_a_non_rigid_group_by_its_own_motion():
+    """One non-rigid group of two parts 10 m apart: a flap swaying about its
+    rest pose (frozen is right to within the sway) and a copy sliding
+    uniformly (the line through each series is exact). Weighted per group,
+    one blend serves both: the line carries the flap off along its last
+    swing and the other candidates pull the slider off its line. Weighted
+    per member (backtest_neighbors under a part's size), frozen is the
+    flap's heaviest candidate and the line takes all of the slider."""
+    base = _resting_box(24, 1, 0)[:, :1]  # one pose per member
+    t = np.arange(40, dtype=np.float64)
+    flap = np.repeat(base, 40, axis=1)
+    flap[..., 0] += 0.05 * np.sin(2.0 * np.pi * t / 12.0)
+    sliding = np.repeat(base, 40, axis=1)
+    sliding[..., :3] += 10.0 + t[None, :, None] * np.array([0.02, -0.01, 0.005])
+    traj = np.concatenate([flap, sliding])
+    obs, fut = traj[:, :30], traj[:, 30:]
+
+    def epe(poses, part):
+        return np.linalg.norm(poses[part, :, :3] - fut[part, :, :3], axis=-1).mean()
+
+    flap_part, slider = slice(0, 24), slice(24, 48)
+    model, info = fit_structured(obs, {**QUICK, "structured": {"backtest_neighbors": 8}}, 0, False, 10)
+    assert info["backtest_neighbors"] == 8 and not info["rigid"]
+    assert fit_structured(obs, QUICK, 0, False, 10)[1]["backtest_neighbors"] == 32  # the default
+    assert isinstance(model, WeightedCandidates) and model.weights.shape == (len(model.candidates), 48)
+    names = [c.name for c in model.candidates]
+    frozen_w, trend_w = model.weights[names.index("frozen")], model.weights[names.index("linear_trend")]
+    assert np.all(np.argmax(model.weights[:, flap_part], axis=0) == names.index("frozen"))
+    assert np.all(trend_w[slider] > 0.999)
+    # the group's figures are the members' mean weights
+    assert info["backtest_weight_frozen"] == pytest.approx(frozen_w.mean())
+    poses = model.rollout(10)
+    per_group, group_info = fit_structured(obs, {**QUICK, "structured": {"backtest_neighbors": 0}}, 0, False, 10)
+    assert "backtest_neighbors" not in group_info
+    group_poses = per_group.rollout(10)
+    assert epe(poses, flap_part) < 0.8 * epe(group_poses, flap_part)
+    assert epe(poses, slider) < 1e-9 < 1e-3 < epe(group_poses, slider)
+    # neighbourhoods covering the group: the per-group weights, member by member
+    whole, whole_info = fit_structured(obs, {**QUICK, "structured": {"backtest_neighbors": 48}}, 0, False, 10)
+    for c in DEFAULT_CANDIDATES:
+        assert whole_info[f"backtest_weight_{c}"] == pytest.approx(group_info[f"backtest_weight_{c}"], rel=1e-9)
+    np.testing.assert_allclose(whole.rollout(10), group_poses, atol=1e-9)
 
 
 def test_blend_of_rigid_poses_is_one_rigid_pose_between_them():

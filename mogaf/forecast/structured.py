@@ -68,7 +68,11 @@ output is used:
     frames and the forecast is their mean weighted by the inverse squared
     score: one backtest window is a noisy judge, and a choice won by a few
     percent often does not hold in the future. A rigid group's candidates
-    blend as one group pose, so the blend stays rigid. With `combine:
+    blend as one group pose, so the blend stays rigid. In a non-rigid group
+    every moving Gaussian has its own weights, from the scores averaged over
+    its `backtest_neighbors` nearest Gaussians (0: the group's scores): one
+    such group can join parts that move differently (a deforming body and
+    its resting base, a cloth and a ball the grouping merged into it). With `combine:
     select` the best alone is refitted and rolled out (with
     `backtest_margin` > 0, the learned forecaster only when it scores that
     share below the best other candidate). The scores, the drift, the
@@ -453,34 +457,59 @@ def blend_trajectories(trajectories: list[np.ndarray], weights: np.ndarray) -> n
     """Weighted mean of pose trajectories (..., 7): positions linearly,
     rotations as the normalised weighted sum of quaternions on the heaviest
     one's hemisphere (the chordal mean; for a rigid group's pose it stays one
-    rotation, so the blend is rigid)."""
-    ref = trajectories[int(np.argmax(weights))][..., 3:]
+    rotation, so the blend is rigid). `weights`: (C,) for the C trajectories,
+    or (C, M) for trajectories (M, n, 7), one weighting per row."""
+    weights = np.asarray(weights, dtype=np.float64)
+    if weights.ndim == 1:
+        ref = trajectories[int(np.argmax(weights))][..., 3:]
+    else:
+        ref = np.stack(trajectories)[np.argmax(weights, axis=0), np.arange(weights.shape[1]), ..., 3:]
     out = np.zeros_like(trajectories[0])
     for traj, w in zip(trajectories, weights, strict=True):
+        w = np.reshape(w, np.shape(w) + (1,) * (traj.ndim - np.ndim(w)))  # per row: (M, 1, 1)
         out[..., :3] += w * traj[..., :3]
         out[..., 3:] += w * quat.align_to(traj[..., 3:], ref)
     out[..., 3:] = quat.normalize(out[..., 3:])
     return out
 
 
-def backtest_weights(scores: Mapping[str, float]) -> dict[str, float]:
+def backtest_weights(scores: Mapping[str, Any]) -> dict[str, Any]:
     """Inverse-squared-error weights of the candidates' backtest scores (Bates
     & Granger's combination with independent errors). A candidate with an
     exact backtest (score 0, e.g. frozen on a group that stopped) takes all
     the weight (several exact ones share it); a non-finite score takes none,
-    and with every score non-finite there is nothing to weigh: an error."""
+    and with every score non-finite there is nothing to weigh: an error.
+    Scores are floats (weights are floats) or arrays of one shape, each
+    element weighed on its own (weights are arrays)."""
     names = list(scores)
-    s = np.array([scores[c] for c in names], dtype=np.float64)
+    s = np.array([scores[c] for c in names], dtype=np.float64)  # (C, ...)
     finite = np.isfinite(s)
-    if not finite.any():
+    if not finite.any(axis=0).all():
         raise MogafError("forecast.mogaf: every candidate's backtest score is non-finite")
-    best = float(np.min(s[finite]))
-    if best <= 0.0:
-        w = np.where(finite & (s <= 0.0), 1.0, 0.0)
-    else:
-        w = np.where(finite, (best / np.where(finite, s, 1.0)) ** 2, 0.0)
-    w /= w.sum()
-    return {c: float(v) for c, v in zip(names, w, strict=True)}
+    best = np.min(np.where(finite, s, np.inf), axis=0)
+    exact = np.where(finite & (s <= 0.0), 1.0, 0.0)
+    inverse = np.where(finite, (best / np.where(finite & (s > 0.0), s, 1.0)) ** 2, 0.0)
+    w = np.where(best <= 0.0, exact, inverse)
+    w /= w.sum(axis=0)
+    return {c: (float(v) if s.ndim == 1 else v) for c, v in zip(names, w, strict=True)}
+
+
+def nearest_members(positions: np.ndarray, k: int) -> np.ndarray | None:
+    """(G, k) each member's k nearest members (itself included) at positions
+    (G, 3); None when k covers the whole group."""
+    from scipy.spatial import cKDTree
+
+    if k >= len(positions):
+        return None
+    return cKDTree(positions).query(positions, k=k)[1].reshape(len(positions), k)
+
+
+def neighbour_mean(values: np.ndarray, neighbours: np.ndarray | None) -> np.ndarray:
+    """(G,) each member's mean of `values` (G,) over its neighbours
+    (nearest_members; None: the whole group's mean for every member)."""
+    if neighbours is None:
+        return np.full(len(values), values.mean())
+    return values[neighbours].mean(axis=1)
 
 
 # Least-squares polynomial candidates: (degree, the setting naming their window).
@@ -538,9 +567,11 @@ class FittedCandidate:
 
 
 class WeightedCandidates:
-    """The candidates' forecasts blended by their backtest weights (combine: weighted)."""
+    """The candidates' forecasts blended by their backtest weights (combine:
+    weighted): a float per candidate, or (backtest_neighbors) an array over
+    the moving members of a non-rigid group."""
 
-    def __init__(self, candidates: list[FittedCandidate], weights: Mapping[str, float]) -> None:
+    def __init__(self, candidates: list[FittedCandidate], weights: Mapping[str, Any]) -> None:
         self.candidates = candidates
         self.weights = np.array([weights[c.name] for c in candidates])
         self.motion = candidates[0].motion
@@ -552,6 +583,11 @@ class WeightedCandidates:
 
 def _score(pred: np.ndarray, truth: np.ndarray) -> float:
     return float(np.linalg.norm(pred[..., :3] - truth[..., :3], axis=-1).mean())
+
+
+def _member_errors(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """(G,) each member's mean distance over the steps of (G, n, 7) poses."""
+    return np.linalg.norm(pred[..., :3] - truth[..., :3], axis=-1).mean(axis=1)
 
 
 def fit_structured(
@@ -595,6 +631,8 @@ def fit_structured(
         choice = "constant_velocity"
     motion = GroupMotion(obs, rigid, own.still_factor, decomposition)
     refit_learned: FittedCandidate | None = None  # the drift check's refit, kept for the forecast
+    local = False  # the backtest weighs each moving member of a non-rigid group on its own
+    member_weights: dict[str, np.ndarray] = {}
     if own.gate and backtest_sizes is not None:
         # Backtest on observed frames only: fit on the first T - h, score on the last h.
         # On short observations the backtested network reads a shorter context
@@ -603,9 +641,16 @@ def fit_structured(
         past = GroupMotion(obs[:, : T - h], rigid, own.still_factor)
         scores = {}
         backtested = {}
+        # combine: weighted, non-rigid: every member scored over its nearest members
+        local = own.combine == "weighted" and own.backtest_neighbors > 0 and not rigid and len(motion.moving) > 0
+        neighbours = nearest_members(obs[:, -1, :3], int(own.backtest_neighbors)) if local else None
+        member_scores: dict[str, np.ndarray] = {}
         for name in candidates:
             backtested[name] = FittedCandidate(name, past, run, seed, device)
-            scores[name] = _score(backtested[name].rollout(h), obs[:, T - h :])
+            predicted = backtested[name].rollout(h)
+            scores[name] = _score(predicted, obs[:, T - h :])
+            if local:
+                member_scores[name] = neighbour_mean(_member_errors(predicted, obs[:, T - h :]), neighbours)
             info[f"backtest_epe_{name}"] = scores[name]
             backtest_steps += backtested[name].info.get("iterations", 0)
         learned_net = backtested["learned"].model if "learned" in backtested else None
@@ -616,8 +661,12 @@ def fit_structured(
             # accurate, and a network can learn their artefacts as motion).
             refit_learned = FittedCandidate("learned", motion, run, seed, device)
             judged = FittedCandidate("learned", motion, run, seed, device, model=learned_net)
-            drift = _score(refit_learned.rollout(h), judged.rollout(h))
+            refit_h, judged_h = refit_learned.rollout(h), judged.rollout(h)
+            drift = _score(refit_h, judged_h)
             scores["learned"] = float(np.hypot(scores["learned"], drift))
+            if local:
+                member_drift = neighbour_mean(_member_errors(refit_h, judged_h), neighbours)
+                member_scores["learned"] = np.hypot(member_scores["learned"], member_drift)
             info["learned_refit_drift"] = drift
         simple = min(
             (c for c in candidates if c != "learned"), key=lambda c: (scores[c], CANDIDATES.index(c)), default=None
@@ -629,6 +678,11 @@ def fit_structured(
         info["backtest_frames"] = h
         if own.combine == "weighted":
             weights = backtest_weights(scores)
+            if local:
+                # each moving member's own weighting; the group's figures are their means
+                member_weights = backtest_weights({c: member_scores[c][motion.moving] for c in candidates})
+                weights = {c: float(w.mean()) for c, w in member_weights.items()}
+                info["backtest_neighbors"] = int(own.backtest_neighbors)
             info.update({f"backtest_weight_{c}": w for c, w in weights.items()})
             choice = max(candidates, key=lambda c: weights[c])
     info["still_fraction"] = float(motion.still.mean())
@@ -646,7 +700,7 @@ def fit_structured(
         for c in fitted_all:
             info.update(c.info)
         info["iterations"] = steps + sum(c.info.get("iterations", 0) for c in fitted_all if c is not refit_learned)
-        return WeightedCandidates(fitted_all, weights), info
+        return WeightedCandidates(fitted_all, member_weights if local else weights), info
     fitted = fitted_on_all(choice)
     info.update(fitted.info)
     info["iterations"] = steps + (0 if fitted is refit_learned else fitted.info.get("iterations", 0))
