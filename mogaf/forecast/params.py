@@ -81,9 +81,9 @@ class StructuredSettings:
     backtest_neighbors: int = setting(
         32,
         "combine: weighted, non-rigid groups: each moving Gaussian is weighted by the candidates' backtest errors "
-        "(and the learned one's drift) averaged over its this many nearest Gaussians of the group at the last "
-        "observed frame, itself included, not over the whole group; 0 = one weighting per group (the "
-        "group_backtest variant). A non-rigid group can join parts that move differently (a swaying cloth and a "
+        "(and the learned one's drift) averaged over its this many nearest moving Gaussians of the group at the "
+        "last observed frame, itself included, not over the whole group; 0 (or as many as move) = one weighting "
+        "per group (the group_backtest variant). A non-rigid group can join parts that move differently (a swaying cloth and a "
         "thrown ball beside it); rigid groups and combine: select always decide per group. 32 was set before "
         "measuring, not tuned: MuJoCo scene7 (its one non-rigid group) 20.63 -> 21.00 dB at 0.6, 21.44 -> 22.37 "
         "dB at 0.8; the demo's five draws' mean tracking EPE 0.139 -> 0.137 m (docs/forecasting.md)",

@@ -70,7 +70,7 @@ output is used:
     percent often does not hold in the future. A rigid group's candidates
     blend as one group pose, so the blend stays rigid. In a non-rigid group
     every moving Gaussian has its own weights, from the scores averaged over
-    its `backtest_neighbors` nearest Gaussians (0: the group's scores): one
+    its `backtest_neighbors` nearest moving Gaussians (0: the group's): one
     such group can join parts that move differently (a deforming body and
     its resting base, a cloth and a ball the grouping merged into it). With `combine:
     select` the best alone is refitted and rolled out (with
@@ -460,6 +460,8 @@ def blend_trajectories(trajectories: list[np.ndarray], weights: np.ndarray) -> n
     rotation, so the blend is rigid). `weights`: (C,) for the C trajectories,
     or (C, M) for trajectories (M, n, 7), one weighting per row."""
     weights = np.asarray(weights, dtype=np.float64)
+    if weights.ndim == 2 and trajectories[0].ndim != 3:
+        raise ValueError("blend_trajectories: per-row weights (C, M) need trajectories of shape (M, n, 7)")
     if weights.ndim == 1:
         ref = trajectories[int(np.argmax(weights))][..., 3:]
     else:
@@ -641,16 +643,20 @@ def fit_structured(
         past = GroupMotion(obs[:, : T - h], rigid, own.still_factor)
         scores = {}
         backtested = {}
-        # combine: weighted, non-rigid: every member scored over its nearest members
-        local = own.combine == "weighted" and own.backtest_neighbors > 0 and not rigid and len(motion.moving) > 0
-        neighbours = nearest_members(obs[:, -1, :3], int(own.backtest_neighbors)) if local else None
+        # combine: weighted, non-rigid: every moving member scored over its nearest
+        # moving members (still ones are forecast still by every candidate); with
+        # as many neighbours as moving members, the group's own weighting, exactly
+        moving = motion.moving
+        local = own.combine == "weighted" and not rigid and 0 < own.backtest_neighbors < len(moving)
+        neighbours = nearest_members(obs[moving, -1, :3], int(own.backtest_neighbors)) if local else None
         member_scores: dict[str, np.ndarray] = {}
         for name in candidates:
             backtested[name] = FittedCandidate(name, past, run, seed, device)
             predicted = backtested[name].rollout(h)
             scores[name] = _score(predicted, obs[:, T - h :])
             if local:
-                member_scores[name] = neighbour_mean(_member_errors(predicted, obs[:, T - h :]), neighbours)
+                errors = _member_errors(predicted[moving], obs[moving, T - h :])
+                member_scores[name] = neighbour_mean(errors, neighbours)
             info[f"backtest_epe_{name}"] = scores[name]
             backtest_steps += backtested[name].info.get("iterations", 0)
         learned_net = backtested["learned"].model if "learned" in backtested else None
@@ -665,9 +671,11 @@ def fit_structured(
             drift = _score(refit_h, judged_h)
             scores["learned"] = float(np.hypot(scores["learned"], drift))
             if local:
-                member_drift = neighbour_mean(_member_errors(refit_h, judged_h), neighbours)
+                member_drift = neighbour_mean(_member_errors(refit_h[moving], judged_h[moving]), neighbours)
                 member_scores["learned"] = np.hypot(member_scores["learned"], member_drift)
             info["learned_refit_drift"] = drift
+        elif local and "learned" in scores and not np.isfinite(scores["learned"]):
+            member_scores["learned"][:] = np.nan  # as the group's weighting: no weight for a non-finite backtest
         simple = min(
             (c for c in candidates if c != "learned"), key=lambda c: (scores[c], CANDIDATES.index(c)), default=None
         )
@@ -680,7 +688,7 @@ def fit_structured(
             weights = backtest_weights(scores)
             if local:
                 # each moving member's own weighting; the group's figures are their means
-                member_weights = backtest_weights({c: member_scores[c][motion.moving] for c in candidates})
+                member_weights = backtest_weights(member_scores)
                 weights = {c: float(w.mean()) for c, w in member_weights.items()}
                 info["backtest_neighbors"] = int(own.backtest_neighbors)
             info.update({f"backtest_weight_{c}": w for c, w in weights.items()})
