@@ -52,7 +52,7 @@ class StructuredSettings:
     )
     combine: Literal["select", "weighted"] = setting(
         "weighted",
-        "how the backtest decides: 'weighted' (every candidate's forecast, weighted by its inverse squared backtest error; a rigid group blends as one pose, so it stays rigid) or 'select' (the lowest score wins). Measured with the previous candidates (the last_step_velocity variant), not again since: weighted had the best mean of the four methods at both MuJoCo ratios (0.8: 20.40 dB / 0.1802 against constant velocity's 20.23 / 0.1899, where select had 20.16 / 0.1923); select was ahead of it at MuJoCo 0.6 (20.66 against 20.41 dB), on the demo (by 0.05 dB) and in GT mean EPE (0.0435 against 0.0489 m), but behind constant velocity on 4 GT rows, weighted on none (docs/forecasting.md)",
+        "how the backtest decides: 'weighted' (every candidate's forecast, weighted by its inverse squared backtest error; a rigid group blends as one pose, so it stays rigid) or 'select' (the lowest score wins). Measured with the current candidates (2026-11-25): weighted has the better MuJoCo means (0.6: 21.42 dB / 0.1672 against 21.38 / 0.1685; 0.8: 20.51 / 0.1786 against 20.32 / 0.1815) and the five demo draws' tracking EPE (0.137 against 0.141 m); select the better GT mean EPE (0.0394 against 0.0491 m over 22 rows, but behind constant velocity on 3 rows, weighted on 1) and the five draws' image means (PSNR +0.01 dB, LPIPS -0.0021, mPSNR +0.03 dB) (docs/forecasting.md)",
     )
     max_train_windows: int = setting(
         65536, "training windows kept per fit (random, seeded): bounds memory for big groups", minimum=1
