@@ -496,21 +496,17 @@ def backtest_weights(scores: Mapping[str, Any]) -> dict[str, Any]:
     return {c: (float(v) if s.ndim == 1 else v) for c, v in zip(names, w, strict=True)}
 
 
-def nearest_members(positions: np.ndarray, k: int) -> np.ndarray | None:
+def nearest_members(positions: np.ndarray, k: int) -> np.ndarray:
     """(G, k) each member's k nearest members (itself included) at positions
-    (G, 3); None when k covers the whole group."""
+    (G, 3); k at most G."""
     from scipy.spatial import cKDTree
 
-    if k >= len(positions):
-        return None
+    k = min(int(k), len(positions))
     return cKDTree(positions).query(positions, k=k)[1].reshape(len(positions), k)
 
 
-def neighbour_mean(values: np.ndarray, neighbours: np.ndarray | None) -> np.ndarray:
-    """(G,) each member's mean of `values` (G,) over its neighbours
-    (nearest_members; None: the whole group's mean for every member)."""
-    if neighbours is None:
-        return np.full(len(values), values.mean())
+def neighbour_mean(values: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+    """(G,) each member's mean of `values` (G,) over its neighbours (G, k) (nearest_members)."""
     return values[neighbours].mean(axis=1)
 
 
@@ -583,13 +579,13 @@ class WeightedCandidates:
         return self.motion.members(blend_trajectories(trajectories, self.weights))
 
 
+def _distances(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """(G, n) each member's distance at each step of (G, n, 7) poses."""
+    return np.linalg.norm(pred[..., :3] - truth[..., :3], axis=-1)
+
+
 def _score(pred: np.ndarray, truth: np.ndarray) -> float:
-    return float(np.linalg.norm(pred[..., :3] - truth[..., :3], axis=-1).mean())
-
-
-def _member_errors(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """(G,) each member's mean distance over the steps of (G, n, 7) poses."""
-    return np.linalg.norm(pred[..., :3] - truth[..., :3], axis=-1).mean(axis=1)
+    return float(_distances(pred, truth).mean())
 
 
 def fit_structured(
@@ -652,11 +648,10 @@ def fit_structured(
         member_scores: dict[str, np.ndarray] = {}
         for name in candidates:
             backtested[name] = FittedCandidate(name, past, run, seed, device)
-            predicted = backtested[name].rollout(h)
-            scores[name] = _score(predicted, obs[:, T - h :])
+            distances = _distances(backtested[name].rollout(h), obs[:, T - h :])
+            scores[name] = float(distances.mean())
             if local:
-                errors = _member_errors(predicted[moving], obs[moving, T - h :])
-                member_scores[name] = neighbour_mean(errors, neighbours)
+                member_scores[name] = neighbour_mean(distances[moving].mean(axis=1), neighbours)
             info[f"backtest_epe_{name}"] = scores[name]
             backtest_steps += backtested[name].info.get("iterations", 0)
         learned_net = backtested["learned"].model if "learned" in backtested else None
@@ -667,15 +662,16 @@ def fit_structured(
             # accurate, and a network can learn their artefacts as motion).
             refit_learned = FittedCandidate("learned", motion, run, seed, device)
             judged = FittedCandidate("learned", motion, run, seed, device, model=learned_net)
-            refit_h, judged_h = refit_learned.rollout(h), judged.rollout(h)
-            drift = _score(refit_h, judged_h)
+            distances = _distances(refit_learned.rollout(h), judged.rollout(h))
+            drift = float(distances.mean())
             scores["learned"] = float(np.hypot(scores["learned"], drift))
             if local:
-                member_drift = neighbour_mean(_member_errors(refit_h[moving], judged_h[moving]), neighbours)
+                member_drift = neighbour_mean(distances[moving].mean(axis=1), neighbours)
                 member_scores["learned"] = np.hypot(member_scores["learned"], member_drift)
             info["learned_refit_drift"] = drift
-        elif local and "learned" in scores and not np.isfinite(scores["learned"]):
-            member_scores["learned"][:] = np.nan  # as the group's weighting: no weight for a non-finite backtest
+        for name in member_scores:  # as in the group's weighting: no weight for a non-finite backtest
+            if not np.isfinite(scores[name]):
+                member_scores[name][:] = np.nan
         simple = min(
             (c for c in candidates if c != "learned"), key=lambda c: (scores[c], CANDIDATES.index(c)), default=None
         )
@@ -685,12 +681,13 @@ def fit_structured(
         choice = "learned" if learned_wins else simple
         info["backtest_frames"] = h
         if own.combine == "weighted":
-            weights = backtest_weights(scores)
             if local:
                 # each moving member's own weighting; the group's figures are their means
                 member_weights = backtest_weights(member_scores)
                 weights = {c: float(w.mean()) for c, w in member_weights.items()}
                 info["backtest_neighbors"] = int(own.backtest_neighbors)
+            else:
+                weights = backtest_weights(scores)
             info.update({f"backtest_weight_{c}": w for c, w in weights.items()})
             choice = max(candidates, key=lambda c: weights[c])
     info["still_fraction"] = float(motion.still.mean())
