@@ -544,6 +544,25 @@ def test_conflicting_forecaster_settings_are_refused_before_any_job(tmp_path):
     assert f"{ablations}: variant 'margin': forecast.mogaf.structured: backtest_margin applies" in out
 
 
+def test_a_forecaster_setting_without_effect_is_a_warning_naming_its_file(tmp_path):
+    """Not an error (a sweep's variants switch the setting that makes it act):
+    one warning line per value, naming the file that sets it, and the
+    workflow goes on."""
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("forecast:\n  mogaf:\n    structured:\n      combine: select\n      backtest_neighbors: 8\n")
+    res = _snakemake(["-n", "-c1", "--configfile", str(CONFIG), str(cfg)], tmp_path)
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out
+    line = "forecast.mogaf.structured.backtest_neighbors = 8 has no effect: combine is select, which decides per group"
+    assert out.count(f"{cfg}: {line}") == 1  # once, though every variant inherits it
+    # a variant's own value is named by the variant
+    ablations = REPO / "config" / "ablations.yaml"
+    assert f"{ablations}: variant 'group_backtest': forecast.mogaf.structured.backtest_neighbors = 0" in out
+    # the shipped configs have none
+    res = _snakemake(["-n", "-c1", "--configfile", str(CONFIG)], tmp_path)
+    assert "has no effect" not in res.stdout + res.stderr
+
+
 @pytest.mark.parametrize(
     "where, edit",
     [

@@ -6,6 +6,7 @@ import pytest
 
 import mogaf.config as mcfg
 from mogaf.errors import MogafError
+from support.paths import REPO
 
 BASE = mcfg.with_defaults(mcfg.load_yaml("config/config.yaml"))
 VARIANTS = mcfg.load_yaml("config/ablations.yaml")["variants"]
@@ -195,3 +196,20 @@ def test_mogaf_paper_shares_its_forecast_when_only_the_structured_mode_changes()
         assert prefix("mogaf_paper", change) == ""
         assert prefix("mogaf", change) == "ablation/v/"
     assert prefix("mogaf_paper", lambda s: s.update(iterations=5)) == "ablation/v/"
+
+
+def test_the_shipped_configs_and_variants_set_nothing_without_effect():
+    """Every shipped config layer over config/config.yaml, and every ablation
+    variant over it, sets no forecaster value that the others silence."""
+    from mogaf.forecast.params import inert_settings
+
+    base = mcfg.with_defaults(mcfg.load_yaml(REPO / "config" / "config.yaml"))
+    layers = [
+        p for p in sorted((REPO / "config").glob("*.yaml")) if "schema" not in p.name and p.name != "ablations.yaml"
+    ]
+    merged = {path.name: mcfg.deep_merge(base, mcfg.load_yaml(path)) for path in layers}
+    variants = mcfg.load_yaml(REPO / "config" / "ablations.yaml")["variants"]
+    merged.update({f"variant {name}": mcfg.variant_config(base, variants, name) for name in variants})
+    assert len(layers) >= 6 and len(variants) >= 5
+    for name, cfg in merged.items():
+        assert inert_settings(mcfg.with_defaults(cfg)["forecast"]) == [], name

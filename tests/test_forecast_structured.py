@@ -10,6 +10,7 @@ import pytest
 from mogaf.errors import MogafError
 from mogaf.forecast import fit_and_rollout, make_forecaster, quat
 from mogaf.forecast.coherence import coherence, rigid_distance_change
+from mogaf.forecast.params import inert_settings
 from mogaf.forecast.structured import (
     CANDIDATES,
     GroupMotion,
@@ -485,6 +486,62 @@ def test_bad_structured_settings_are_refused_by_name():
     for bad in (["frozen", "kalman"], [], ["frozen", "frozen"]):
         with pytest.raises(MogafError, match="candidates must be distinct names"):
             make_forecaster("mogaf", {"structured": {"candidates": bad}}).fit(obs)
+
+
+# ---------------------------------------------------------------- settings without effect
+def _inert_keys(methods: list[str], section: dict) -> set[str]:
+    return {key for key, _ in inert_settings({"methods": methods, "mogaf": section})}
+
+
+def _changed(section: dict, change: dict, key: str) -> dict:
+    if key.startswith("structured."):
+        return {**section, "structured": {**section.get("structured", {}), **change}}
+    return {**section, **change}
+
+
+@pytest.mark.parametrize(
+    "base, control, change, key",
+    [
+        ({"structured": {"candidates": WITH_VELOCITY}}, {}, {"trend_window": 12}, "structured.trend_window"),
+        ({"structured": {"combine": "select"}}, {}, {"backtest_neighbors": 4}, "structured.backtest_neighbors"),
+        ({"structured": {"gate": False}}, {}, {"drift_check": False}, "structured.drift_check"),
+        ({"structured": {"gate": False}}, {}, {"backtest_frac": 0.1}, "structured.backtest_frac"),
+        ({"structured": {"candidates": ["frozen", "linear_trend"]}}, {}, {"horizon": 4}, "structured.horizon"),
+        ({"mode": "paper"}, {}, {"context": 4}, "structured.context"),
+        ({}, {"mode": "paper"}, {"weight_decay": 0.1}, "weight_decay"),
+    ],
+)
+def test_a_setting_said_to_have_no_effect_changes_no_forecast(base, control, change, key):
+    """What inert_settings lists must be true: the same forecast with and
+    without the value (a non-rigid group, where every rule can act), and,
+    where the setting that silences it is left at its default (`control`),
+    a different one and no line."""
+    obs = waving_sheet(48, 24)
+
+    def poses(section):
+        return fit_and_rollout("mogaf", obs, 6, {**QUICK, **section}, seed=3).poses
+
+    before, after = base, _changed(base, change, key)
+    assert _inert_keys(["mogaf"], after) - _inert_keys(["mogaf"], before) == {key}
+    np.testing.assert_array_equal(poses(before), poses(after))
+    assert key not in _inert_keys(["mogaf"], _changed(control, change, key))
+    assert np.abs(poses(control) - poses(_changed(control, change, key))).max() > 1e-6
+
+
+def test_inert_settings_count_every_method_that_reads_forecast_mogaf():
+    # mogaf_paper reads forecast.mogaf in paper mode, without `structured`
+    assert _inert_keys(["mogaf"], {"weight_decay": 0.1}) == {"weight_decay"}
+    assert _inert_keys(["mogaf", "mogaf_paper"], {"weight_decay": 0.1}) == set()
+    assert _inert_keys(["mogaf_paper"], {"structured": {"context": 4}, "lr": 0.01}) == {"structured.context"}
+    assert _inert_keys(["frozen"], {"lr": 0.01}) == {"lr"}
+    # a learned-free candidate list leaves the network's settings unread, not the parabola's context
+    no_net = {"lr": 0.01, "structured": {"candidates": ["frozen", "constant_acceleration"], "context": 8}}
+    assert _inert_keys(["mogaf"], no_net) == {"lr"}
+    # the defaults, and a candidate list in another order, list nothing
+    assert inert_settings({"methods": ["mogaf"], "mogaf": {}}) == []
+    assert _inert_keys(["mogaf"], {"structured": {"candidates": DEFAULT_CANDIDATES[::-1]}}) == set()
+    ((_, line),) = inert_settings({"methods": ["mogaf"], "mogaf": {"structured": {"gate": False, "trend_window": 5}}})
+    assert line == "forecast.mogaf.structured.trend_window = 5 has no effect: gate is false (no backtest)"
 
 
 # ---------------------------------------------------------------- polynomial candidates

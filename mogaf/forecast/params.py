@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from ..errors import MogafError
-from ..settings import defaults, load, section_schema, setting
+from ..settings import as_dict, defaults, load, section_schema, setting
 
 # The structured mode's candidates, simplest first: a tie goes to the simpler.
 STRUCTURED_CANDIDATES = ("frozen", "constant_velocity", "linear_trend", "constant_acceleration", "learned")
@@ -367,6 +367,82 @@ METHOD_SETTINGS: dict[str, type] = {
 PARAM_SECTIONS: dict[str, str] = {"mogaf_paper": "mogaf"}
 FIXED_PARAMS: dict[str, dict[str, Any]] = {"mogaf_paper": {"mode": "paper"}}
 UNREAD_PARAMS: dict[str, tuple[str, ...]] = {"mogaf_paper": ("structured",)}
+
+
+# forecast.mogaf settings only the paper mode reads: the structured mode has
+# its own weight decay, scales each window by its own spread and batches windows.
+PAPER_ONLY = ("weight_decay", "loss_space", "batch_tokens", "norm_eps")
+# forecast.mogaf.structured settings only the backtest reads.
+BACKTEST_ONLY = (
+    "candidates",
+    "backtest_frac",
+    "backtest_margin",
+    "combine",
+    "backtest_neighbors",
+    "drift_check",
+    "trend_window",
+)
+# forecast.mogaf.structured settings only the learned candidate reads
+# (`context` also sizes constant_acceleration's parabola).
+LEARNED_ONLY = ("context", "horizon", "weight_decay", "max_train_windows", "drift_check")
+
+
+def _changed(settings: Any, default: Mapping[str, Any]) -> dict[str, Any]:
+    """The settings whose value is not the default (candidates: as a set, their order is not read)."""
+    out = {}
+    for key, value in as_dict(settings).items():
+        base = default[key]
+        same = set(value) == set(base) if key == "candidates" else value == base
+        if not same:
+            out[key] = value
+    return out
+
+
+def _unread_by_mogaf(net: MogafSettings, own: StructuredSettings, changed: Mapping[str, Any]) -> dict[str, str]:
+    """Which of the changed forecast.mogaf keys the `mogaf` method does not read, and why."""
+    if net.mode == "paper":
+        return {k: "mode is paper, which reads no structured setting" for k in changed if k.startswith("structured.")}
+    why = dict.fromkeys(PAPER_ONLY, "only the paper mode reads it (mode is structured)")
+    if not own.gate:
+        why.update({f"structured.{k}": "gate is false (no backtest)" for k in BACKTEST_ONLY})
+    if "linear_trend" not in own.candidates:
+        why.setdefault("structured.trend_window", "candidates has no linear_trend")
+    if own.combine == "select":
+        why.setdefault("structured.backtest_neighbors", "combine is select, which decides per group")
+    if own.gate and "learned" not in own.candidates:
+        for k in LEARNED_ONLY:
+            if k != "context" or "constant_acceleration" not in own.candidates:
+                why.setdefault(f"structured.{k}", "candidates has no learned")
+        for k in changed:
+            if "." not in k and k != "mode":
+                why.setdefault(k, "candidates has no learned")
+    return {k: r for k, r in why.items() if k in changed}
+
+
+def inert_settings(forecast: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """forecast.mogaf settings set away from their defaults that no listed
+    method reads (`forecast`: the config's forecast section, `methods` and
+    `mogaf`): (the key under forecast.mogaf, e.g. "structured.trend_window";
+    a line saying its value and why), by key. `mogaf_paper` reads forecast.mogaf
+    too, in paper mode and without `structured`.
+
+    Not an error, unlike a select-only margin under the weighted blend: an
+    ablation variant switches the setting that makes such a value act again
+    (config/ablations.yaml), and a sweep must not stop for it; but a value
+    that changes nothing should not look like a measured setting."""
+    net, own = load_mogaf(forecast.get("mogaf") or {})
+    changed = {k: v for k, v in _changed(net, MOGAF_DEFAULTS).items() if k != "structured"}
+    changed.update({f"structured.{k}": v for k, v in _changed(own, STRUCTURED_DEFAULTS).items()})
+    methods = list(forecast.get("methods") or ())
+    if "mogaf" in methods:
+        why = _unread_by_mogaf(net, own, changed)
+    elif "mogaf_paper" in methods:
+        why = dict.fromkeys(changed, "forecast.methods has no mogaf, and mogaf_paper reads neither mode nor structured")
+    else:
+        why = dict.fromkeys(changed, "forecast.methods has neither mogaf nor mogaf_paper")
+    if "mogaf_paper" in methods:  # it reads every key of forecast.mogaf but these
+        why = {k: r for k, r in why.items() if k == "mode" or k.startswith("structured.")}
+    return [(k, f"forecast.mogaf.{k} = {changed[k]!r} has no effect: {why[k]}") for k in sorted(why)]
 
 
 def section_params(method: str, section: Mapping[str, Any] | None) -> dict[str, Any]:

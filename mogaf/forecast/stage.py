@@ -34,7 +34,7 @@ from ..errors import MogafError, input_error
 from ..representation import Model4D, load_model, quat_sign_continuity
 from ..split import read_split
 from .coherence import coherence
-from .params import param_section, section_params
+from .params import inert_settings, param_section, section_params
 from .registry import fit_and_rollout
 
 log = logging.getLogger(__name__)
@@ -185,6 +185,10 @@ def run_forecast_group(
     seed: int,
     device: str = "cpu",
 ) -> Path:
+    if method == "mogaf":
+        # a value the other settings leave without effect is said in the job's log
+        for _, line in inert_settings({"methods": [method], "mogaf": params.get("mogaf") or {}}):
+            log.warning("forecast %s job %s: %s", method, job, line)
     model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
     members = job_members(job, group_id, group_static, groups_h5)
     poses, info, wall = forecast_job(

@@ -4,13 +4,14 @@ import functools
 from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
+from snakemake.logging import logger
 
 import mogaf.config as mcfg
 import mogaf.paths as mpaths
 import mogaf.registry as mreg
 from mogaf.errors import MogafError
-from mogaf.forecast.params import load_mogaf
-from mogaf.schema import config_error, file_layers, load_config_schema
+from mogaf.forecast.params import inert_settings, load_mogaf
+from mogaf.schema import config_error, file_layers, load_config_schema, setting_source
 
 SCHEMA = Path(workflow.basedir) / "config" / "schema.yaml"
 ABLATION_SCHEMA = Path(workflow.basedir) / "config" / "ablations.schema.yaml"
@@ -44,16 +45,27 @@ _validate(config, SCHEMA, _config_layers())
 config.update(mcfg.with_defaults(config))
 
 
-def _check_relations(cfg, where=""):
+_INERT_WARNED = set()
+
+
+def _check_relations(cfg, layers, where=""):
     """Relations between settings the schema cannot express, refused before
-    any job runs (of the config and of every ablation variant)."""
+    any job runs (of the config and of every ablation variant); a value the
+    other settings leave without effect is a warning naming the file that
+    sets it, once."""
     try:
         load_mogaf(cfg["forecast"]["mogaf"])
+        inert = inert_settings(cfg["forecast"])
     except MogafError as exc:
         raise WorkflowError(f"{where}{exc}")
+    for key, line in inert:
+        source = setting_source(["forecast", "mogaf", *key.split(".")], layers)
+        if (source, line) not in _INERT_WARNED:
+            _INERT_WARNED.add((source, line))
+            logger.warning(f"{source}: {line}")
 
 
-_check_relations(config)
+_check_relations(config, _config_layers())
 
 # Every pipeline write goes to results/ or the cache folder (kernels, LPIPS).
 mpaths.use_cache_dir(config["cache_dir"])
@@ -82,8 +94,9 @@ def _load_ablations():
         # A variant's merged config must satisfy the same schema.
         overrides = data["variants"][name].get("overrides") or {}
         variant = mcfg.variant_config(config, data["variants"], name)
-        _validate(variant, SCHEMA, _config_layers() + [(f"{path}: variant '{name}'", overrides)])
-        _check_relations(variant, f"{path}: variant '{name}': ")
+        layers = _config_layers() + [(f"{path}: variant '{name}'", overrides)]
+        _validate(variant, SCHEMA, layers)
+        _check_relations(variant, layers, f"{path}: variant '{name}': ")
     return data
 
 
