@@ -22,7 +22,7 @@ from typing import Any
 
 from . import registry
 from .errors import MogafError
-from .forecast.params import param_section, section_params
+from .forecast.params import inert_settings, param_section, section_params
 from .settings import section_defaults
 
 # The stage graph (which config sections and upstream stages determine each
@@ -125,6 +125,33 @@ def variant_config(config: Mapping[str, Any], variants: Mapping[str, Any], varia
         known = ", ".join(sorted(variants)) or "none"
         raise MogafError(f"unknown ablation variant '{variant}' (config/ablations.yaml defines: {known})")
     return deep_merge(config, variants[variant].get("overrides") or {})
+
+
+def _overrides_set(variant: Mapping[str, Any], key: str) -> bool:
+    """Whether a variant's overrides set forecast.mogaf.<key> themselves."""
+    node: Any = variant.get("overrides") or {}
+    for part in ["forecast", "mogaf", *key.split(".")]:
+        if not isinstance(node, Mapping) or part not in node:
+            return False
+        node = node[part]
+    return True
+
+
+def inert_forecaster_settings(
+    config: Mapping[str, Any], variants: Mapping[str, Any]
+) -> tuple[list[tuple[str, str]], dict[str, list[tuple[str, str]]]]:
+    """The forecaster values that do nothing (mogaf.forecast.params.inert_settings),
+    split so that no line contradicts a run: (the config's own values that no
+    variant reads either, {variant: the values its own overrides set that do
+    nothing in it}). A config value that only some variant silences is not
+    listed: that is what the variant is for."""
+    base = dict(inert_settings(config["forecast"]))
+    own: dict[str, list[tuple[str, str]]] = {}
+    for name, variant in variants.items():
+        inert = dict(inert_settings(variant_config(config, variants, name)["forecast"]))
+        own[name] = [(key, line) for key, line in inert.items() if _overrides_set(variant, key)]
+        base = {key: line for key, line in base.items() if key in inert or _overrides_set(variant, key)}
+    return list(base.items()), own
 
 
 def forecast_input_stage(config: Mapping[str, Any]) -> str:

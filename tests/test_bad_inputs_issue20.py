@@ -547,18 +547,23 @@ def test_conflicting_forecaster_settings_are_refused_before_any_job(tmp_path):
 def test_a_forecaster_setting_without_effect_is_a_warning_naming_its_file(tmp_path):
     """Not an error (a sweep's variants switch the setting that makes it act):
     one warning line per value, naming the file that sets it, and the
-    workflow goes on."""
+    workflow goes on; a variant's own such value is said when the variant is
+    asked for, naming the variant."""
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text("forecast:\n  mogaf:\n    structured:\n      combine: select\n      backtest_neighbors: 8\n")
     res = _snakemake(["-n", "-c1", "--configfile", str(CONFIG), str(cfg)], tmp_path)
     out = res.stdout + res.stderr
     assert res.returncode == 0, out
     line = "forecast.mogaf.structured.backtest_neighbors = 8 has no effect: combine is select, which decides per group"
-    assert out.count(f"{cfg}: {line}") == 1  # once, though every variant inherits it
-    # a variant's own value is named by the variant
+    assert out.count(f"{cfg}: {line}") == 1
+    assert "variant 'group_backtest'" not in out  # not asked for
+    target = "results/synthetic/default/ratio0.6/ablation/group_backtest/metrics.json"
+    res = _snakemake(["-n", "-c1", target, "--configfile", str(CONFIG), str(cfg)], tmp_path)
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out
     ablations = REPO / "config" / "ablations.yaml"
-    assert f"{ablations}: variant 'group_backtest': forecast.mogaf.structured.backtest_neighbors = 0" in out
-    # the shipped configs have none
+    assert out.count(f"{ablations}: variant 'group_backtest': forecast.mogaf.structured.backtest_neighbors = 0") == 1
+    # the shipped config has none
     res = _snakemake(["-n", "-c1", "--configfile", str(CONFIG)], tmp_path)
     assert "has no effect" not in res.stdout + res.stderr
 

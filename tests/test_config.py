@@ -199,17 +199,52 @@ def test_mogaf_paper_shares_its_forecast_when_only_the_structured_mode_changes()
 
 
 def test_the_shipped_configs_and_variants_set_nothing_without_effect():
-    """Every shipped config layer over config/config.yaml, and every ablation
-    variant over it, sets no forecaster value that the others silence."""
-    from mogaf.forecast.params import inert_settings
-
+    """Every shipped config layer over config/config.yaml sets no forecaster
+    value that the others silence, nor does any variant over it, except the
+    structured mode's variants under config/paper.yaml (mode: paper)."""
     base = mcfg.with_defaults(mcfg.load_yaml(REPO / "config" / "config.yaml"))
+    variants = mcfg.load_yaml(REPO / "config" / "ablations.yaml")["variants"]
     layers = [
         p for p in sorted((REPO / "config").glob("*.yaml")) if "schema" not in p.name and p.name != "ablations.yaml"
     ]
-    merged = {path.name: mcfg.deep_merge(base, mcfg.load_yaml(path)) for path in layers}
-    variants = mcfg.load_yaml(REPO / "config" / "ablations.yaml")["variants"]
-    merged.update({f"variant {name}": mcfg.variant_config(base, variants, name) for name in variants})
     assert len(layers) >= 6 and len(variants) >= 5
-    for name, cfg in merged.items():
-        assert inert_settings(mcfg.with_defaults(cfg)["forecast"]) == [], name
+    for path in layers:
+        cfg = mcfg.with_defaults(mcfg.deep_merge(base, mcfg.load_yaml(path)))
+        own, per_variant = mcfg.inert_forecaster_settings(cfg, variants)
+        assert own == [], path.name
+        paper = cfg["forecast"]["mogaf"]["mode"] == "paper"
+        for name, inert in per_variant.items():
+            if paper:
+                assert all(key.startswith("structured.") and "mode is paper" in line for key, line in inert), name
+            else:
+                assert inert == [], (path.name, name)
+
+
+def test_a_value_is_said_to_do_nothing_only_where_no_run_reads_it():
+    base = mcfg.with_defaults(mcfg.load_yaml(REPO / "config" / "config.yaml"))
+
+    def structured(**values):
+        return {"forecast": {"mogaf": {"structured": values}}}
+
+    variants = {
+        "select": {"overrides": structured(combine="select")},
+        "select_k4": {"overrides": structured(combine="select", backtest_neighbors=4)},
+        "mogaf_only": {"overrides": {"forecast": {"methods": ["mogaf"]}}},
+    }
+
+    def inert(section):
+        cfg = mcfg.with_defaults(mcfg.deep_merge(base, {"forecast": section}))
+        own, per_variant = mcfg.inert_forecaster_settings(cfg, variants)
+        return [key for key, _ in own], {name: [key for key, _ in v] for name, v in per_variant.items()}
+
+    # a variant's own value that does nothing in it is listed under the variant
+    assert inert({}) == ([], {"select": [], "select_k4": ["structured.backtest_neighbors"], "mogaf_only": []})
+    # a config value that only a variant silences is not: that is what the variant is for
+    assert inert({"mogaf": {"structured": {"backtest_neighbors": 8}}})[0] == []
+    # a config value silenced in the config and in every variant is
+    no_trend = {"mogaf": {"structured": {"candidates": ["frozen", "learned"], "trend_window": 4}}}
+    assert inert(no_trend)[0] == ["structured.trend_window"]
+    # the config runs no mogaf, but a variant does and reads its value: not listed
+    assert inert({"methods": ["gcn"], "mogaf": {"lr": 0.02}})[0] == []
+    variants.pop("mogaf_only")
+    assert inert({"methods": ["gcn"], "mogaf": {"lr": 0.02}})[0] == ["lr"]

@@ -509,6 +509,13 @@ def _changed(section: dict, change: dict, key: str) -> dict:
         ({"structured": {"candidates": ["frozen", "linear_trend"]}}, {}, {"horizon": 4}, "structured.horizon"),
         ({"mode": "paper"}, {}, {"context": 4}, "structured.context"),
         ({}, {"mode": "paper"}, {"weight_decay": 0.1}, "weight_decay"),
+        ({"masking": False}, {}, {"mask_ratio_start": 0.2}, "mask_ratio_start"),
+        (
+            {"structured": {"combine": "select", "candidates": ["frozen", "linear_trend"]}},
+            {"structured": {"combine": "select"}},
+            {"backtest_margin": 0.99},
+            "structured.backtest_margin",
+        ),
     ],
 )
 def test_a_setting_said_to_have_no_effect_changes_no_forecast(base, control, change, key):
@@ -534,6 +541,9 @@ def test_inert_settings_count_every_method_that_reads_forecast_mogaf():
     assert _inert_keys(["mogaf", "mogaf_paper"], {"weight_decay": 0.1}) == set()
     assert _inert_keys(["mogaf_paper"], {"structured": {"context": 4}, "lr": 0.01}) == {"structured.context"}
     assert _inert_keys(["frozen"], {"lr": 0.01}) == {"lr"}
+    assert _inert_keys(["mogaf_paper"], {"mode": "paper"}) == {"mode"}
+    # masking's settings without masking, in both modes
+    assert _inert_keys(["mogaf", "mogaf_paper"], {"masking": False, "mask_ratio_start": 0.2}) == {"mask_ratio_start"}
     # a learned-free candidate list leaves the network's settings unread, not the parabola's context
     no_net = {"lr": 0.01, "structured": {"candidates": ["frozen", "constant_acceleration"], "context": 8}}
     assert _inert_keys(["mogaf"], no_net) == {"lr"}

@@ -384,7 +384,9 @@ BACKTEST_ONLY = (
 )
 # forecast.mogaf.structured settings only the learned candidate reads
 # (`context` also sizes constant_acceleration's parabola).
-LEARNED_ONLY = ("context", "horizon", "weight_decay", "max_train_windows", "drift_check")
+LEARNED_ONLY = ("context", "horizon", "weight_decay", "max_train_windows", "drift_check", "backtest_margin")
+# forecast.mogaf settings of the masked input training, both modes.
+MASKING_ONLY = ("mask_ratio_start", "mask_ratio_end", "mask_anneal_frac")
 
 
 def _changed(settings: Any, default: Mapping[str, Any]) -> dict[str, Any]:
@@ -400,9 +402,13 @@ def _changed(settings: Any, default: Mapping[str, Any]) -> dict[str, Any]:
 
 def _unread_by_mogaf(net: MogafSettings, own: StructuredSettings, changed: Mapping[str, Any]) -> dict[str, str]:
     """Which of the changed forecast.mogaf keys the `mogaf` method does not read, and why."""
+    why = {} if net.masking else dict.fromkeys(MASKING_ONLY, "masking is false")
     if net.mode == "paper":
-        return {k: "mode is paper, which reads no structured setting" for k in changed if k.startswith("structured.")}
-    why = dict.fromkeys(PAPER_ONLY, "only the paper mode reads it (mode is structured)")
+        why.update(
+            {k: "mode is paper, which reads no structured setting" for k in changed if k.startswith("structured.")}
+        )
+        return {k: r for k, r in why.items() if k in changed}
+    why.update(dict.fromkeys(PAPER_ONLY, "only the paper mode reads it (mode is structured)"))
     if not own.gate:
         why.update({f"structured.{k}": "gate is false (no backtest)" for k in BACKTEST_ONLY})
     if "linear_trend" not in own.candidates:
@@ -417,6 +423,19 @@ def _unread_by_mogaf(net: MogafSettings, own: StructuredSettings, changed: Mappi
             if "." not in k and k != "mode":
                 why.setdefault(k, "candidates has no learned")
     return {k: r for k, r in why.items() if k in changed}
+
+
+def _unread_by_mogaf_paper(net: MogafSettings, changed: Mapping[str, Any]) -> dict[str, str]:
+    """Which of the changed forecast.mogaf keys the `mogaf_paper` method (paper
+    mode whatever `mode` says, no `structured`) does not read, and why."""
+    why = {
+        k: "mogaf_paper reads neither mode nor structured"
+        for k in changed
+        if k == "mode" or k.startswith("structured.")
+    }
+    if not net.masking:
+        why.update({k: "masking is false" for k in MASKING_ONLY if k in changed})
+    return why
 
 
 def inert_settings(forecast: Mapping[str, Any]) -> list[tuple[str, str]]:
@@ -434,14 +453,16 @@ def inert_settings(forecast: Mapping[str, Any]) -> list[tuple[str, str]]:
     changed = {k: v for k, v in _changed(net, MOGAF_DEFAULTS).items() if k != "structured"}
     changed.update({f"structured.{k}": v for k, v in _changed(own, STRUCTURED_DEFAULTS).items()})
     methods = list(forecast.get("methods") or ())
-    if "mogaf" in methods:
-        why = _unread_by_mogaf(net, own, changed)
-    elif "mogaf_paper" in methods:
-        why = dict.fromkeys(changed, "forecast.methods has no mogaf, and mogaf_paper reads neither mode nor structured")
-    else:
+    readers = [m for m in ("mogaf", "mogaf_paper") if m in methods]
+    if not readers:
         why = dict.fromkeys(changed, "forecast.methods has neither mogaf nor mogaf_paper")
-    if "mogaf_paper" in methods:  # it reads every key of forecast.mogaf but these
-        why = {k: r for k, r in why.items() if k == "mode" or k.startswith("structured.")}
+    else:
+        # a value is without effect only if every method reading forecast.mogaf leaves it
+        unread = [
+            _unread_by_mogaf(net, own, changed) if m == "mogaf" else _unread_by_mogaf_paper(net, changed)
+            for m in readers
+        ]
+        why = {k: r for k, r in unread[0].items() if all(k in u for u in unread)}
     return [(k, f"forecast.mogaf.{k} = {changed[k]!r} has no effect: {why[k]}") for k in sorted(why)]
 
 

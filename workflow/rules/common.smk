@@ -10,7 +10,7 @@ import mogaf.config as mcfg
 import mogaf.paths as mpaths
 import mogaf.registry as mreg
 from mogaf.errors import MogafError
-from mogaf.forecast.params import inert_settings, load_mogaf
+from mogaf.forecast.params import load_mogaf
 from mogaf.schema import config_error, file_layers, load_config_schema, setting_source
 
 SCHEMA = Path(workflow.basedir) / "config" / "schema.yaml"
@@ -45,27 +45,16 @@ _validate(config, SCHEMA, _config_layers())
 config.update(mcfg.with_defaults(config))
 
 
-_INERT_WARNED = set()
-
-
-def _check_relations(cfg, layers, where=""):
+def _check_relations(cfg, where=""):
     """Relations between settings the schema cannot express, refused before
-    any job runs (of the config and of every ablation variant); a value the
-    other settings leave without effect is a warning naming the file that
-    sets it, once."""
+    any job runs (of the config and of every ablation variant)."""
     try:
         load_mogaf(cfg["forecast"]["mogaf"])
-        inert = inert_settings(cfg["forecast"])
     except MogafError as exc:
         raise WorkflowError(f"{where}{exc}")
-    for key, line in inert:
-        source = setting_source(["forecast", "mogaf", *key.split(".")], layers)
-        if (source, line) not in _INERT_WARNED:
-            _INERT_WARNED.add((source, line))
-            logger.warning(f"{source}: {line}")
 
 
-_check_relations(config, _config_layers())
+_check_relations(config)
 
 # Every pipeline write goes to results/ or the cache folder (kernels, LPIPS).
 mpaths.use_cache_dir(config["cache_dir"])
@@ -94,14 +83,31 @@ def _load_ablations():
         # A variant's merged config must satisfy the same schema.
         overrides = data["variants"][name].get("overrides") or {}
         variant = mcfg.variant_config(config, data["variants"], name)
-        layers = _config_layers() + [(f"{path}: variant '{name}'", overrides)]
-        _validate(variant, SCHEMA, layers)
-        _check_relations(variant, layers, f"{path}: variant '{name}': ")
+        _validate(variant, SCHEMA, _config_layers() + [(f"{path}: variant '{name}'", overrides)])
+        _check_relations(variant, f"{path}: variant '{name}': ")
     return data
 
 
 ABLATIONS = _load_ablations()
 VARIANTS = ABLATIONS.get("variants", {})
+
+
+# A forecaster value that the other settings leave without effect is a
+# warning, not an error (a sweep's variants switch the setting that silences
+# it): the config's own, naming the file that sets it, now; a variant's own,
+# when the variant is asked for (scene_cfg).
+_WARNED = set()
+
+
+def _warn_once(line):
+    if line not in _WARNED:
+        _WARNED.add(line)
+        logger.warning(line)
+
+
+_BASE_INERT, _VARIANT_INERT = mcfg.inert_forecaster_settings(config, VARIANTS)
+for _key, _line in _BASE_INERT:
+    _warn_once(f"{setting_source(['forecast', 'mogaf', *_key.split('.')], _config_layers())}: {_line}")
 
 
 onstart:
@@ -150,6 +156,8 @@ def variant_of(wildcards):
 def scene_cfg(wildcards, variant=None):
     """Config for this dataset/scene (and variant), overrides applied."""
     variant = variant if variant is not None else variant_of(wildcards)
+    for _, line in _VARIANT_INERT.get(variant, ()):
+        _warn_once(f"{_ablations_path()}: variant '{variant}': {line}")
     merged = mcfg.variant_config(config, VARIANTS, variant)
     return mcfg.scene_config(merged, wildcards.dataset, wildcards.scene)
 
