@@ -13,9 +13,11 @@ demo: setup
 	$(BIN)/snakemake --cores $(CORES) demo --configfile config/config.yaml config/demo.yaml
 
 # Lint and format checks first (seconds), then one pytest worker per core; a
-# test file stays on one worker (module fixtures run once).
+# test file stays on one worker (module fixtures run once), handed out in
+# collection order (the long modules first: tests/conftest.py), not xdist's
+# default of most tests first, which left the end-to-end module for last.
 test: setup lint-check
-	$(BIN)/python -m pytest -q -n $(CORES) --dist loadfile
+	$(BIN)/python -m pytest -q -n $(CORES) --dist loadfile --no-loadscope-reorder
 
 # ruff (lint + format) and snakefmt, as `make test` runs them; `make format` applies them.
 lint-check: setup

@@ -46,7 +46,14 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Deselect `slow` tests unless the user asked for them (--run-slow, or a -m expression naming slow)."""
+    """Put the `long` modules first, then deselect `slow` tests unless the user
+    asked for them (--run-slow, or a -m expression naming slow).
+
+    xdist (--dist loadfile) hands out test files in collection order: a
+    minutes-long module collected late keeps one worker busy after the other
+    has run out of files, so the long ones start first (longest first
+    balances the workers)."""
+    items.sort(key=lambda item: item.get_closest_marker("long") is None)  # stable: the order within stays
     if config.getoption("--run-slow") or "slow" in (config.getoption("markexpr") or ""):
         return
     slow = [item for item in items if item.get_closest_marker("slow") is not None]

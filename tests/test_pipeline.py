@@ -27,6 +27,9 @@ import pytest
 
 from support.paths import REPO
 
+# minutes of work in one module fixture: collected first (tests/conftest.py)
+pytestmark = pytest.mark.long
+
 SNAKEFILE = str(REPO / "Snakefile")
 CONFIGS = [str(REPO / "config" / "config.yaml"), str(REPO / ".test" / "config.yaml")]
 RATIO = Path("results/synthetic/tiny/ratio0.6")

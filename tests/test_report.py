@@ -491,12 +491,12 @@ def test_load_metrics_rejects_foreign_json(tmp_path):
 # The demo's numbers, as the README gives them (make demo, results/synthetic/default/ratio0.6/metrics.json,
 # rounded as printed): method -> (PSNR, LPIPS, mPSNR, tracking EPE); GCN and ODE at config/demo.yaml's budgets.
 DEMO = {
-    "gcn": (15.80, 0.2771, 20.36, 0.466),
-    "ode": (15.84, 0.3281, 19.88, 1.598),
-    "mogaf": (16.58, 0.1929, 23.12, 0.095),
-    "mogaf_paper": (16.10, 0.2373, 21.27, 0.199),
-    "constant_velocity": (16.27, 0.2191, 21.88, 0.164),
-    "frozen": (16.42, 0.2127, 22.43, 0.156),
+    "gcn": (16.69, 0.2477, 20.51, 0.475),
+    "ode": (16.59, 0.3226, 19.45, 1.601),
+    "mogaf": (17.65, 0.1944, 22.92, 0.104),
+    "mogaf_paper": (17.13, 0.2379, 21.52, 0.198),
+    "constant_velocity": (17.39, 0.2135, 22.07, 0.158),
+    "frozen": (17.55, 0.2102, 22.47, 0.156),
 }
 DEMO_FILE = "results/synthetic/default/ratio0.6/metrics.json"
 
@@ -532,8 +532,8 @@ def test_glance_table_marks_the_best_and_the_shortened_budgets(tmp_path, monkeyp
         METHOD_LABELS["constant_velocity"],
         METHOD_LABELS["frozen"],
     ]
-    assert rows[2][1:] == ["**16.58**", "**0.1929**", "**23.12**", "**0.095**"]  # higher PSNR, lower LPIPS / EPE
-    assert rows[5][1:] == ["16.42", "0.2127", "22.43", "0.156"]
+    assert rows[2][1:] == ["**17.65**", "**0.1944**", "**22.92**", "**0.104**"]  # higher PSNR, lower LPIPS / EPE
+    assert rows[5][1:] == ["17.55", "0.2102", "22.47", "0.156"]
     assert lines[-1].startswith("Methods marked * ran off their papers' settings")
 
 
