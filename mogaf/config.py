@@ -16,7 +16,7 @@ import copy
 import fnmatch
 import os
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -127,14 +127,28 @@ def variant_config(config: Mapping[str, Any], variants: Mapping[str, Any], varia
     return deep_merge(config, variants[variant].get("overrides") or {})
 
 
+def depth_set(config: Any, keys: Sequence[Any]) -> int:
+    """How many leading `keys` `config` sets (nested mappings and lists)."""
+    node, depth = config, 0
+    for key in keys:
+        if (
+            isinstance(node, Mapping)
+            and key in node
+            or isinstance(node, list)
+            and isinstance(key, int)
+            and 0 <= key < len(node)
+        ):
+            node = node[key]
+        else:
+            break
+        depth += 1
+    return depth
+
+
 def _overrides_set(variant: Mapping[str, Any], key: str) -> bool:
     """Whether a variant's overrides set forecast.mogaf.<key> themselves."""
-    node: Any = variant.get("overrides") or {}
-    for part in ["forecast", "mogaf", *key.split(".")]:
-        if not isinstance(node, Mapping) or part not in node:
-            return False
-        node = node[part]
-    return True
+    keys = ["forecast", "mogaf", *key.split(".")]
+    return depth_set(variant.get("overrides") or {}, keys) == len(keys)
 
 
 def inert_forecaster_settings(

@@ -15,29 +15,11 @@ import os
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from .config import load_yaml
+from .config import depth_set, load_yaml
 from .errors import MogafError
 from .settings import workflow_schema
 
 MAX_MESSAGE = 240  # characters of jsonschema's message kept (it may quote a whole section)
-
-
-def _depth_set(config: Any, keys: Sequence[Any]) -> int:
-    """How many leading `keys` `config` sets (nested mappings and lists)."""
-    node, depth = config, 0
-    for key in keys:
-        if (
-            isinstance(node, Mapping)
-            and key in node
-            or isinstance(node, list)
-            and isinstance(key, int)
-            and 0 <= key < len(node)
-        ):
-            node = node[key]
-        else:
-            break
-        depth += 1
-    return depth
 
 
 def setting_source(keys: Sequence[Any], layers: Sequence[tuple[str, Mapping[str, Any]]]) -> str:
@@ -46,7 +28,7 @@ def setting_source(keys: Sequence[Any], layers: Sequence[tuple[str, Mapping[str,
     sets any of it (e.g. a required key missing everywhere)."""
     best, depth = None, 0
     for name, contents in layers:
-        d = _depth_set(contents, keys)
+        d = depth_set(contents, keys)
         if d and d >= depth:
             best, depth = name, d
     return best if best is not None else " + ".join(name for name, _ in layers)

@@ -402,13 +402,9 @@ def _changed(settings: Any, default: Mapping[str, Any]) -> dict[str, Any]:
 
 def _unread_by_mogaf(net: MogafSettings, own: StructuredSettings, changed: Mapping[str, Any]) -> dict[str, str]:
     """Which of the changed forecast.mogaf keys the `mogaf` method does not read, and why."""
-    why = {} if net.masking else dict.fromkeys(MASKING_ONLY, "masking is false")
     if net.mode == "paper":
-        why.update(
-            {k: "mode is paper, which reads no structured setting" for k in changed if k.startswith("structured.")}
-        )
-        return {k: r for k, r in why.items() if k in changed}
-    why.update(dict.fromkeys(PAPER_ONLY, "only the paper mode reads it (mode is structured)"))
+        return {k: "mode is paper, which reads no structured setting" for k in changed if k.startswith("structured.")}
+    why = dict.fromkeys(PAPER_ONLY, "only the paper mode reads it (mode is structured)")
     if not own.gate:
         why.update({f"structured.{k}": "gate is false (no backtest)" for k in BACKTEST_ONLY})
     if "linear_trend" not in own.candidates:
@@ -425,17 +421,14 @@ def _unread_by_mogaf(net: MogafSettings, own: StructuredSettings, changed: Mappi
     return {k: r for k, r in why.items() if k in changed}
 
 
-def _unread_by_mogaf_paper(net: MogafSettings, changed: Mapping[str, Any]) -> dict[str, str]:
+def _unread_by_mogaf_paper(changed: Mapping[str, Any]) -> dict[str, str]:
     """Which of the changed forecast.mogaf keys the `mogaf_paper` method (paper
     mode whatever `mode` says, no `structured`) does not read, and why."""
-    why = {
+    return {
         k: "mogaf_paper reads neither mode nor structured"
         for k in changed
         if k == "mode" or k.startswith("structured.")
     }
-    if not net.masking:
-        why.update({k: "masking is false" for k in MASKING_ONLY if k in changed})
-    return why
 
 
 def inert_settings(forecast: Mapping[str, Any]) -> list[tuple[str, str]]:
@@ -459,10 +452,11 @@ def inert_settings(forecast: Mapping[str, Any]) -> list[tuple[str, str]]:
     else:
         # a value is without effect only if every method reading forecast.mogaf leaves it
         unread = [
-            _unread_by_mogaf(net, own, changed) if m == "mogaf" else _unread_by_mogaf_paper(net, changed)
-            for m in readers
+            _unread_by_mogaf(net, own, changed) if m == "mogaf" else _unread_by_mogaf_paper(changed) for m in readers
         ]
         why = {k: r for k, r in unread[0].items() if all(k in u for u in unread)}
+        if not net.masking:  # neither reader's network masks its inputs, in either mode
+            why.update({k: "masking is false" for k in MASKING_ONLY if k in changed})
     return [(k, f"forecast.mogaf.{k} = {changed[k]!r} has no effect: {why[k]}") for k in sorted(why)]
 
 
