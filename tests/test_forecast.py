@@ -296,12 +296,35 @@ def test_cuda_asked_for_without_cuda_is_refused(method):
         fit_and_rollout(method, rigid_box(48, 20, seed=3), 3, FAST[method], seed=0, device="cuda")
 
 
+def _rounding_sensitivity(method: str, traj: np.ndarray, params: dict) -> float:
+    """Mean forecast change on the CPU when the observed positions move by one
+    part in 10^7 (float32 rounding): how far two devices may drift apart."""
+    base = fit_and_rollout(method, traj, 6, params, seed=0, device="cpu")
+    nudged = traj.copy()
+    nudged[..., :3] *= 1.0 + 1e-7
+    other = fit_and_rollout(method, nudged, 6, params, seed=0, device="cpu")
+    return float(np.linalg.norm(base.poses[..., :3] - other.poses[..., :3], axis=-1).mean())
+
+
+def test_rounding_sensitivity_separates_the_gcn_from_the_others():
+    """The GCN's training amplifies rounding (Adam normalises near-zero
+    gradients to full steps), the transformers' and the ODE's does not: the
+    CUDA check below allows each method its own CPU sensitivity."""
+    traj = rigid_box(200, 24, seed=5)
+    extent = float(np.ptp(traj[..., :3].reshape(-1, 3), axis=0).max())
+    assert _rounding_sensitivity("mogaf", traj, FAST["mogaf"]) < 1e-5 * extent
+    assert _rounding_sensitivity("gcn", traj, FAST["gcn"]) > 1e-3 * extent
+
+
 @pytest.mark.gpu
 @pytest.mark.parametrize("method", TORCH_METHODS)
 def test_cuda_forecast_agrees_with_the_cpu_one(method):
     """Same seed, same sampling (CPU generator) and the same initial weights
     (built on the CPU): without dropout (whose masks the GPU's own generator
-    draws), only float rounding differs between the devices."""
+    draws), only float rounding differs between the devices, so the forecasts
+    differ by at most 0.1 % of the extent, or by a few times what a
+    rounding-level nudge of the input changes on the CPU where training
+    amplifies rounding (the GCN)."""
     import torch
 
     if not torch.cuda.is_available():
@@ -313,5 +336,6 @@ def test_cuda_forecast_agrees_with_the_cpu_one(method):
     gpu = fit_and_rollout(method, traj, 6, params, seed=0, device="cuda")
     assert gpu.info["device"] == "cuda" and cpu.info["device"] == "cpu"
     extent = float(np.ptp(traj[..., :3].reshape(-1, 3), axis=0).max())
+    allowed = max(1e-3 * extent, 4.0 * _rounding_sensitivity(method, traj, params))
     gap = np.linalg.norm(gpu.poses[..., :3] - cpu.poses[..., :3], axis=-1).mean()
-    assert gap < 1e-3 * extent, f"{method}: CUDA and CPU forecasts differ by {gap:.3g} (extent {extent:.3g})"
+    assert gap < allowed, f"{method}: CUDA and CPU forecasts differ by {gap:.3g} (allowed {allowed:.3g})"

@@ -197,3 +197,22 @@ def test_static_scene_psnr_rises(tmp_path):
     psnr = load_model(out).training["psnr"]
     assert psnr[-3:].mean() > psnr[0] + 6.0, psnr
     assert read_artefact(out, "recon").attrs["train_psnr"] > 22.0
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("extra", [{}, {"curriculum": "on", "silhouette": "on"}])
+def test_recon_on_cuda_matches_the_cpu_run(tiny_scene, tmp_path, extra):
+    """The whole training step on CUDA (gsplat, the losses, densification and,
+    with the curriculum and silhouettes on, their paths too): a finite model
+    whose fit to the training frames is close to the CPU run's."""
+    if not torch.cuda.is_available():
+        pytest.skip("needs CUDA")
+    pytest.importorskip("gsplat")
+    from mogaf.recon import run_recon_stage
+
+    params = {**TINY_PARAMS, **extra}
+    cpu = run_recon_stage(*tiny_scene, tmp_path / "cpu.h5", {**params, "device": "cpu"}, seed=3, progress=False)
+    gpu = run_recon_stage(*tiny_scene, tmp_path / "gpu.h5", {**params, "device": "cuda"}, seed=3, progress=False)
+    a, b = read_artefact(cpu, "recon"), read_artefact(gpu, "recon")
+    assert np.isfinite(b["trajectories/means"]).all()
+    assert abs(a.attrs["train_psnr"] - b.attrs["train_psnr"]) < 1.5, (a.attrs["train_psnr"], b.attrs["train_psnr"])

@@ -29,3 +29,17 @@ def test_labelled_row_puts_each_label_above_its_panel_and_the_caption_on_top():
 def test_labelled_row_refuses_a_missing_label():
     with pytest.raises(ValueError):
         labelled_row([np.zeros((4, 4, 3))], [], "caption")
+
+
+def test_without_ffmpeg_the_video_is_a_gif_beside_the_mp4_name(tmp_path, monkeypatch):
+    """Without imageio-ffmpeg, imageio would hand '.mp4' to another plugin (tifffile
+    refuses fps): the evaluate stage writes a gif instead, and no mp4."""
+    import imageio.v3 as iio
+
+    from mogaf.evaluate import images
+
+    frames = [np.full((21, 33, 3), 20 * i, np.uint8) for i in range(4)]
+    monkeypatch.setattr(images, "ffmpeg_available", lambda: False)
+    images._write_video(tmp_path / "mogaf.mp4", frames, 5)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mogaf.gif"]
+    assert iio.imread(tmp_path / "mogaf.gif", index=None).shape == (4, 22, 34, 3)

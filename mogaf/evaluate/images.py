@@ -33,8 +33,18 @@ def _save_png(path: Path, img: np.ndarray) -> None:
     iio.imwrite(path, to_uint8(np.asarray(img) * 255.0))
 
 
+def ffmpeg_available() -> bool:
+    """Whether imageio can encode mp4 here (imageio-ffmpeg and its binary)."""
+    try:
+        import imageio_ffmpeg
+
+        return bool(imageio_ffmpeg.get_ffmpeg_exe())
+    except (ImportError, RuntimeError, OSError):
+        return False
+
+
 def _write_video(path: Path, panels: list[np.ndarray], fps: int) -> None:
-    """uint8 frames (mogaf.video.labelled_row) as mp4 (gif when ffmpeg is unavailable)."""
+    """uint8 frames (mogaf.video.labelled_row) as mp4 (gif beside it when ffmpeg is unavailable)."""
     import imageio.v2 as iio2
 
     frames = []
@@ -42,12 +52,15 @@ def _write_video(path: Path, panels: list[np.ndarray], fps: int) -> None:
         h, w = img.shape[:2]
         img = np.pad(img, ((0, h % 2), (0, w % 2), (0, 0)))  # even sizes for yuv420p
         frames.append(img)
-    try:
-        with iio2.get_writer(
-            path, fps=fps, codec="libx264", quality=8, macro_block_size=2, ffmpeg_log_level="error"
-        ) as writer:
-            for f in frames:
-                writer.append_data(f)
-    except (ImportError, RuntimeError, OSError):
-        gif = path.with_suffix(".gif")
-        iio2.mimsave(gif, frames, duration=1.0 / max(fps, 1))
+    if ffmpeg_available():
+        try:
+            with iio2.get_writer(
+                path, format="FFMPEG", fps=fps, codec="libx264", quality=8, macro_block_size=2, ffmpeg_log_level="error"
+            ) as writer:
+                for f in frames:
+                    writer.append_data(f)
+            return
+        except (RuntimeError, OSError):
+            path.unlink(missing_ok=True)  # a broken encoder: no half-written mp4 beside the gif
+    # Without ffmpeg imageio would pick another plugin for ".mp4" (tifffile, which refuses fps).
+    iio2.mimsave(path.with_suffix(".gif"), frames, format="GIF", duration=1.0 / max(fps, 1))

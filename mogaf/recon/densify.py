@@ -63,11 +63,11 @@ class DensityStats:
         self, grad2d: torch.Tensor, radii: torch.Tensor, width: int, height: int, batch_size: int = 1
     ) -> None:
         """Add one view: grad2d (N,2) gradient of the loss w.r.t. means2d (pixels), radii (N,)."""
+        radii = radii.detach().cpu()  # the statistics live on the CPU, whatever renders
         sel = radii > 0
         if grad2d is None or not bool(sel.any()):
             return
         g = grad2d.detach().cpu().to(torch.float64).clone()
-        radii = radii.detach().cpu()
         g[:, 0] *= width / 2.0 * batch_size
         g[:, 1] *= height / 2.0 * batch_size
         idx = torch.nonzero(sel, as_tuple=False).squeeze(1)

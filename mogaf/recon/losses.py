@@ -26,7 +26,7 @@ def ssim(img0: torch.Tensor, img1: torch.Tensor) -> torch.Tensor:
     x = img0.permute(0, 3, 1, 2)
     y = img1.permute(0, 3, 1, 2)
     C = x.shape[1]
-    w = _WINDOW.to(x.dtype)
+    w = _WINDOW.to(device=x.device, dtype=x.dtype)
     wx = w.reshape(1, 1, 1, -1).expand(C, 1, 1, -1)
     wy = w.reshape(1, 1, -1, 1).expand(C, 1, -1, 1)
 

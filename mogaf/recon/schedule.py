@@ -85,9 +85,9 @@ class TrainerSchedule:
             x = self.model.motion[key].data
             if hi < T - 1:
                 v = x[:, hi] - x[:, hi - 1] if hi >= 1 and hi - 1 >= lo else torch.zeros_like(x[:, hi])
-                k = torch.arange(1, T - hi, dtype=x.dtype).reshape(1, -1, 1)
+                k = torch.arange(1, T - hi, dtype=x.dtype, device=x.device).reshape(1, -1, 1)
                 x[:, hi + 1 :] = x[:, hi : hi + 1] + k * v[:, None]
             if lo > 0:
                 v = x[:, lo] - x[:, lo + 1] if lo + 1 <= hi else torch.zeros_like(x[:, lo])
-                k = torch.arange(lo, 0, -1, dtype=x.dtype).reshape(1, -1, 1)
+                k = torch.arange(lo, 0, -1, dtype=x.dtype, device=x.device).reshape(1, -1, 1)
                 x[:, :lo] = x[:, lo : lo + 1] + k * v[:, None]
