@@ -94,6 +94,11 @@ def run_stage(
             log.error("%s", exc)
         print(f"mogaf: error: {exc}", file=sys.stderr, flush=True)
         sys.exit(1)
+    except Exception:
+        # An unexpected failure keeps its traceback on stderr and in the log.
+        if log_path and logging_ready:
+            log.exception("%s failed", fn.__name__)
+        raise
     log.info("%s finished in %.1f s", fn.__name__, time.perf_counter() - start)
     return result
 

@@ -198,3 +198,20 @@ def test_params_are_checked():
         resolve_params({"num_bases": 2.5})
     with pytest.raises(MogafError, match="one of"):
         resolve_params({"device": "tpu"})
+
+
+@pytest.mark.parametrize("q", [0.5, 0.95, 0.98, 0.999])
+def test_linear_quantile_equals_torch_quantile_bit_for_bit(q):
+    from mogaf.recon.losses import linear_quantile
+
+    gen = torch.Generator().manual_seed(11)
+    for trial in range(60):
+        n = int(torch.randint(1, 30000, (1,), generator=gen))
+        x = torch.rand(n, generator=gen) ** 3
+        if trial % 3 == 0:
+            x = (x * 10).round() / 10  # many ties
+        if trial % 5 == 0:
+            x = x.double()
+        assert torch.equal(linear_quantile(x, q), torch.quantile(x, q)), (n, q, x.dtype)
+    with_nan = torch.tensor([0.1, float("nan"), 0.3])
+    assert torch.isnan(linear_quantile(with_nan, q)) and torch.isnan(torch.quantile(with_nan, q))

@@ -38,6 +38,7 @@ from mogaf.errors import MogafError
 from mogaf.forecast import quat
 from mogaf.forecast.base import Forecaster, epochs_for, torch_determinism
 from mogaf.forecast.params import GCN_DEFAULTS
+from mogaf.progress import Progress
 
 DEFAULTS: dict[str, Any] = GCN_DEFAULTS  # forecast.params.GCNSettings
 
@@ -204,6 +205,7 @@ class GCNForecaster(Forecaster):
             sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs, eta_min=p.lr_min)
             model.train()
             loss_val = float("nan")
+            bar = Progress("forecast.gcn epoch", epochs)
             for epoch in range(epochs):
                 noise = p.noise_init * max(1.0 - epoch / p.noise_step, 0.0) if p.noise_init > 0 else 0.0
                 perm = torch.randperm(n_win, generator=gen)
@@ -229,6 +231,8 @@ class GCNForecaster(Forecaster):
                     nb += 1
                 sched.step()
                 loss_val = tot / max(nb, 1)
+                bar.update(epoch + 1, loss=loss_val)
+            bar.close()
             model.eval()
         self.model = model
         self.info.update(

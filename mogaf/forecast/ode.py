@@ -41,6 +41,7 @@ from mogaf.forecast import quat
 from mogaf.forecast.base import Forecaster, epochs_for, torch_determinism
 from mogaf.forecast.classical import constant_twist_rollout
 from mogaf.forecast.params import ODE_DEFAULTS
+from mogaf.progress import Progress
 
 DEFAULTS: dict[str, Any] = ODE_DEFAULTS  # forecast.params.ODESettings
 
@@ -209,12 +210,14 @@ class LatentODEForecaster(Forecaster):
             reg_w, xyz_w = p.reg_weight, p.xyz_reg_weight
             ema = None
             model.train()
+            bar = Progress("forecast.ode batch", epochs * per_epoch)
             for _epoch in range(epochs):
                 gsel = torch.randperm(g, generator=gen)[: min(g, p.max_gaussians_per_epoch)]
                 pairs = torch.cartesian_prod(torch.arange(n_win), gsel)  # (window, Gaussian) samples
                 pairs = pairs[torch.randperm(len(pairs), generator=gen)]
                 tot, nb = 0.0, 0
                 for s in range(0, len(pairs), p.batch_size):
+                    bar.update(**({} if ema is None else {"loss": ema}))
                     wi, gi = pairs[s : s + p.batch_size].to(dev).unbind(1)
                     x_obs = OBS[gi[:, None], OI[wi]]  # (B, L, 7)
                     x_tgt = torch.cat([x_obs[:, -1:], OBS[gi[:, None], TI[wi]]], 1)  # (B, E+1, 7)
@@ -255,6 +258,7 @@ class LatentODEForecaster(Forecaster):
                 if nb:
                     sched.step()
                     loss_val = tot / nb
+            bar.close()
             model.eval()
         self.model = model
         self.info.update(

@@ -102,6 +102,7 @@ from mogaf.forecast.base import torch_determinism
 from mogaf.forecast.classical import constant_twist_rollout
 from mogaf.forecast.params import STRUCTURED_CANDIDATES, MogafSettings, StructuredSettings, load_mogaf
 from mogaf.forecast.transformer_net import _build_model, mask_ratio, minibatches, optimiser_step, span_masks
+from mogaf.progress import Progress
 
 # forecast.mogaf.mode picks the forecaster; forecast.mogaf.structured holds the
 # structured mode's own settings (the paper mode ignores them). Everything else
@@ -300,6 +301,7 @@ class ChannelForecaster:
             bs = min(int(net.batch_size), n)
             model.train()
             loss_val = float("nan")
+            bar = Progress("forecast.mogaf fit", net.iterations)
             for it, b in minibatches(n, bs, net.iterations, gen):
                 b = b.to(dev)
                 x = X[b]
@@ -315,6 +317,8 @@ class ChannelForecaster:
                 loss = l_pred + net.lambda_acc * l_acc
                 optimiser_step(loss, model, opt, sched, net.grad_clip, it)
                 loss_val = loss.item()
+                bar.update(it + 1, loss=loss_val)
+            bar.close()
             model.eval()
         self.model = model
         self.final_loss = loss_val

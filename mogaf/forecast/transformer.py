@@ -44,6 +44,7 @@ from mogaf.forecast.base import Forecaster, torch_determinism
 from mogaf.forecast.params import MOGAF_DEFAULTS
 from mogaf.forecast.structured import fit_structured, structured_settings
 from mogaf.forecast.transformer_net import _build_model, mask_ratio, minibatches, optimiser_step, span_masks
+from mogaf.progress import Progress
 
 DEFAULTS: dict[str, Any] = MOGAF_DEFAULTS  # forecast.params.MogafSettings
 
@@ -125,6 +126,7 @@ class MoGaFForecaster(Forecaster):
             model.train()
             loss_val = float("nan")
             pred_val = acc_val = float("nan")
+            bar = Progress("forecast.mogaf fit", p.iterations)
             for it, idx in minibatches(g, bs, p.iterations, gen):
                 idx = idx.to(dev)
                 x = X[idx]
@@ -147,6 +149,8 @@ class MoGaFForecaster(Forecaster):
                 loss = l_pred + p.lambda_acc * l_acc
                 optimiser_step(loss, model, opt, sched, p.grad_clip, it)
                 loss_val, pred_val, acc_val = loss.item(), l_pred.item(), l_acc.item()
+                bar.update(it + 1, loss=loss_val)
+            bar.close()
             model.eval()
         self.model = model
         self.info.update(

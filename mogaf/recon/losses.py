@@ -51,6 +51,22 @@ def rgb_loss(pred: torch.Tensor, gt: torch.Tensor, ssim_weight: float = 0.2) -> 
     return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim(pred, gt))
 
 
+def linear_quantile(flat: torch.Tensor, q: float) -> torch.Tensor:
+    """torch.quantile(flat, q) (linear interpolation) bit for bit, from two
+    order statistics (kthvalue) instead of a full sort: ~8x faster on a
+    160x120 image. Same rank and weight arithmetic, in the input's dtype; a
+    NaN anywhere gives NaN, as torch.quantile does."""
+    n = flat.numel()
+    if n == 0 or bool(torch.isnan(flat).any()):
+        return torch.quantile(flat, q)
+    rank = torch.tensor(q, dtype=flat.dtype, device=flat.device) * (n - 1)
+    below = int(rank.to(torch.int64))
+    above = int(rank.ceil().to(torch.int64))
+    low = torch.kthvalue(flat, below + 1).values
+    high = torch.kthvalue(flat, above + 1).values if above != below else low
+    return torch.lerp(low, high, rank - below)
+
+
 def masked_l1(
     pred: torch.Tensor, gt: torch.Tensor, weight: torch.Tensor | None = None, quantile: float = 1.0
 ) -> torch.Tensor:
@@ -70,7 +86,7 @@ def masked_l1(
             flat = res.detach()[sel]
             if flat.numel() > 1 << 24:  # torch.quantile limit
                 flat = flat[:: flat.numel() // (1 << 24) + 1]
-            cut = torch.quantile(flat, quantile)
+            cut = linear_quantile(flat, quantile)
             weight = weight * (res.detach() <= cut).to(weight.dtype)
     return (res * weight).sum() / weight.sum().clamp_min(1e-8)
 

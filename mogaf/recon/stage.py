@@ -157,6 +157,12 @@ def _run(
         "canonical_timestep": int(split.observed_timesteps[data.tidx[trainer.canonical_frame]]),
         "bases_init": trainer.motion_source,
         "motion_at_unobserved_steps": MOTION_AT_UNOBSERVED_STEPS,
+        # this process's share only, when resumed from a checkpoint
+        "time_breakdown_s": {
+            "init": round(float(trainer.init_info.get("init_time_s", 0.0)), 3) if not resumed else 0.0,
+            **trainer.time_breakdown(),
+            "training_psnr_and_export": round(time.perf_counter() - t0, 3),
+        },
         "init": {
             k: (float(v) if isinstance(v, (float, np.floating)) else int(v))
             for k, v in info.items()

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -32,7 +31,9 @@ import torch
 
 from ..camera import camera_centers
 from ..devices import resolve_device
+from ..progress import Progress
 from ..rendering import rasterize
+from ..timing import KERNELS, PhaseClock
 from .checkpoint import CHECKPOINT_VERSION, Curve, load_checkpoint, save_checkpoint  # noqa: F401  (load_checkpoint re-exported)
 from .data import TrainData
 from .densify import DensifyRules, DensityStats, control_step
@@ -140,6 +141,7 @@ class Trainer(TrainerSchedule, FrameLosses):
         self.use_level(self.level_for(self.iteration))
         self._loss_acc: list[float] = []
         self._psnr_acc: list[float] = []
+        self.clock = PhaseClock()
         # extra_loss(pick, note) -> scalar: a term added once per step (the refinement's L_motion)
         self.extra_loss = None
         if state is not None:
@@ -267,7 +269,8 @@ class Trainer(TrainerSchedule, FrameLosses):
                     extra_fg = tm.reshape(m.num_fg, -1)
                     if self.has_bg:
                         extra_bg = m.bg.get("means").repeat(1, len(tt))
-            out, means_f = self.render_frame(f, extra_fg, extra_bg)
+            with self.clock.phase("render"):
+                out, means_f = self.render_frame(f, extra_fg, extra_bg)
             outs.append(out)
             feats = out.features
             rgb = feats[..., :3]
@@ -333,17 +336,21 @@ class Trainer(TrainerSchedule, FrameLosses):
         self.last_terms = terms
         for opt in self.optimizers.values():
             opt.zero_grad(set_to_none=True)
-        total.backward()
-        for out in outs:
-            grad = out.means2d_grad if hasattr(out, "means2d_grad") else getattr(out.means2d, "grad", None)
-            if grad is not None:
-                radii = out.radii.max(dim=-1).values if out.radii.ndim == 2 else out.radii
-                self.stats.accumulate(grad, radii, self.W, self.H, len(outs))
-        for opt in self.optimizers.values():
-            opt.step()
+        with self.clock.phase("backward"):
+            total.backward()
+        with self.clock.phase("density_control"):
+            for out in outs:
+                grad = out.means2d_grad if hasattr(out, "means2d_grad") else getattr(out.means2d, "grad", None)
+                if grad is not None:
+                    radii = out.radii.max(dim=-1).values if out.radii.ndim == 2 else out.radii
+                    self.stats.accumulate(grad, radii, self.W, self.H, len(outs))
+        with self.clock.phase("optimizer"):
+            for opt in self.optimizers.values():
+                opt.step()
         self.fill_gaps()
         self.iteration += 1
-        self.control()
+        with self.clock.phase("density_control"):
+            self.control()
         return float(total.detach()), float(np.mean(psnrs))
 
     # -------------------------------------------------------------- density control
@@ -410,25 +417,20 @@ class Trainer(TrainerSchedule, FrameLosses):
         checkpoint: str | os.PathLike | None = None,
         digest: str = "",
         stop_at: int | None = None,
+        stage: str = "recon",
     ) -> None:
-        from tqdm import tqdm
-
+        """Train to `stop_at` (default: the end). The log gets a progress line
+        at a steady interval; `progress` adds a bar when stderr is a terminal."""
         p = self.p
         end = p.iterations if stop_at is None else min(stop_at, p.iterations)
-        bar = tqdm(
-            total=p.iterations,
-            initial=self.iteration,
-            disable=not progress,
-            file=sys.stderr,
-            desc="recon",
-            dynamic_ncols=True,
-            leave=False,
-        )
+        bar = Progress(stage, p.iterations, initial=self.iteration, bar=None if progress else False)
         t0 = time.perf_counter()
         base_elapsed = self.elapsed
+        KERNELS.reset()
         try:
             while self.iteration < end:
-                loss, psnr = self.step()
+                with self.clock.phase("step"):
+                    loss, psnr = self.step()
                 self._loss_acc.append(loss)
                 self._psnr_acc.append(psnr)
                 if self.iteration % p.log_every == 0 or self.iteration == p.iterations:
@@ -437,8 +439,7 @@ class Trainer(TrainerSchedule, FrameLosses):
                     self.curve.psnr.append(float(np.mean(self._psnr_acc)))
                     self.curve.num_gaussians.append(self.model.num_gaussians)
                     self._loss_acc, self._psnr_acc = [], []
-                    bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{psnr:.2f}", n=self.model.num_gaussians)
-                bar.update(1)
+                bar.update(self.iteration, loss=loss, psnr=psnr, gaussians=self.model.num_gaussians)
                 self.elapsed = base_elapsed + time.perf_counter() - t0
                 if (
                     checkpoint is not None
@@ -448,6 +449,29 @@ class Trainer(TrainerSchedule, FrameLosses):
                     save_checkpoint(checkpoint, self.checkpoint_state(digest))
         finally:
             bar.close()
+            for name in ("raster_forward", "raster_backward"):
+                self.clock.add(name, KERNELS.total(name))
+
+    def time_breakdown(self) -> dict[str, float]:
+        """Seconds of this process's training steps by phase: the rasterizer's
+        kernels (CPU backend; 0 on gsplat), the rest of the rendering (poses,
+        colours), the losses, the rest of the autograd backward, the optimiser,
+        density control, and the remainder (Python, gap filling)."""
+        c = self.clock
+        raster_fwd, raster_bwd = c.total("raster_forward"), c.total("raster_backward")
+        parts = {
+            "rasterizer_forward": raster_fwd,
+            "rasterizer_backward": raster_bwd,
+            "render_other": c.total("render") - raster_fwd,
+            "autograd_other": c.total("backward") - raster_bwd,
+            "optimizer": c.total("optimizer"),
+            "density_control": c.total("density_control"),
+        }
+        steps = c.total("step")
+        known = c.total("render") + c.total("backward") + c.total("optimizer") + c.total("density_control")
+        parts["losses_and_other"] = steps - known
+        parts["steps_total"] = steps
+        return {k: round(max(v, 0.0), 3) for k, v in parts.items()}
 
 
 def run_resumable(
@@ -466,7 +490,7 @@ def run_resumable(
         log.info(
             "%s: resumed from %s at iteration %d of %d", stage, checkpoint, trainer.iteration, trainer.p.iterations
         )
-    trainer.run(progress=progress, checkpoint=checkpoint, digest=digest, stop_at=stop_at)
+    trainer.run(progress=progress, checkpoint=checkpoint, digest=digest, stop_at=stop_at, stage=stage)
     if stop_at is not None and trainer.iteration < trainer.p.iterations:
         if checkpoint is None:
             raise ValueError("stop_at needs a checkpoint path")

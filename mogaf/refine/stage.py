@@ -184,6 +184,7 @@ def run_refine_stage(
         wall_time_s=float(time.perf_counter() - t_start),
         rigid_residual_after=after,
         num_nr_pairs=int(sum(int(v.shape[0]) for v in trainer.pairs.values())),
+        time_breakdown_s=trainer.time_breakdown(),
     )
     log.info("refine: rigid residual %s -> %s, train PSNR %.2f dB", before, after, train_psnr)
     path = save_model(out_h5, STAGE, refined, config_digest=digest, attrs=attrs)

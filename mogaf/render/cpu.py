@@ -21,6 +21,7 @@ torch compositor. Nothing is built at import time.
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
 import os
 import platform
@@ -36,6 +37,7 @@ from torch.autograd.function import once_differentiable
 
 from mogaf.errors import MogafError
 from mogaf.paths import cache_dir
+from mogaf.timing import KERNELS
 
 SOURCE = Path(__file__).with_name("csrc") / "rasterize.cpp"
 ABI_VERSION = 6
@@ -163,6 +165,20 @@ def _check(rc: int, what: str) -> None:
         raise MogafError(f"mogaf.render: the CPU kernel failed in {what} (code {rc})")
 
 
+def _timed(name: str):
+    """Adds each call's time to mogaf.timing.KERNELS[name] (the training loops' breakdown)."""
+
+    def wrap(fn):
+        @functools.wraps(fn)
+        def timed(*args, **kwargs):
+            with KERNELS.phase(name):
+                return fn(*args, **kwargs)
+
+        return timed
+
+    return wrap
+
+
 class _CPURaster(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, features, depths, radii, background, width, height, tile):
@@ -215,6 +231,7 @@ class _CPURaster(torch.autograd.Function):
         return feat, alpha, depth
 
     @staticmethod
+    @_timed("raster_backward")
     @once_differentiable
     def backward(ctx, g_feat, g_alpha, g_depth):
         features, depths, bg, splats, offsets, isect, Tf, accD, last = ctx.saved_tensors
@@ -253,7 +270,8 @@ def composite_cpu(
     features get `background` (C values or one) composited. Gaussians with radii
     (0, 0) are skipped.
     """
-    return _CPURaster.apply(means2d, conics, opacities, features, depths, radii, background, width, height, tile)
+    with KERNELS.phase("raster_forward"):
+        return _CPURaster.apply(means2d, conics, opacities, features, depths, radii, background, width, height, tile)
 
 
 def _suffix(dtype: torch.dtype) -> str:
@@ -301,6 +319,7 @@ class _ProjectCPU(torch.autograd.Function):
         return means2d, conics, depths, radii, visible
 
     @staticmethod
+    @_timed("raster_backward")
     @once_differentiable
     def backward(ctx, g_means2d, g_conics, g_depths, _g_radii, _g_visible):
         means, quats, scales, cam, radii = ctx.saved_tensors
@@ -327,4 +346,5 @@ class _ProjectCPU(torch.autograd.Function):
 
 def project_cpu(means, quats, scales, opacities, viewmat, K, width, height, near=0.01, far=1e10, eps2d=0.3):
     """(means2d (N, 2), conics (N, 3), depths (N,), radii (N, 2) int32, visible (N,) bool), fused C++."""
-    return _ProjectCPU.apply(means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d)
+    with KERNELS.phase("raster_forward"):
+        return _ProjectCPU.apply(means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d)

@@ -15,6 +15,8 @@ rule evaluate:
         ),
     log:
         log_file("evaluate"),
+    benchmark:
+        benchmark_tsv("evaluate")
     conda:
         "../../envs/mogaf.yaml"
     threads: 2

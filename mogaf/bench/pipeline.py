@@ -1,0 +1,243 @@
+"""Where the demo's time goes: each job's wall and CPU time against its budget.
+
+    python -m mogaf.bench pipeline                 # read the last `make demo`
+    python -m mogaf.bench pipeline --run           # run the demo's DAG afresh first (--forceall)
+    python -m mogaf.bench pipeline --results DIR --json rows.json
+
+Reads, under the ratio folder of one scene (default: the demo's), every
+job's Snakemake benchmark TSV (wall `s`, `cpu_time`), its log's "finished in"
+line (the stage's own time, torch's import included; the rest of the job's
+wall time is Snakemake's script preamble and process start), the training loops' phase breakdown
+(`time_breakdown_s` of recon.h5 / refined.h5: rasterizer forward and
+backward, the rest of the autograd backward, losses, optimiser, density
+control) and the forecasters' fit / rollout times. Prints three tables: the
+budgets, every job, and the training loops' breakdown. Budgets are for an
+idle 2-core machine; `--run` also times the whole Snakemake run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import re
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+DEMO_RESULTS = Path("results/synthetic/default/ratio0.6")
+DEMO_COMMAND = ["snakemake", "--cores", "2", "demo", "--configfile", "config/config.yaml", "config/demo.yaml"]
+SNAKEMAKE_BUDGET_S = 180.0
+
+# (row, job-name pattern, budget in s, how jobs combine: "each" = every job within, "sum" = their total)
+BUDGETS: list[tuple[str, str, float, str]] = [
+    ("recon", r"recon", 60.0, "each"),
+    ("refine", r"refine", 20.0, "each"),
+    (
+        "rigid_init + group + quality stages",
+        r"rigid_init|group|grouping_quality|reconstruction_quality_\w+",
+        10.0,
+        "sum",
+    ),
+    ("MoGaF forecast job", r"forecast_mogaf(_paper)?(_group\w+)?", 10.0, "each"),
+    ("baseline forecast job", r"forecast_(gcn|ode|constant_velocity|frozen)(_group\w+)?", 15.0, "each"),
+    ("evaluate", r"evaluate", 20.0, "each"),
+]
+
+FINISHED = re.compile(r"finished in ([0-9.]+) s")
+
+
+@dataclass
+class Job:
+    name: str  # the benchmark file's stem, e.g. "forecast_mogaf_group0"
+    sweep: str  # "" for the run itself, else the ablation variant
+    wall_s: float
+    cpu_s: float | None
+    own_s: float | None = None  # the stage's own time (its log's "finished in")
+    detail: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def start_s(self) -> float | None:
+        """Process start and Snakemake's script preamble: the job's wall time outside the stage."""
+        return None if self.own_s is None else max(0.0, self.wall_s - self.own_s)
+
+
+def _float(value: Any) -> float | None:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return v if v == v else None
+
+
+def read_tsv(path: Path) -> tuple[float, float | None]:
+    """(wall s, CPU s) of a Snakemake benchmark TSV (its last row)."""
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh, delimiter="\t"))
+    if not rows or _float(rows[-1].get("s")) is None:
+        raise ValueError(f"{path}: not a Snakemake benchmark TSV (no 's' column)")
+    return float(rows[-1]["s"]), _float(rows[-1].get("cpu_time"))
+
+
+def _own_time(log: Path) -> float | None:
+    if not log.is_file():
+        return None
+    found = FINISHED.findall(log.read_text(errors="replace"))
+    return float(found[-1]) if found else None
+
+
+def _attrs(path: Path) -> dict[str, Any]:
+    import h5py
+
+    from mogaf.artefact.header import _decode_attr
+
+    if not path.is_file():
+        return {}
+    with h5py.File(path, "r") as fh:
+        return {k: _decode_attr(v) for k, v in fh.attrs.items()}
+
+
+def _detail(folder: Path, name: str) -> dict[str, float]:
+    """The stage's own breakdown, where its artefact records one."""
+    if name in ("recon", "refine"):
+        attrs = _attrs(folder / ("recon.h5" if name == "recon" else "refined.h5"))
+        return {k: float(v) for k, v in (attrs.get("time_breakdown_s") or {}).items()}
+    m = re.fullmatch(r"forecast_(\w+?)_group(\w+)", name)
+    if m:
+        info = _attrs(folder / "forecast" / m.group(1) / f"group{m.group(2)}.h5").get("info") or {}
+        return {k: float(info[k]) for k in ("train_time_s", "rollout_time_s") if k in info}
+    return {}
+
+
+def collect(results: Path) -> list[Job]:
+    """Every job with a benchmark TSV under `results` (a ratio folder) and its sweeps."""
+    if not (results / "benchmarks").is_dir():
+        raise FileNotFoundError(f"{results}: no benchmarks/ folder (run `make demo` or pass --run)")
+    folders = [("", results)] + [(p.name, p) for p in sorted((results / "ablation").glob("*")) if p.is_dir()]
+    scene = results.parent
+    jobs: list[Job] = []
+    ingest = scene / "benchmarks" / "ingest.tsv"
+    if ingest.is_file():
+        wall, cpu = read_tsv(ingest)
+        jobs.append(Job("ingest", "", wall, cpu, _own_time(scene / "logs" / "ingest.log")))
+    for sweep, folder in folders:
+        for tsv in sorted((folder / "benchmarks").glob("*.tsv")):
+            wall, cpu = read_tsv(tsv)
+            name = tsv.stem
+            jobs.append(Job(name, sweep, wall, cpu, _own_time(folder / "logs" / f"{name}.log"), _detail(folder, name)))
+    return jobs
+
+
+def budget_rows(jobs: list[Job], snakemake_s: float | None) -> list[dict[str, Any]]:
+    rows = []
+    for label, pattern, budget, how in BUDGETS:
+        sel = [j for j in jobs if not j.sweep and re.fullmatch(pattern, j.name)]
+        if not sel:
+            continue
+        cpu = [j.cpu_s for j in sel if j.cpu_s is not None]
+        if how == "sum":
+            wall, cpu_v, worst = sum(j.wall_s for j in sel), (sum(cpu) if cpu else None), ""
+        else:
+            top = max(sel, key=lambda j: j.wall_s)
+            wall, cpu_v, worst = top.wall_s, top.cpu_s, top.name if len(sel) > 1 else ""
+        rows.append(
+            {"row": label, "jobs": len(sel), "wall_s": wall, "cpu_s": cpu_v, "budget_s": budget, "worst": worst}
+        )
+    if snakemake_s is not None:
+        rows.append(
+            {"row": "Snakemake run (whole demo)", "jobs": len(jobs), "wall_s": snakemake_s, "cpu_s": None,
+             "budget_s": SNAKEMAKE_BUDGET_S, "worst": ""}
+        )  # fmt: skip
+    for r in rows:
+        r["within"] = r["wall_s"] <= r["budget_s"]
+    return rows
+
+
+def _s(v: float | None) -> str:
+    return "" if v is None else f"{v:.1f}"
+
+
+def render(jobs: list[Job], rows: list[dict[str, Any]]) -> str:
+    out = ["Budgets (idle 2-core machine; 'each': the slowest job of the row)", ""]
+    out += ["| row | jobs | wall (s) | CPU (s) | budget (s) | within | slowest |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        out.append(
+            f"| {r['row']} | {r['jobs']} | {_s(r['wall_s'])} | {_s(r['cpu_s'])} | {r['budget_s']:.0f} | "
+            f"{'yes' if r['within'] else 'NO'} | {r['worst']} |"
+        )
+    total_wall = sum(j.wall_s for j in jobs)
+    total_cpu = sum(j.cpu_s or 0.0 for j in jobs)
+    out += ["", f"Jobs: {len(jobs)}, wall {total_wall:.0f} s and CPU {total_cpu:.0f} s summed over jobs", ""]
+    out += ["| job | sweep | wall (s) | CPU (s) | stage (s) | process start (s) | inside the stage (s) |"]
+    out += ["|---|---|---|---|---|---|---|"]
+    for j in jobs:
+        inside = ", ".join(f"{k.removesuffix('_s')} {v:.1f}" for k, v in j.detail.items() if k != "steps_total")
+        out.append(
+            f"| {j.name} | {j.sweep} | {_s(j.wall_s)} | {_s(j.cpu_s)} | {_s(j.own_s)} | {_s(j.start_s)} | {inside} |"
+        )
+    loops = [j for j in jobs if j.detail.get("steps_total")]
+    if loops:
+        out += ["", "Training loops: share of the steps' time", ""]
+        keys = [k for k in loops[0].detail if k not in ("steps_total", "init", "training_psnr_and_export")]
+        out += ["| job | sweep | steps (s) | " + " | ".join(keys) + " |", "|---" * (3 + len(keys)) + "|"]
+        for j in loops:
+            steps = j.detail["steps_total"]
+            shares = " | ".join(f"{100.0 * j.detail.get(k, 0.0) / steps:.0f} %" for k in keys)
+            out.append(f"| {j.name} | {j.sweep} | {steps:.1f} | {shares} |")
+    return "\n".join(out)
+
+
+def import_seconds(python: str = sys.executable) -> dict[str, float]:
+    """Wall seconds a fresh interpreter takes to import torch, and mogaf's stage module:
+    what every job pays before it does any work."""
+    out = {}
+    for name, code in (
+        ("python", "pass"),
+        ("import torch", "import torch"),
+        ("import mogaf.stages", "import mogaf.stages"),
+    ):
+        start = time.perf_counter()
+        subprocess.run([python, "-c", code], check=True)
+        out[name] = time.perf_counter() - start
+    return out
+
+
+def run_demo(snakemake: str, cores: int) -> float:
+    """Runs the demo's DAG from scratch (--forceall) and returns its wall time."""
+    cmd = [snakemake, *DEMO_COMMAND[1:], "--forceall"]
+    cmd[cmd.index("--cores") + 1] = str(cores)
+    start = time.perf_counter()
+    subprocess.run(cmd, check=True)
+    return time.perf_counter() - start
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m mogaf.bench pipeline", description=__doc__.split("\n")[0])
+    ap.add_argument("--results", type=Path, default=DEMO_RESULTS, help="a ratio folder (default: the demo's)")
+    ap.add_argument("--run", action="store_true", help="run the demo's DAG afresh first (recomputes every job)")
+    ap.add_argument("--cores", type=int, default=2)
+    ap.add_argument("--snakemake", default=str(Path(sys.executable).with_name("snakemake")))
+    ap.add_argument("--snakemake-seconds", type=float, default=None, help="the whole run's wall time, if known")
+    ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    args = ap.parse_args(argv)
+    total = args.snakemake_seconds
+    if args.run:
+        total = run_demo(args.snakemake, args.cores)
+    try:
+        jobs = collect(args.results)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"mogaf.bench pipeline: {exc}", file=sys.stderr)
+        return 2
+    rows = budget_rows(jobs, total)
+    print(render(jobs, rows))
+    imports = import_seconds()
+    print("\nA fresh process here: " + ", ".join(f"{k} {v:.2f} s" for k, v in imports.items()))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        payload = {"results": str(args.results), "snakemake_s": total, "budgets": rows,
+                   "imports_s": imports, "jobs": [asdict(j) for j in jobs]}  # fmt: skip
+        args.json.write_text(json.dumps(payload, indent=1) + "\n")
+    return 0

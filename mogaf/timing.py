@@ -1,0 +1,49 @@
+"""Where a stage's time goes: named phases timed with a monotonic clock.
+
+`PhaseClock.phase(name)` adds the time spent inside a `with` block to `name`;
+nested phases are allowed (an outer phase includes its inner ones).
+`KERNELS` is the clock of the CPU rasterizer's four calls (projection and
+compositing, forward and backward): the training loops read it to split the
+autograd backward into the rasterizer's part and the rest. The stages write
+the totals into their artefacts (attr `time_breakdown_s`), and
+`python -m mogaf.bench pipeline` prints them.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+
+class PhaseClock:
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = defaultdict(float)
+        self.calls: dict[str, int] = defaultdict(int)
+
+    @contextmanager
+    def phase(self, name: str) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] += time.perf_counter() - start
+            self.calls[name] += 1
+
+    def add(self, name: str, seconds: float) -> None:
+        self.seconds[name] += float(seconds)
+        self.calls[name] += 1
+
+    def total(self, name: str) -> float:
+        return float(self.seconds.get(name, 0.0))
+
+    def as_dict(self) -> dict[str, float]:
+        return {k: round(float(v), 4) for k, v in self.seconds.items()}
+
+    def reset(self) -> None:
+        self.seconds.clear()
+        self.calls.clear()
+
+
+KERNELS = PhaseClock()

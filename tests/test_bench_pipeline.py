@@ -1,0 +1,74 @@
+"""`python -m mogaf.bench pipeline`: budgets, per-job rows and the training loops' breakdown from a results folder."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import pytest
+
+from mogaf.bench import pipeline
+
+HEADER = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
+
+
+def _job(folder, name, wall, cpu, own=None):
+    (folder / "benchmarks").mkdir(parents=True, exist_ok=True)
+    (folder / "logs").mkdir(parents=True, exist_ok=True)
+    (folder / "benchmarks" / f"{name}.tsv").write_text(HEADER + f"{wall}\t0:00:01\t1\t1\t1\t1\t0\t0\t50\t{cpu}\n")
+    if own is not None:
+        (folder / "logs" / f"{name}.log").write_text(
+            f"2026-11-26 08:00:00,000 INFO mogaf: {name} finished in {own} s\n"
+        )
+
+
+@pytest.fixture()
+def results(tmp_path):
+    ratio = tmp_path / "results" / "synthetic" / "default" / "ratio0.6"
+    _job(ratio, "recon", 50.0, 45.0, own=48.0)
+    _job(ratio, "refine", 30.0, 25.0, own=28.5)
+    _job(ratio, "group", 4.0, 3.5)
+    _job(ratio, "rigid_init", 7.0, 6.0)
+    _job(ratio, "forecast_mogaf_group0", 9.0, 8.0)
+    _job(ratio, "forecast_mogaf_group1", 12.0, 11.0)
+    _job(ratio, "forecast_gcn_group0", 14.0, 13.0)
+    _job(ratio, "evaluate", 18.0, 30.0)
+    _job(ratio / "ablation" / "rt_fast_quick", "recon", 20.0, 19.0)
+    breakdown = {"init": 3.0, "rasterizer_forward": 10.0, "rasterizer_backward": 12.0, "steps_total": 40.0}
+    with h5py.File(ratio / "recon.h5", "w") as fh:
+        fh.attrs["time_breakdown_s"] = "json:" + json.dumps(breakdown)
+    return ratio
+
+
+def test_budgets_take_the_slowest_job_or_the_sum(results):
+    jobs = pipeline.collect(results)
+    rows = {r["row"]: r for r in pipeline.budget_rows(jobs, snakemake_s=200.0)}
+    assert rows["recon"]["wall_s"] == 50.0 and rows["recon"]["within"]  # the sweep's recon is not a row's job
+    assert rows["refine"]["wall_s"] == 30.0 and not rows["refine"]["within"]
+    assert rows["rigid_init + group + quality stages"]["wall_s"] == 11.0  # a sum: over its 10 s
+    assert not rows["rigid_init + group + quality stages"]["within"]
+    mogaf = rows["MoGaF forecast job"]
+    assert (mogaf["jobs"], mogaf["wall_s"], mogaf["worst"], mogaf["within"]) == (
+        2,
+        12.0,
+        "forecast_mogaf_group1",
+        False,
+    )
+    assert rows["baseline forecast job"]["within"] and rows["evaluate"]["within"]
+    assert rows["Snakemake run (whole demo)"]["wall_s"] == 200.0 and not rows["Snakemake run (whole demo)"]["within"]
+
+
+def test_jobs_carry_their_own_time_and_breakdown(results):
+    jobs = {(j.name, j.sweep): j for j in pipeline.collect(results)}
+    recon = jobs[("recon", "")]
+    assert recon.own_s == 48.0 and recon.start_s == 2.0 and recon.cpu_s == 45.0
+    assert recon.detail["rasterizer_backward"] == 12.0
+    assert jobs[("recon", "rt_fast_quick")].detail == {}
+    table = pipeline.render(list(jobs.values()), pipeline.budget_rows(list(jobs.values()), None))
+    assert "| recon | 1 | 50.0 | 45.0 | 60 | yes |  |" in table
+    assert "| recon |  | 40.0 | 25 % | 30 % |" in table  # rasterizer forward and backward shares of the steps
+
+
+def test_a_folder_without_benchmarks_is_one_clear_error(tmp_path, capsys):
+    assert pipeline.main(["--results", str(tmp_path)]) == 2
+    assert "no benchmarks/ folder" in capsys.readouterr().err
