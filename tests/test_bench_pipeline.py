@@ -27,11 +27,18 @@ def results(tmp_path):
     ratio = tmp_path / "results" / "synthetic" / "default" / "ratio0.6"
     _job(ratio, "recon", 50.0, 45.0, own=48.0)
     _job(ratio, "refine", 30.0, 25.0, own=28.5)
+    _job(ratio, "priors", 1.0, 0.5)
     _job(ratio, "group", 4.0, 3.5)
-    _job(ratio, "rigid_init", 7.0, 6.0)
+    _job(ratio, "rigid_init", 3.0, 2.0)
+    _job(ratio, "grouping_quality", 2.0, 2.0)
+    _job(ratio, "reconstruction_quality_refined", 2.0, 2.0)
     _job(ratio, "forecast_mogaf_group0", 9.0, 8.0)
     _job(ratio, "forecast_mogaf_group1", 12.0, 11.0)
+    _job(ratio, "forecast_mogaf_paper_group1", 8.0, 7.0)
+    _job(ratio, "forecast_mogaf", 3.0, 2.5)
     _job(ratio, "forecast_gcn_group0", 14.0, 13.0)
+    _job(ratio, "forecast_gcn", 3.0, 2.5)
+    _job(ratio, "forecast_constant_velocity", 3.0, 2.5)
     _job(ratio, "evaluate", 18.0, 30.0)
     _job(ratio / "ablation" / "rt_fast_quick", "recon", 20.0, 19.0)
     breakdown = {"init": 3.0, "rasterizer_forward": 10.0, "rasterizer_backward": 12.0, "steps_total": 40.0}
@@ -45,11 +52,13 @@ def test_budgets_take_the_slowest_job_or_the_sum(results):
     rows = {r["row"]: r for r in pipeline.budget_rows(jobs, snakemake_s=200.0)}
     assert rows["recon"]["wall_s"] == 50.0 and rows["recon"]["within"]  # the sweep's recon is not a row's job
     assert rows["refine"]["wall_s"] == 30.0 and not rows["refine"]["within"]
-    assert rows["rigid_init + group + quality stages"]["wall_s"] == 11.0  # a sum: over its 10 s
-    assert not rows["rigid_init + group + quality stages"]["within"]
+    quality = rows["rigid_init + group + quality stages"]
+    assert (quality["jobs"], quality["wall_s"], quality["within"]) == (4, 11.0, False)  # a sum: over its 10 s
+    assert rows["baseline forecast job"]["jobs"] == 3  # the GCN's group job and merge, constant velocity
+    assert not any("priors" in r["worst"] for r in rows.values())
     mogaf = rows["MoGaF forecast job"]
     assert (mogaf["jobs"], mogaf["wall_s"], mogaf["worst"], mogaf["within"]) == (
-        2,
+        4,
         12.0,
         "forecast_mogaf_group1",
         False,

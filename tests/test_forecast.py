@@ -312,7 +312,8 @@ def test_rounding_sensitivity_separates_the_gcn_from_the_others():
     CUDA check below allows each method its own CPU sensitivity."""
     traj = rigid_box(200, 24, seed=5)
     extent = float(np.ptp(traj[..., :3].reshape(-1, 3), axis=0).max())
-    assert _rounding_sensitivity("mogaf", traj, FAST["mogaf"]) < 1e-5 * extent
+    for method in ("mogaf", "mogaf_paper", "ode"):
+        assert _rounding_sensitivity(method, traj, FAST[method]) < 1e-5 * extent, method
     assert _rounding_sensitivity("gcn", traj, FAST["gcn"]) > 1e-3 * extent
 
 
@@ -322,9 +323,9 @@ def test_cuda_forecast_agrees_with_the_cpu_one(method):
     """Same seed, same sampling (CPU generator) and the same initial weights
     (built on the CPU): without dropout (whose masks the GPU's own generator
     draws), only float rounding differs between the devices, so the forecasts
-    differ by at most 0.1 % of the extent, or by a few times what a
-    rounding-level nudge of the input changes on the CPU where training
-    amplifies rounding (the GCN)."""
+    differ by at most 0.1 % of the extent, or, where training amplifies
+    rounding (the GCN), by a few times what a rounding-level nudge of the
+    input changes on the CPU (at most 5 % of the extent)."""
     import torch
 
     if not torch.cuda.is_available():
@@ -336,6 +337,6 @@ def test_cuda_forecast_agrees_with_the_cpu_one(method):
     gpu = fit_and_rollout(method, traj, 6, params, seed=0, device="cuda")
     assert gpu.info["device"] == "cuda" and cpu.info["device"] == "cpu"
     extent = float(np.ptp(traj[..., :3].reshape(-1, 3), axis=0).max())
-    allowed = max(1e-3 * extent, 4.0 * _rounding_sensitivity(method, traj, params))
+    allowed = max(1e-3 * extent, min(4.0 * _rounding_sensitivity(method, traj, params), 0.05 * extent))
     gap = np.linalg.norm(gpu.poses[..., :3] - cpu.poses[..., :3], axis=-1).mean()
     assert gap < allowed, f"{method}: CUDA and CPU forecasts differ by {gap:.3g} (allowed {allowed:.3g})"

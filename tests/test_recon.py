@@ -47,6 +47,20 @@ def test_output_schema(tiny_scene, tiny_run):
     np.testing.assert_allclose(dots, 1.0, atol=1e-4)
 
 
+def test_time_breakdown_splits_the_training_steps(tiny_run):
+    """recon.h5 says where its training steps' time went: the rasterizer's kernels
+    (timed inside the C++ calls) and the rest, each a part of the steps' total."""
+    from mogaf.render import cpu
+
+    t = read_artefact(tiny_run, "recon").attrs["time_breakdown_s"]
+    parts = ["rasterizer_forward", "rasterizer_backward", "kernel_build", "render_other", "autograd_other"]
+    parts += ["optimizer", "density_control", "losses_and_other"]
+    assert set(parts) | {"init", "steps_total", "training_psnr_and_model"} == set(t)
+    if cpu.available():
+        assert t["rasterizer_forward"] > 0 and t["rasterizer_backward"] > 0
+    assert all(t[k] >= 0 for k in parts) and sum(t[k] for k in parts) == pytest.approx(t["steps_total"], abs=0.01)
+
+
 def test_same_seed_same_artefact(tiny_scene, tiny_run, tmp_path):
     from mogaf.recon import run_recon_stage
 

@@ -181,7 +181,7 @@ def render(jobs: list[Job], rows: list[dict[str, Any]]) -> str:
     loops = [j for j in jobs if j.detail.get("steps_total")]
     if loops:
         out += ["", "Training loops: share of the steps' time", ""]
-        keys = [k for k in loops[0].detail if k not in ("steps_total", "init", "training_psnr_and_export")]
+        keys = [k for k in loops[0].detail if k not in ("steps_total", "init", "training_psnr_and_model")]
         out += ["| job | sweep | steps (s) | " + " | ".join(keys) + " |", "|---" * (3 + len(keys)) + "|"]
         for j in loops:
             steps = j.detail["steps_total"]

@@ -161,7 +161,7 @@ def _run(
         "time_breakdown_s": {
             "init": round(float(trainer.init_info.get("init_time_s", 0.0)), 3) if not resumed else 0.0,
             **trainer.time_breakdown(),
-            "training_psnr_and_export": round(time.perf_counter() - t0, 3),
+            "training_psnr_and_model": round(time.perf_counter() - t0, 3),
         },
         "init": {
             k: (float(v) if isinstance(v, (float, np.floating)) else int(v))

@@ -141,7 +141,7 @@ class Trainer(TrainerSchedule, FrameLosses):
         self.use_level(self.level_for(self.iteration))
         self._loss_acc: list[float] = []
         self._psnr_acc: list[float] = []
-        self.clock = PhaseClock()
+        self.clock = PhaseClock(torch.cuda.synchronize if self.dev.type == "cuda" else None)
         # extra_loss(pick, note) -> scalar: a term added once per step (the refinement's L_motion)
         self.extra_loss = None
         if state is not None:
@@ -449,20 +449,22 @@ class Trainer(TrainerSchedule, FrameLosses):
                     save_checkpoint(checkpoint, self.checkpoint_state(digest))
         finally:
             bar.close()
-            for name in ("raster_forward", "raster_backward"):
+            for name in ("raster_forward", "raster_backward", "kernel_build"):
                 self.clock.add(name, KERNELS.total(name))
 
     def time_breakdown(self) -> dict[str, float]:
         """Seconds of this process's training steps by phase: the rasterizer's
-        kernels (CPU backend; 0 on gsplat), the rest of the rendering (poses,
+        kernels (CPU backend; 0 on gsplat) and their one-time compilation, the rest of the rendering (poses,
         colours), the losses, the rest of the autograd backward, the optimiser,
         density control, and the remainder (Python, gap filling)."""
         c = self.clock
         raster_fwd, raster_bwd = c.total("raster_forward"), c.total("raster_backward")
+        build = c.total("kernel_build")  # a fresh cache compiles the CPU kernel at the first render
         parts = {
             "rasterizer_forward": raster_fwd,
             "rasterizer_backward": raster_bwd,
-            "render_other": c.total("render") - raster_fwd,
+            "kernel_build": build,
+            "render_other": c.total("render") - raster_fwd - build,
             "autograd_other": c.total("backward") - raster_bwd,
             "optimizer": c.total("optimizer"),
             "density_control": c.total("density_control"),

@@ -124,7 +124,11 @@ def run_refine_stage(
         )
         model.groups = _group_arrays(groups)
         attrs.update(
-            noop=1, iterations=0, wall_time_s=float(time.perf_counter() - t_start), rigid_residual_after=before
+            noop=1,
+            iterations=0,
+            wall_time_s=float(time.perf_counter() - t_start),
+            rigid_residual_after=before,
+            time_breakdown_s=None,  # recon's, inherited through model.attrs: not refine's
         )
         return save_model(out_h5, STAGE, model, config_digest=digest, attrs=attrs)
 

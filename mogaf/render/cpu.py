@@ -130,7 +130,8 @@ def load(warn: bool = True) -> ctypes.CDLL | None:
                 raise RuntimeError("no C++ compiler found (set CXX or install g++)")
             target = library_path(cxx)
             if not target.exists():
-                _build(cxx, target)
+                with KERNELS.phase("kernel_build"):
+                    _build(cxx, target)
             lib = ctypes.CDLL(str(target))
             _declare(lib)
             if lib.mogaf_raster_abi_version() != ABI_VERSION:
