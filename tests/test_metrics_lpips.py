@@ -224,3 +224,36 @@ def test_cpu_values_do_not_depend_on_the_thread_count(weights, rng):
         torch.set_num_threads(before)
     assert np.abs(maps[0] - maps[1]).max() < 1e-12
     assert next(get_lpips_model(weights, "cpu").parameters()).dtype == torch.float64
+
+
+@pytest.mark.parametrize("spatial", [False, True])
+def test_cached_reference_features_give_the_same_distance_to_the_bit(weights, rng, spatial):
+    """Single images go through the feature cache (the evaluation's ground truth is
+    compared with every method): same values as the batch-of-two forward pass,
+    and a repeated image is a cache hit."""
+    from mogaf.metrics.lpips import FEATURES, _run, _to_batch, get_lpips_model
+
+    model = get_lpips_model(weights)
+    gt = rng.random((45, 52, 3))
+    FEATURES.clear()
+    for _ in range(3):
+        pred = rng.random((45, 52, 3))
+        cached, _ = _run(pred, gt, spatial, weights, "cpu")
+        x0, x1 = (_to_batch(x, "x")[0].double() for x in (pred, gt))
+        with torch.inference_mode():
+            reference = model(x0, x1, spatial=spatial).numpy()[:, 0]
+        assert np.array_equal(cached, reference)
+    assert len(FEATURES.entries) == 4  # the ground truth once, three renders
+
+
+def test_feature_cache_stays_within_its_bytes(weights, rng):
+    from mogaf.metrics.lpips import FeatureCache, _to_batch, get_lpips_model
+
+    model = get_lpips_model(weights)
+    one = sum(
+        f.numel() * f.element_size() for f in model.unit_features(_to_batch(rng.random((40, 40, 3)), "x")[0].double())
+    )
+    cache = FeatureCache(max_bytes=int(2.5 * one))
+    for _ in range(5):
+        cache.features(model, _to_batch(rng.random((40, 40, 3)), "x")[0].double())
+    assert len(cache.entries) == 2 and cache.bytes <= 2.5 * one
