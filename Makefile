@@ -38,6 +38,9 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet torch==2.13.0
 	$(BIN)/python -m pip install --quiet -e '.[workflow,test]'
+	# The CPU rasterizer's kernel, built once here rather than by the first jobs
+	# at once (a C++ compiler is optional: without one this warns and goes on).
+	MOGAF_CACHE_DIR=$(CURDIR)/.cache/mogaf $(BIN)/python -c "from mogaf.render import cpu; cpu.load()"
 	rm -f $(VENV)/.installed-*
 	touch $@
 
