@@ -29,6 +29,14 @@ log = logging.getLogger("mogaf")
 
 
 # ------------------------------------------------------------------ running
+def process_cpu_s() -> float:
+    """CPU seconds (user + system, every thread) this process has used since it started."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return float(usage.ru_utime + usage.ru_stime)
+
+
 def _setup_logging(log_path: str | os.PathLike | None) -> None:
     root = logging.getLogger()
     root.setLevel(logging.INFO)
@@ -99,7 +107,7 @@ def run_stage(
         if log_path and logging_ready:
             log.exception("%s failed", fn.__name__)
         raise
-    log.info("%s finished in %.1f s", fn.__name__, time.perf_counter() - start)
+    log.info("%s finished in %.1f s, process CPU %.1f s", fn.__name__, time.perf_counter() - start, process_cpu_s())
     return result
 
 

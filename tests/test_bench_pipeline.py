@@ -18,7 +18,7 @@ def _job(folder, name, wall, cpu, own=None):
     (folder / "benchmarks" / f"{name}.tsv").write_text(HEADER + f"{wall}\t0:00:01\t1\t1\t1\t1\t0\t0\t50\t{cpu}\n")
     if own is not None:
         (folder / "logs" / f"{name}.log").write_text(
-            f"2026-11-26 08:00:00,000 INFO mogaf: {name} finished in {own} s\n"
+            f"2026-11-26 08:00:00,000 INFO mogaf: {name} finished in {own} s, process CPU {own - 1.0} s\n"
         )
 
 
@@ -70,11 +70,13 @@ def test_budgets_take_the_slowest_job_or_the_sum(results):
 def test_jobs_carry_their_own_time_and_breakdown(results):
     jobs = {(j.name, j.sweep): j for j in pipeline.collect(results)}
     recon = jobs[("recon", "")]
-    assert recon.own_s == 48.0 and recon.start_s == 2.0 and recon.cpu_s == 45.0
+    # CPU time from the log's own figure, not Snakemake's sampled cpu_time (45.0)
+    assert recon.own_s == 48.0 and recon.start_s == 2.0 and recon.cpu_s == 47.0
+    assert jobs[("group", "")].cpu_s == 3.5  # no log line: the sampled figure
     assert recon.detail["rasterizer_backward"] == 12.0
     assert jobs[("recon", "rt_fast_quick")].detail == {}
     table = pipeline.render(list(jobs.values()), pipeline.budget_rows(list(jobs.values()), None))
-    assert "| recon | 1 | 50.0 | 45.0 | 60 | yes |  |" in table
+    assert "| recon | 1 | 50.0 | 47.0 | 60 | yes |  |" in table
     assert "| recon |  | 40.0 | 25 % | 30 % |" in table  # rasterizer forward and backward shares of the steps
 
 

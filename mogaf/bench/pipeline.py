@@ -5,9 +5,11 @@
     python -m mogaf.bench pipeline --results DIR --json rows.json
 
 Reads, under the ratio folder of one scene (default: the demo's), every
-job's Snakemake benchmark TSV (wall `s`, `cpu_time`), its log's "finished in"
-line (the stage's own time, torch's import included; the rest of the job's
-wall time is Snakemake's script preamble and process start), the training loops' phase breakdown
+job's Snakemake benchmark TSV (wall `s`), its log's "finished in" line (the
+stage's own time, torch's import included, and the process's CPU time; the
+rest of the job's wall time is Snakemake's script preamble and process
+start; without that line, Snakemake's `cpu_time`, sampled every few seconds,
+stands for the CPU time), the training loops' phase breakdown
 (`time_breakdown_s` of recon.h5 / refined.h5: rasterizer forward and
 backward, the rest of the autograd backward, losses, optimiser, density
 control) and the forecasters' fit / rollout times. Prints three tables: the
@@ -47,7 +49,7 @@ BUDGETS: list[tuple[str, str, float, str]] = [
     ("evaluate", r"evaluate", 20.0, "each"),
 ]
 
-FINISHED = re.compile(r"finished in ([0-9.]+) s")
+FINISHED = re.compile(r"finished in ([0-9.]+) s(?:, process CPU ([0-9.]+) s)?")
 
 
 @dataclass
@@ -55,7 +57,7 @@ class Job:
     name: str  # the benchmark file's stem, e.g. "forecast_mogaf_group0"
     sweep: str  # "" for the run itself, else the ablation variant
     wall_s: float
-    cpu_s: float | None
+    cpu_s: float | None  # the process's CPU time (its log), else Snakemake's sampled cpu_time
     own_s: float | None = None  # the stage's own time (its log's "finished in")
     detail: dict[str, float] = field(default_factory=dict)
 
@@ -82,11 +84,23 @@ def read_tsv(path: Path) -> tuple[float, float | None]:
     return float(rows[-1]["s"]), _float(rows[-1].get("cpu_time"))
 
 
-def _own_time(log: Path) -> float | None:
+def _own_times(log: Path) -> tuple[float | None, float | None]:
+    """(the stage's wall s, the process's CPU s) from the log's last "finished in" line."""
     if not log.is_file():
-        return None
+        return None, None
     found = FINISHED.findall(log.read_text(errors="replace"))
-    return float(found[-1]) if found else None
+    if not found:
+        return None, None
+    wall, cpu = found[-1]
+    return float(wall), (float(cpu) if cpu else None)
+
+
+def _job(name: str, sweep: str, tsv: Path, log: Path, detail: dict[str, float]) -> Job:
+    """CPU time from the job's own log where it states it: Snakemake samples
+    cpu_time every few seconds, so for short jobs its figure is a lower bound."""
+    wall, sampled_cpu = read_tsv(tsv)
+    own, cpu = _own_times(log)
+    return Job(name, sweep, wall, cpu if cpu is not None else sampled_cpu, own, detail)
 
 
 def _attrs(path: Path) -> dict[str, Any]:
@@ -121,13 +135,11 @@ def collect(results: Path) -> list[Job]:
     jobs: list[Job] = []
     ingest = scene / "benchmarks" / "ingest.tsv"
     if ingest.is_file():
-        wall, cpu = read_tsv(ingest)
-        jobs.append(Job("ingest", "", wall, cpu, _own_time(scene / "logs" / "ingest.log")))
+        jobs.append(_job("ingest", "", ingest, scene / "logs" / "ingest.log", {}))
     for sweep, folder in folders:
         for tsv in sorted((folder / "benchmarks").glob("*.tsv")):
-            wall, cpu = read_tsv(tsv)
             name = tsv.stem
-            jobs.append(Job(name, sweep, wall, cpu, _own_time(folder / "logs" / f"{name}.log"), _detail(folder, name)))
+            jobs.append(_job(name, sweep, tsv, folder / "logs" / f"{name}.log", _detail(folder, name)))
     return jobs
 
 
