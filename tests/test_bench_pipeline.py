@@ -22,24 +22,31 @@ def _job(folder, name, wall, cpu, own=None):
         )
 
 
+# (benchmark file stem, wall s, Snakemake's sampled CPU s): the demo's job names
+JOBS = [
+    ("priors", 1.0, 0.5),
+    ("group", 4.0, 3.5),
+    ("rigid_init", 3.0, 2.0),
+    ("grouping_quality", 2.0, 2.0),
+    ("reconstruction_quality_refined", 2.0, 2.0),
+    ("forecast_mogaf_group0", 9.0, 8.0),
+    ("forecast_mogaf_group1", 12.0, 11.0),
+    ("forecast_mogaf_paper_group1", 8.0, 7.0),
+    ("forecast_mogaf", 3.0, 2.5),
+    ("forecast_gcn_group0", 14.0, 13.0),
+    ("forecast_gcn", 3.0, 2.5),
+    ("forecast_constant_velocity", 3.0, 2.5),
+    ("evaluate", 18.0, 30.0),
+]
+
+
 @pytest.fixture()
 def results(tmp_path):
     ratio = tmp_path / "results" / "synthetic" / "default" / "ratio0.6"
     _job(ratio, "recon", 50.0, 45.0, own=48.0)
     _job(ratio, "refine", 30.0, 25.0, own=28.5)
-    _job(ratio, "priors", 1.0, 0.5)
-    _job(ratio, "group", 4.0, 3.5)
-    _job(ratio, "rigid_init", 3.0, 2.0)
-    _job(ratio, "grouping_quality", 2.0, 2.0)
-    _job(ratio, "reconstruction_quality_refined", 2.0, 2.0)
-    _job(ratio, "forecast_mogaf_group0", 9.0, 8.0)
-    _job(ratio, "forecast_mogaf_group1", 12.0, 11.0)
-    _job(ratio, "forecast_mogaf_paper_group1", 8.0, 7.0)
-    _job(ratio, "forecast_mogaf", 3.0, 2.5)
-    _job(ratio, "forecast_gcn_group0", 14.0, 13.0)
-    _job(ratio, "forecast_gcn", 3.0, 2.5)
-    _job(ratio, "forecast_constant_velocity", 3.0, 2.5)
-    _job(ratio, "evaluate", 18.0, 30.0)
+    for name, wall, cpu in JOBS:
+        _job(ratio, name, wall, cpu)
     _job(ratio / "ablation" / "rt_fast_quick", "recon", 20.0, 19.0)
     breakdown = {"init": 3.0, "rasterizer_forward": 10.0, "rasterizer_backward": 12.0, "steps_total": 40.0}
     with h5py.File(ratio / "recon.h5", "w") as fh:
