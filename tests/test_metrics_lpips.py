@@ -243,7 +243,7 @@ def test_cached_reference_features_give_the_same_distance_to_the_bit(weights, rn
         with torch.inference_mode():
             reference = model(x0, x1, spatial=spatial).numpy()[:, 0]
         assert np.array_equal(cached, reference)
-    assert len(FEATURES.entries) == 4  # the ground truth once, three renders
+    assert len(FEATURES.entries) == 1  # the reference (second argument) once; renders are not kept
 
 
 def test_feature_cache_stays_within_its_bytes(weights, rng):

@@ -405,10 +405,12 @@ def _to_batch(img, what: str):
 
 
 class FeatureCache:
-    """Unit features of single images, by content, least recently used first out.
+    """Unit features of reference images, by content, least recently used first out.
 
     An evaluation compares every method's render with the same ground-truth
-    image: its features are computed once. A single image's features equal
+    image (the second argument of lpips / lpips_map / mlpips): its features are
+    computed once. Renders, compared once each, are not kept (they would push
+    the references out before their reuse). A single image's features equal
     its features inside a batch of two (the slow float64 convolution works
     image by image), so the distances are the same to the bit (tested)."""
 
@@ -454,7 +456,7 @@ def _run(img0, img1, spatial: bool, weights_path, device: str):
     x0, x1 = x0.to(device, dtype), x1.to(device, dtype)
     with torch.inference_mode():
         if single0 and single1 and str(device).split(":")[0] == "cpu":
-            u0, u1 = FEATURES.features(model, x0), FEATURES.features(model, x1)
+            u0, u1 = model.unit_features(x0), FEATURES.features(model, x1)
             d = model.distance(u0, u1, x0.shape[2:], spatial)
         else:
             d = model(x0, x1, spatial=spatial)
