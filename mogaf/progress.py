@@ -105,9 +105,3 @@ class Progress:
             self.bar = None
         if self.step > self.start_step:
             log.info("%s", self.line())
-
-    def __enter__(self) -> Progress:
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()

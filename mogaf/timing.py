@@ -24,7 +24,6 @@ class PhaseClock:
 
     def __init__(self, sync: Callable[[], None] | None = None) -> None:
         self.seconds: dict[str, float] = defaultdict(float)
-        self.calls: dict[str, int] = defaultdict(int)
         self.sync = sync
 
     @contextmanager
@@ -38,21 +37,15 @@ class PhaseClock:
             if self.sync is not None:
                 self.sync()
             self.seconds[name] += time.perf_counter() - start
-            self.calls[name] += 1
 
     def add(self, name: str, seconds: float) -> None:
         self.seconds[name] += float(seconds)
-        self.calls[name] += 1
 
     def total(self, name: str) -> float:
         return float(self.seconds.get(name, 0.0))
 
-    def as_dict(self) -> dict[str, float]:
-        return {k: round(float(v), 4) for k, v in self.seconds.items()}
-
     def reset(self) -> None:
         self.seconds.clear()
-        self.calls.clear()
 
 
 KERNELS = PhaseClock()

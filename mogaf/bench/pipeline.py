@@ -30,8 +30,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mogaf.errors import MogafError
+
 DEMO_RESULTS = Path("results/synthetic/default/ratio0.6")
-DEMO_COMMAND = ["snakemake", "--cores", "2", "demo", "--configfile", "config/config.yaml", "config/demo.yaml"]
 SNAKEMAKE_BUDGET_S = 180.0
 
 # (row, job-name pattern, budget in s, how jobs combine: "each" = every job within, "sum" = their total)
@@ -104,14 +105,9 @@ def _job(name: str, sweep: str, tsv: Path, log: Path, detail: dict[str, float]) 
 
 
 def _attrs(path: Path) -> dict[str, Any]:
-    import h5py
+    from mogaf.artefact import read_attrs
 
-    from mogaf.artefact.header import _decode_attr
-
-    if not path.is_file():
-        return {}
-    with h5py.File(path, "r") as fh:
-        return {k: _decode_attr(v) for k, v in fh.attrs.items()}
+    return read_attrs(path) if path.is_file() else {}
 
 
 def _detail(folder: Path, name: str) -> dict[str, float]:
@@ -218,9 +214,9 @@ def import_seconds(python: str = sys.executable) -> dict[str, float]:
 
 
 def run_demo(snakemake: str, cores: int) -> float:
-    """Runs the demo's DAG from scratch (--forceall) and returns its wall time."""
-    cmd = [snakemake, *DEMO_COMMAND[1:], "--forceall"]
-    cmd[cmd.index("--cores") + 1] = str(cores)
+    """Runs the demo's DAG from scratch (`make demo`'s command with --forceall) and returns its wall time."""
+    cmd = [snakemake, "--cores", str(cores), "demo", "--configfile", "config/config.yaml", "config/demo.yaml"]
+    cmd.append("--forceall")
     start = time.perf_counter()
     subprocess.run(cmd, check=True)
     return time.perf_counter() - start
@@ -240,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
         total = run_demo(args.snakemake, args.cores)
     try:
         jobs = collect(args.results)
-    except (FileNotFoundError, ValueError) as exc:
+    except (FileNotFoundError, ValueError, MogafError) as exc:
         print(f"mogaf.bench pipeline: {exc}", file=sys.stderr)
         return 2
     rows = budget_rows(jobs, total)

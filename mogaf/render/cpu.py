@@ -271,6 +271,7 @@ def composite_cpu(
     features get `background` (C values or one) composited. Gaussians with radii
     (0, 0) are skipped.
     """
+    load()  # a first call compiles the kernel: timed as kernel_build, not as compositing
     with KERNELS.phase("raster_forward"):
         return _CPURaster.apply(means2d, conics, opacities, features, depths, radii, background, width, height, tile)
 
@@ -347,5 +348,6 @@ class _ProjectCPU(torch.autograd.Function):
 
 def project_cpu(means, quats, scales, opacities, viewmat, K, width, height, near=0.01, far=1e10, eps2d=0.3):
     """(means2d (N, 2), conics (N, 3), depths (N,), radii (N, 2) int32, visible (N,) bool), fused C++."""
+    load()  # a first call compiles the kernel: timed as kernel_build, not as projection
     with KERNELS.phase("raster_forward"):
         return _ProjectCPU.apply(means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d)
