@@ -75,6 +75,38 @@ def pose_problem(w2c: np.ndarray, tol: float = 1e-4) -> str | None:
     return None
 
 
+# A camera centre farther than this from the others, in units of the scene's
+# extent (the larger of the centres' spread and their distance from the
+# origin), is a broken pose, not a far camera; beyond MAX_CAMERA_CENTRE no
+# float32 renderer can place a pixel.
+MAX_CAMERA_OUTLIER = 1e3
+MAX_CAMERA_CENTRE = 1e8
+
+
+def camera_centre_problem(w2c: np.ndarray) -> tuple[int, str] | None:
+    """(frame, why) for the first camera centre of an (F, 4, 4) stack of
+    rigid world-to-camera poses that no scene could have, or None."""
+    T = np.asarray(w2c, dtype=np.float64)
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    with np.errstate(over="ignore", invalid="ignore"):
+        centres = -np.einsum("fji,fj->fi", R, t)  # -R^T t
+    largest = np.abs(centres).max(axis=1)  # no overflow, unlike a norm of 1e300
+    for f in range(len(T)):
+        if not np.isfinite(largest[f]) or largest[f] > MAX_CAMERA_CENTRE:
+            return f, f"camera centre has a coordinate of {largest[f]:.3g} (at most {MAX_CAMERA_CENTRE:.0e})"
+    dist = np.linalg.norm(centres, axis=1)
+    median = np.median(centres, axis=0)
+    offset = np.linalg.norm(centres - median, axis=1)
+    extent = max(float(np.median(offset)), float(np.median(dist)), 1e-6)
+    f = int(np.argmax(offset))
+    if offset[f] > MAX_CAMERA_OUTLIER * extent:
+        return f, (
+            f"camera centre lies {offset[f]:.3g} from the cameras' median centre, "
+            f"{offset[f] / extent:.3g} times the scene's extent ({extent:.3g}); a broken pose"
+        )
+    return None
+
+
 def project(points: np.ndarray, K: np.ndarray, w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Project world points (N, 3) to continuous pixel coordinates.
 

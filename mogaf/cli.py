@@ -15,6 +15,7 @@ Errors are one line on stderr and exit status 1.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -47,26 +48,50 @@ SCHEMA_NAME = "schema.yaml"  # config/schema.yaml, the file the workflow validat
 
 
 def _config_for(args: argparse.Namespace) -> dict[str, Any]:
+    _check_names(args)
     cfg = mcfg.load_yaml(args.configfile)
+    if not cfg:
+        raise MogafError(f"{args.configfile}: is empty; give the pipeline config (config/config.yaml) or a copy of it")
     variants = (
         mcfg.load_yaml(cfg.get("ablations_file", "config/ablations.yaml")).get("variants", {}) if args.variant else {}
     )
     merged = mcfg.variant_config(cfg, variants, args.variant)
     if args.dataset and args.scene:
-        merged = mcfg.scene_config(merged, args.dataset, args.scene)
+        try:
+            merged = mcfg.scene_config(merged, args.dataset, args.scene)
+        except MogafError as exc:  # an unknown dataset or scene: the file that should list it
+            raise MogafError(f"{args.configfile}: {exc}") from None
     _validate(merged, args.configfile)
     return mcfg.with_defaults(merged)
+
+
+def _schema_file(configfile: str) -> Path | None:
+    """config/schema.yaml: beside the config file, here, or in the checkout."""
+    places = (
+        Path(configfile).parent / SCHEMA_NAME,
+        Path("config") / SCHEMA_NAME,
+        Path(__file__).resolve().parents[1] / "config" / SCHEMA_NAME,
+    )
+    return next((p for p in places if p.is_file()), None)
+
+
+def _check_names(args: argparse.Namespace) -> None:
+    """--dataset and --scene become folders, as the config's names do: the
+    schema's rule for those names applies to the flags too."""
+    schema = _schema_file(args.configfile)
+    if schema is None:
+        return
+    rule = mcfg.load_yaml(schema).get("definitions", {}).get("name", {})
+    for option in ("dataset", "scene"):
+        value = getattr(args, option, None)
+        if value is not None and "pattern" in rule and not re.fullmatch(rule["pattern"], value):
+            raise MogafError(f"--{option} {value!r} is not a valid name: {rule.get('description', rule['pattern'])}")
 
 
 def _validate(cfg: dict[str, Any], configfile: str) -> None:
     """The workflow's schema check (config/schema.yaml, where it is found), so
     a config the workflow would refuse fails here with one line, not a traceback."""
-    places = (
-        Path(configfile).parent / SCHEMA_NAME,
-        Path("config") / SCHEMA_NAME,
-        Path(__file__).resolve().parents[1] / "config" / SCHEMA_NAME,
-    )  # beside it, here, the checkout
-    schema = next((p for p in places if p.is_file()), None)
+    schema = _schema_file(configfile)
     if schema is None:
         return
     try:

@@ -67,7 +67,7 @@ def dataset_config(config: Mapping[str, Any], dataset: str) -> Mapping[str, Any]
     datasets = config.get("datasets", {})
     if dataset not in datasets:
         known = ", ".join(sorted(datasets)) or "none"
-        raise MogafError(f"unknown dataset '{dataset}' (config/config.yaml datasets: {known})")
+        raise MogafError(f"unknown dataset '{dataset}' (the config's datasets: {known})")
     return datasets[dataset]
 
 
@@ -75,9 +75,7 @@ def check_scene(config: Mapping[str, Any], dataset: str, scene: str) -> None:
     ds = dataset_config(config, dataset)
     scenes = ds.get("scenes")
     if scenes is not None and scene not in scenes:
-        raise MogafError(
-            f"unknown scene '{scene}' of dataset '{dataset}' (config/config.yaml lists: {', '.join(scenes)})"
-        )
+        raise MogafError(f"unknown scene '{scene}' of dataset '{dataset}' (the config lists: {', '.join(scenes)})")
 
 
 def scene_dir(config: Mapping[str, Any], dataset: str, scene: str) -> str:

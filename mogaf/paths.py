@@ -117,6 +117,21 @@ def check_outputs(
             )
 
 
+def check_results_folder(results: str | os.PathLike, dataset_folders: Iterable[str | os.PathLike] = ()) -> None:
+    """Refuse a results folder that is, or lies inside, a dataset folder (a
+    link into one included), before the workflow creates anything in it."""
+    resolved = _resolved(results)
+    inside = [f for f in map(_resolved, dataset_folders) if f.is_dir() and (resolved == f or _inside(resolved, f))]
+    folder = inside[0] if inside else holding_dataset_folder(resolved / "_")
+    if folder is not None:
+        link = f" (it links to {resolved})" if Path(results).is_symlink() else ""
+        raise input_error(
+            results,
+            f"lies inside the dataset folder {folder}{link}; no stage writes into a dataset, "
+            "make results/ a folder of its own",
+        )
+
+
 def unwritable_folder(path: str | os.PathLike) -> tuple[Path, str] | None:
     """(folder, reason) where `path` cannot be created or replaced: the
     nearest existing folder above it is read-only or not ours to write."""

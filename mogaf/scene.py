@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from .artefact import _decode_attr, open_artefact, read_rows, read_tree, write_artefact
-from .camera import pose_problem
+from .camera import camera_centre_problem, pose_problem
 from .errors import MogafError, input_error
 
 SCENE_STAGE = "ingest"
@@ -132,6 +132,9 @@ class Scene:
             problem = pose_problem(self.w2c[f])
             if problem:
                 raise input_error(source, f"frame {self.frame_names[f]}: {problem}")
+        outlier = camera_centre_problem(self.w2c)
+        if outlier is not None:
+            raise input_error(source, f"frame {self.frame_names[outlier[0]]}: {outlier[1]}")
         H, W = self.height, self.width
         for key in OPTIONAL_FRAME_ARRAYS:
             arr = getattr(self, key)

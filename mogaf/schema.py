@@ -12,6 +12,7 @@ layer to fix.
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -48,7 +49,15 @@ def schema_problem(config: Mapping[str, Any], schema: Mapping[str, Any]) -> tupl
     hint = error.schema.get("description") if isinstance(error.schema, Mapping) else None
     if hint and error.validator in ("pattern", "propertyNames"):
         message += f" ({hint})"
-    return list(error.absolute_path), message
+    keys = list(error.absolute_path)
+    if error.validator == "additionalProperties" and isinstance(error.instance, Mapping):
+        # the unexpected key itself, so the file that sets it is named (not every layer)
+        allowed = set(error.schema.get("properties", {}))
+        patterns = list(error.schema.get("patternProperties", {}))
+        extra = [k for k in error.instance if k not in allowed and not any(re.search(p, str(k)) for p in patterns)]
+        if extra:
+            keys.append(extra[0])
+    return keys, message
 
 
 def config_error(

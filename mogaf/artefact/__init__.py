@@ -24,7 +24,17 @@ writer (write_artefact), reader (read_artefact, open_artefact, partial
 reads).
 """
 
-from .atomic import NO_SPACE_ERRNOS, WriteFailed, atomic_path, free_bytes, remove_stale_temps, write_error, write_json
+from .atomic import (
+    NO_SPACE_ERRNOS,
+    WriteFailed,
+    atomic_folder,
+    atomic_path,
+    free_bytes,
+    remove_stale_temps,
+    write_bytes,
+    write_error,
+    write_json,
+)
 from .header import (
     ATTR_CREATED,
     ATTR_DIGEST,
@@ -68,6 +78,7 @@ __all__ = [
     "Lineage",
     "WriteFailed",
     "_decode_attr",
+    "atomic_folder",
     "atomic_path",
     "check_lineage",
     "check_made_from",
@@ -83,6 +94,7 @@ __all__ = [
     "remove_stale_temps",
     "stage_inputs",
     "time_steps_index",
+    "write_bytes",
     "write_artefact",
     "write_error",
     "write_json",

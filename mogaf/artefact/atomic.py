@@ -101,8 +101,9 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         # reported once the temporary is gone, so the room said to be left is right
         if isinstance(exc, WriteFailed):
             raise write_error(final, exc.error) from None
-        if isinstance(exc, OSError) and exc.errno in NO_SPACE_ERRNOS:
-            raise write_error(final, exc) from None
+        full = no_space_error(exc)
+        if full is not None:
+            raise write_error(final, full) from None
         raise
 
 
@@ -191,6 +192,61 @@ class _GuardedSink:
             self._fh.close()  # network file systems may report a failed write only here
         except OSError as exc:
             self._fail(exc)
+
+
+def no_space_error(exc: BaseException) -> OSError | None:
+    """`exc` as the full-disk OSError it stands for, or None. Libraries that
+    write through their own code report a full disk in their own words (an
+    encoder subprocess's text, say); those words are recognised here."""
+    if isinstance(exc, OSError) and exc.errno in NO_SPACE_ERRNOS:
+        return exc
+    if "No space left on device" in str(exc) or "Disk quota exceeded" in str(exc):
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    return None
+
+
+def write_bytes(path: str | os.PathLike, data: bytes | bytearray | memoryview) -> Path:
+    """Atomically write `data` (encoded in memory first, e.g. a checkpoint or
+    an image), so a full disk is one line naming `path` and leaves nothing."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(data)
+    return Path(path)
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a hidden temporary folder beside `path`; it replaces `path` (a
+    folder, replaced whole) only if the block succeeds, and is removed on any
+    failure. A full disk met inside becomes one line naming `path`."""
+    import shutil
+
+    final = Path(path)
+    tmp = _temp_name(final)
+    if final.exists() and not final.is_dir():
+        raise input_error(final, "is an existing file; the output must be a folder")
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        for stale in glob.glob(str(final.with_name(f".{final.name}.tmp-*"))):
+            shutil.rmtree(stale, ignore_errors=True)
+        _check_room(final)
+        tmp.mkdir()
+    except OSError as exc:
+        raise write_error(final, exc) from None
+    try:
+        yield tmp
+        if final.exists():
+            old = final.with_name(f"{tmp.name}-old")
+            os.replace(final, old)
+            os.replace(tmp, final)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, final)
+    except BaseException as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        full = no_space_error(exc)
+        if full is not None:  # reported once the temporary is gone, so the room said to be left is right
+            raise write_error(final, full) from None
+        raise
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> Path:

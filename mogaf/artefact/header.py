@@ -16,7 +16,9 @@ import numpy as np
 from .. import __version__
 from ..errors import MogafError, input_error
 
-FORMAT_VERSION = 1
+# 2: every dataset carries a checksum (Fletcher-32, or ATTR_CHECKSUM where
+# HDF5 cannot filter it); version-1 files have none and are refused.
+FORMAT_VERSION = 2
 
 ATTR_FORMAT = "mogaf_format_version"
 ATTR_STAGE = "mogaf_stage"
@@ -27,6 +29,9 @@ ATTR_CREATED = "mogaf_created_utc"
 # digests, and those inputs' lineage digests by stage (see `stage_inputs`).
 ATTR_LINEAGE = "mogaf_lineage_digest"
 ATTR_INPUTS = "mogaf_input_digests"
+# On a dataset HDF5 cannot filter (a scalar, an empty array, variable-length
+# strings): a digest of its dtype, shape and values, checked on every open.
+ATTR_CHECKSUM = "mogaf_checksum"
 RESERVED_ATTRS = (ATTR_FORMAT, ATTR_STAGE, ATTR_DIGEST, ATTR_PACKAGE, ATTR_CREATED, ATTR_LINEAGE, ATTR_INPUTS)
 
 
@@ -53,6 +58,21 @@ def config_digest(params: Any) -> str:
     """Stable short digest of the parameters that determine an artefact."""
     text = json.dumps(_canonical(params), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def dataset_checksum(arr: np.ndarray) -> str:
+    """Digest of an array's dtype, shape and values (strings as UTF-8)."""
+    h = hashlib.blake2b(digest_size=16)
+    if arr.dtype.kind in "USO":
+        items = [v.decode() if isinstance(v, bytes) else str(v) for v in np.asarray(arr).reshape(-1).tolist()]
+        h.update(f"str\0{arr.shape}\0".encode())
+        for item in items:
+            data = item.encode()
+            h.update(len(data).to_bytes(8, "little") + data)
+    else:
+        h.update(f"{arr.dtype.str}\0{arr.shape}\0".encode())
+        h.update(np.ascontiguousarray(arr).tobytes())
+    return h.hexdigest()
 
 
 # ---------------------------------------------------------------- attr values

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..errors import MogafError, input_error
 from .header import (
+    ATTR_CHECKSUM,
     ATTR_CREATED,
     ATTR_DIGEST,
     ATTR_PACKAGE,
@@ -25,6 +26,7 @@ from .header import (
     _decode_attr,
     _normalise_stages,
     _open,
+    dataset_checksum,
 )
 
 
@@ -78,6 +80,39 @@ class Artefact:
             return default
 
 
+def _unreadable(path: Path, name: str, ds: h5py.Dataset, exc: Exception) -> MogafError:
+    if ds.fletcher32 and "filter" in str(exc):
+        return input_error(
+            path,
+            f"entry '{name}' fails its checksum: the file changed on disk after it was written; "
+            "rerun the stage that wrote it",
+        )
+    return input_error(path, f"entry '{name}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})")
+
+
+def check_checksums(fh: h5py.File, path: Path) -> None:
+    """Every dataset has a checksum: Fletcher-32 (HDF5 checks it on each read)
+    or a digest attr, checked here on the (small) dataset it covers."""
+
+    def visit(name: str, item: Any) -> None:
+        if not isinstance(item, h5py.Dataset) or item.fletcher32:
+            return
+        if ATTR_CHECKSUM not in item.attrs:
+            raise input_error(path, f"entry '{name}' has no checksum: not written by this mogaf; rerun the stage")
+        try:
+            values = item.asstr()[()] if h5py.check_string_dtype(item.dtype) is not None else item[()]
+        except (OSError, RuntimeError) as exc:
+            raise _unreadable(path, name, item, exc) from None
+        if dataset_checksum(np.asarray(values)) != _decode_attr(item.attrs[ATTR_CHECKSUM]):
+            raise input_error(
+                path,
+                f"entry '{name}' fails its checksum: the file changed on disk after it was written; "
+                "rerun the stage that wrote it",
+            )
+
+    fh.visititems(visit)
+
+
 def read_dataset(ds: h5py.Dataset, path: Path, name: str | None = None, sel: Any = None) -> Any:
     """One dataset (or the part `sel` indexes), finite-checked; strings decoded."""
     name = name or ds.name.lstrip("/")
@@ -87,9 +122,7 @@ def read_dataset(ds: h5py.Dataset, path: Path, name: str | None = None, sel: Any
             return arr.tolist() if isinstance(arr, np.ndarray) else arr
         arr = ds[()] if sel is None else ds[sel]
     except (OSError, RuntimeError) as exc:
-        raise input_error(
-            path, f"entry '{name}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})"
-        ) from None
+        raise _unreadable(path, name, ds, exc) from None
     if isinstance(arr, np.ndarray) and arr.dtype.kind in "fc" and not np.all(np.isfinite(arr)):
         raise input_error(path, f"entry '{name}' contains non-finite values (corrupted artefact); rerun the stage")
     return arr
@@ -138,6 +171,7 @@ def read_artefact(
     p = Path(path)
     with _open(p) as fh:
         _check_header(fh, p, _normalise_stages(stage), expected_config_digest)
+        check_checksums(fh, p)
         stage_name = _decode_attr(fh.attrs[ATTR_STAGE])
         attrs = ArtefactAttrs(
             p, stage_name, {k: _decode_attr(v) for k, v in fh.attrs.items() if k not in RESERVED_ATTRS}
@@ -173,7 +207,16 @@ def open_artefact(
     fh = _open(p)
     try:
         _check_header(fh, p, _normalise_stages(stage), expected_config_digest)
+        check_checksums(fh, p)
         yield fh
+    except OSError as exc:
+        # a direct read (not through read_dataset / read_rows) of a damaged chunk
+        if "filter returned failure" not in str(exc):
+            raise
+        raise input_error(
+            p,
+            "an entry fails its checksum: the file changed on disk after it was written; rerun the stage that wrote it",
+        ) from None
     except KeyError as exc:
         # h5py's KeyError for an absent entry or attribute: one line naming the file
         # (a KeyError of the caller's own code is left alone: it is not the file's fault)
@@ -203,9 +246,7 @@ def read_rows(fh: h5py.File, key: str, rows: np.ndarray) -> np.ndarray:
         unique_rows, inverse = np.unique(sorted_rows, return_inverse=True)
         block = ds[unique_rows] if unique_rows.size else np.empty((0,) + ds.shape[1:], ds.dtype)
     except (OSError, RuntimeError) as exc:
-        raise input_error(
-            path, f"entry '{key}' cannot be read, file truncated or corrupted ({exc.__class__.__name__})"
-        ) from None
+        raise _unreadable(path, key, ds, exc) from None
     out = np.empty((rows.size,) + ds.shape[1:], dtype=ds.dtype)
     out[order] = block[inverse]
     if out.dtype.kind in "fc" and not np.all(np.isfinite(out)):

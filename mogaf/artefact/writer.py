@@ -17,6 +17,7 @@ from .. import __version__
 from ..errors import input_error
 from .atomic import WriteFailed, _GuardedSink, atomic_path
 from .header import (
+    ATTR_CHECKSUM,
     ATTR_CREATED,
     ATTR_DIGEST,
     ATTR_FORMAT,
@@ -25,6 +26,7 @@ from .header import (
     FORMAT_VERSION,
     RESERVED_ATTRS,
     _attr_value,
+    dataset_checksum,
 )
 from .lineage import _lineage_attrs
 
@@ -56,13 +58,19 @@ def _write_tree(group: h5py.Group, data: Mapping[str, Any], path: Path, prefix: 
             content.update(f"{name}\0{arr.dtype.str}\0{arr.shape}\0".encode())
             content.update(np.ascontiguousarray(arr))  # the buffer itself: no copy of a big array
         if arr.dtype.kind == "U":
-            group.create_dataset(key, data=arr.astype(h5py.string_dtype()))
+            ds = group.create_dataset(key, data=arr.astype(h5py.string_dtype()))
+            ds.attrs[ATTR_CHECKSUM] = dataset_checksum(arr)
             continue
         _check_finite(name, arr, path)
-        # Chunked + gzip level 1 for large arrays keeps images small and fast.
-        kwargs: dict[str, Any] = {}
+        if arr.ndim == 0 or arr.size == 0:  # HDF5 filters need chunks, which these cannot have
+            ds = group.create_dataset(key, data=arr)
+            ds.attrs[ATTR_CHECKSUM] = dataset_checksum(arr)
+            continue
+        # Fletcher-32 per chunk: HDF5 checks it on every read, partial reads included.
+        # gzip level 1 for large arrays keeps images small and fast.
+        kwargs: dict[str, Any] = {"fletcher32": True}
         if arr.size >= 1 << 16:
-            kwargs = {"compression": "gzip", "compression_opts": 1, "shuffle": True}
+            kwargs.update(compression="gzip", compression_opts=1, shuffle=True)
         group.create_dataset(key, data=arr, **kwargs)
 
 

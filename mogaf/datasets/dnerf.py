@@ -45,7 +45,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..camera import GL_TO_CV, intrinsics_matrix, pose_problem, rigid_inverse, scale_intrinsics
+from ..camera import GL_TO_CV, camera_centre_problem, intrinsics_matrix, pose_problem, rigid_inverse, scale_intrinsics
 from ..errors import MogafError, input_error
 from ..scene import SPLIT_CODES, Instances, Scene
 from .common import (
@@ -366,7 +366,26 @@ def read_dnerf_scene(
             # list() re-raises the first failure (in frame order).
             list(pool.map(load, range(F)))
 
+    if masks is not None and not masks.any():
+        warn_dataset(
+            frames[0].mask.parent,
+            "every object-id mask is all background (id 0): grouping has no object to start from, "
+            "and a scene without depth has no foreground to reconstruct; fix the masks or set the "
+            "dataset option masks: false",
+        )
+    if has_alpha.any() and not has_alpha.all():
+        # its background cannot be replaced like the others': refuse rather than mix two backgrounds
+        rgb, rgba = frames[int(np.argmin(has_alpha))], frames[int(np.argmax(has_alpha))]
+        raise input_error(
+            rgb.image,
+            f"image has no alpha channel, but other frames of the scene do (e.g. {rgba.file_path}): "
+            "give every frame an alpha channel or none, so that one background applies to all",
+        )
     w2c = np.stack([rigid_inverse(fr.c2w @ GL_TO_CV) for fr in frames])
+    outlier = camera_centre_problem(w2c)
+    if outlier is not None:
+        fr = frames[outlier[0]]
+        raise input_error(fr.json_path, f"frame {fr.index} ({fr.file_path}): {outlier[1]}")
     instances = None
     if has_masks:
         if mapping is None:

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from ..artefact.atomic import no_space_error
 from ..rendering import render_poses
 from ..representation import Model4D
 
@@ -30,7 +31,9 @@ def _save_png(path: Path, img: np.ndarray) -> None:
     from ..datasets.images import to_uint8  # local: it imports cv2, which only PNG writing needs
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, to_uint8(np.asarray(img) * 255.0))
+    encoded = iio.imwrite("<bytes>", to_uint8(np.asarray(img) * 255.0), extension=".png")
+    with open(path, "wb") as fh:  # a plain write: a full disk is an OSError with its errno
+        fh.write(encoded)
 
 
 def ffmpeg_available() -> bool:
@@ -41,6 +44,48 @@ def ffmpeg_available() -> bool:
         return bool(imageio_ffmpeg.get_ffmpeg_exe())
     except (ImportError, RuntimeError, OSError):
         return False
+
+
+def _encode_mp4(path: Path, frames: list[np.ndarray], fps: int) -> None:
+    """H.264 mp4 (crf 10, yuv420p) through ffmpeg, checking its exit status:
+    imageio's writer ignores it, so a full disk left a truncated video."""
+    import subprocess
+
+    import imageio_ffmpeg
+
+    h, w = frames[0].shape[:2]
+    cmd = [
+        imageio_ffmpeg.get_ffmpeg_exe(),
+        "-y",
+        "-f",
+        "rawvideo",
+        "-pix_fmt",
+        "rgb24",
+        "-s",
+        f"{w}x{h}",
+        "-r",
+        str(int(fps)),
+        "-i",
+        "-",
+        "-an",
+        "-vcodec",
+        "libx264",
+        "-pix_fmt",
+        "yuv420p",
+        "-crf",
+        "10",
+        "-v",
+        "error",
+        str(path),
+    ]
+    data = b"".join(np.ascontiguousarray(f, dtype=np.uint8).tobytes() for f in frames)
+    res = subprocess.run(cmd, input=data, capture_output=True, check=False)
+    if res.returncode != 0:
+        text = res.stderr.decode(errors="replace").strip()
+        full = no_space_error(RuntimeError(text))
+        if full is not None:
+            raise full
+        raise RuntimeError(f"ffmpeg exited with status {res.returncode}: {text.splitlines()[-1] if text else ''}")
 
 
 def _write_video(path: Path, panels: list[np.ndarray], fps: int) -> None:
@@ -54,13 +99,9 @@ def _write_video(path: Path, panels: list[np.ndarray], fps: int) -> None:
         frames.append(img)
     if ffmpeg_available():
         try:
-            with iio2.get_writer(
-                path, format="FFMPEG", fps=fps, codec="libx264", quality=8, macro_block_size=2, ffmpeg_log_level="error"
-            ) as writer:
-                for f in frames:
-                    writer.append_data(f)
+            _encode_mp4(path, frames, fps)
             return
-        except (RuntimeError, OSError):
+        except RuntimeError:
             path.unlink(missing_ok=True)  # a broken encoder: no half-written mp4 beside the gif
     # Without ffmpeg imageio would pick another plugin for ".mp4" (tifffile, which refuses fps).
     iio2.mimsave(path.with_suffix(".gif"), frames, format="GIF", duration=1.0 / max(fps, 1))

@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-import shutil
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -17,9 +15,9 @@ from typing import Any
 import numpy as np
 
 from .. import __version__
-from ..artefact import write_json
+from ..artefact import atomic_folder, write_json
 from ..grouping.quality import read_grouping_quality
-from ..metrics import image_metrics, mean_metrics
+from ..metrics import image_metrics, mean_metrics, metrics_left_out
 from ..metrics.lpips import load_lpips_weights
 from ..reconstruction_quality import read_reconstruction_quality
 from ..report.tables import METHOD_ORDER, method_label
@@ -81,9 +79,6 @@ def run_evaluate_stage(
     masked = sp.protocol == "iphone"
     masks = frames.covisibility_masks()
     methods = sorted(forecasts)
-    renders_tmp = Path(out_renders).with_name(f".{Path(out_renders).name}.tmp-{os.getpid()}")
-    shutil.rmtree(renders_tmp, ignore_errors=True)
-    renders_tmp.mkdir(parents=True)
     gts = [frames.images[f] / 255.0 for f in range(frames.num_frames)]
     result: dict[str, Any] = {
         "mogaf_version": __version__,
@@ -96,9 +91,15 @@ def run_evaluate_stage(
         "forecast_timesteps": [int(t) for t in sp.forecast_timesteps],
         "methods": {},
     }
+    left_out = metrics_left_out(frames.height, frames.width, bool(p.lpips))
+    for metric, why in left_out.items():
+        log.warning("%s: %s: %s is left out of the metrics", scene, why, metric.upper())
+    if left_out:
+        result["metrics_left_out"] = left_out
     labels: dict[str, str] = {}
     side_by_side: dict[str, list[np.ndarray]] = {}  # uint8 renders for all_methods.mp4
-    try:
+    # renders and videos go to a temporary folder that replaces out_renders when complete
+    with atomic_folder(out_renders) as renders_tmp:
         for method in methods:
             fc = read_forecast(forecasts[method])
             _check_forecast(fc, m4, sp)
@@ -155,10 +156,4 @@ def run_evaluate_stage(
             result["runtime"] = rt
             for method in methods:
                 result["methods"][method]["runtime"] = {"total_wall_s": rt["total_wall_s"][method]}
-        final = Path(out_renders)
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(renders_tmp, final)
-    finally:
-        shutil.rmtree(renders_tmp, ignore_errors=True)
     return write_json(out_metrics, _round(result))

@@ -25,7 +25,7 @@ from mogaf.metrics.tracking import (
     occlusion_accuracy,
     tracking_metrics,
 )
-from mogaf.metrics.views import image_metrics, mean_metrics
+from mogaf.metrics.views import image_metrics, mean_metrics, metrics_left_out
 
 __all__ = [
     "masked_mean",
@@ -49,5 +49,6 @@ __all__ = [
     "occlusion_accuracy",
     "tracking_metrics",
     "image_metrics",
+    "metrics_left_out",
     "mean_metrics",
 ]

@@ -8,6 +8,7 @@ PSNR and Gaussian count.
 
 from __future__ import annotations
 
+import io
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,6 +16,8 @@ from typing import Any
 
 import numpy as np
 import torch
+
+from ..artefact import write_bytes
 
 CHECKPOINT_VERSION = 1
 
@@ -36,17 +39,11 @@ class Curve:
 
 
 def save_checkpoint(path: str | os.PathLike, state: dict[str, Any]) -> None:
-    """torch.save to a temporary name in the same folder, then rename (atomic)."""
-    final = Path(path)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
-    try:
-        torch.save(state, tmp)
-        os.replace(tmp, final)
-    except BaseException:
-        if tmp.exists():
-            tmp.unlink()
-        raise
+    """torch.save into memory, then one atomic write: torch's own file writer
+    turns a full disk into a traceback about zip positions."""
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    write_bytes(path, buffer.getbuffer())
 
 
 def load_checkpoint(path: str | os.PathLike, digest: str) -> dict[str, Any] | None:

@@ -2,7 +2,8 @@
 
 Written from the definitions: robust masked L1 with a quantile cut-off
 (large residuals ignored), SSIM with an 11x11 Gaussian window (sigma 1.5,
-valid convolution, as pytorch_msssim), image-gradient matching of disparity,
+valid convolution, as pytorch_msssim; cut to the image's shorter side, odd,
+for images smaller than the window, e.g. a coarse level of a tiny scene), image-gradient matching of disparity,
 second differences (acceleration) for smoothness.
 """
 
@@ -27,6 +28,9 @@ def ssim(img0: torch.Tensor, img1: torch.Tensor) -> torch.Tensor:
     y = img1.permute(0, 3, 1, 2)
     C = x.shape[1]
     w = _WINDOW.to(device=x.device, dtype=x.dtype)
+    side = min(x.shape[2], x.shape[3])
+    if side < w.numel():
+        w = _gauss_window(side - (1 - side % 2)).to(device=x.device, dtype=x.dtype)
     wx = w.reshape(1, 1, 1, -1).expand(C, 1, 1, -1)
     wy = w.reshape(1, 1, -1, 1).expand(C, 1, -1, 1)
 

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from ..artefact import config_digest
+from ..errors import MogafError, input_error
 from ..representation import save_model
 from ..split import read_split
 from .data import TrainData, coarser, extend_masks_to_content, input_digests, load_train_data
@@ -126,7 +127,13 @@ def _run(
     prepare_data(data, p)
     inputs = input_digests({"scene": scene_h5, "split": split_h5, "priors": priors_h5})
     digest = checkpoint_digest(p, seed, data, inputs)
-    trainer, resumed = build_trainer(data, p, seed, checkpoint=checkpoint, digest=digest)
+    try:
+        trainer, resumed = build_trainer(data, p, seed, checkpoint=checkpoint, digest=digest)
+    except MogafError as exc:
+        if not str(exc).startswith("reconstruction init:"):
+            raise
+        empty = "; every foreground mask of its observed frames is empty" if not np.any(data.fg_masks) else ""
+        raise input_error(scene_h5, f"{exc}{empty}") from None
     paused = run_resumable(
         trainer,
         log,

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,42 @@ METRIC_SECTIONS = ("image", "tracking", "runtime")
 
 def _no_constants(name: str) -> Any:
     raise ValueError(f"{name} is not a JSON number (evaluate never writes it)")
+
+
+# The values a metric can take (inclusive); a metric not listed here only
+# has to be finite (PSNR, EPE-free counts).
+_RANGES = (
+    ("ssim", (-1.0, 1.0)),
+    ("mssim", (-1.0, 1.0)),
+    ("lpips", (0.0, math.inf)),
+    ("mlpips", (0.0, math.inf)),
+    ("epe", (0.0, math.inf)),
+    ("delta_", (0.0, 1.0)),
+    ("aj", (0.0, 1.0)),
+    ("occlusion_accuracy", (0.0, 1.0)),
+    ("ari", (-1.0, 1.0)),
+    ("mean_iou", (0.0, 1.0)),
+)
+
+
+def _out_of_range(section: str, name: str, value: float) -> str | None:
+    """Why a finite metric value is impossible, or None."""
+    if section == "runtime":
+        lo, hi = 0.0, math.inf
+    else:
+        lo, hi = next((r for prefix, r in _RANGES if name == prefix or name.startswith(prefix)), (-math.inf, math.inf))
+    if lo <= value <= hi:
+        return None
+    return f"is {value!r}, outside the range [{lo:g}, {hi:g}] of {name}"
+
+
+def _folder_ratio(path: Path) -> float | None:
+    """The observation ratio a results folder names (`ratio0.6`), if any."""
+    for part in reversed(path.parts[:-1]):
+        match = re.fullmatch(r"ratio(\d+(?:\.\d+)?|\.\d+)", part)
+        if match:
+            return float(match.group(1))
+    return None
 
 
 def _is_number(value: Any) -> bool:
@@ -49,6 +86,9 @@ def _metrics_problem(data: dict[str, Any]) -> str | None:
             for name, value in values.items():
                 if value is not None and not _is_number(value):
                     return f"'methods.{method}.{part}.{name}' must be a number or null, got {value!r}"
+                why = None if value is None else _out_of_range(part, name, value)
+                if why:
+                    return f"'methods.{method}.{part}.{name}' {why}"
     grouping = data.get("grouping")
     if grouping is not None and not isinstance(grouping, dict):
         return "'grouping' must be an object"
@@ -56,6 +96,9 @@ def _metrics_problem(data: dict[str, Any]) -> str | None:
         value = (grouping or {}).get(name)
         if value is not None and not _is_number(value):
             return f"'grouping.{name}' must be a number or null, got {value!r}"
+        why = None if value is None else _out_of_range("grouping", name, value)
+        if why:
+            return f"'grouping.{name}' {why}"
     return None
 
 
@@ -83,6 +126,13 @@ def load_metrics(paths: list[str | os.PathLike]) -> list[dict[str, Any]]:
         problem = _metrics_problem(data)
         if problem:
             raise input_error(p, f"not a usable metrics.json: {problem}")
+        folder_ratio = _folder_ratio(p.resolve())
+        if folder_ratio is not None and not math.isclose(folder_ratio, float(data["ratio"]), abs_tol=1e-9):
+            raise input_error(
+                p,
+                f"says ratio {data['ratio']:g}, but lies in a folder of ratio {folder_ratio:g}; "
+                "a metrics.json moved or edited by hand, rerun evaluate",
+            )
         key = _result_key(data)
         if key in seen:
             raise input_error(

@@ -45,9 +45,9 @@ same parameters give byte-identical files.
 
 from __future__ import annotations
 
+import io
 import json
 import os
-import shutil
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -55,6 +55,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..artefact import atomic_folder
 from ..errors import MogafError
 from .params import resolve_params
 from .render import Renderer, camera_origin
@@ -81,13 +82,19 @@ def _write_png(path: Path, img: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     if img.ndim == 3:
         img = img[..., ::-1]  # RGB -> BGR for OpenCV
-    if not cv2.imwrite(str(path), np.ascontiguousarray(img), [cv2.IMWRITE_PNG_COMPRESSION, 3]):
-        raise OSError(f"could not write {path}")
+    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(img), [cv2.IMWRITE_PNG_COMPRESSION, 3])
+    if not ok:
+        raise MogafError(f"{path}: OpenCV could not encode the image")
+    with open(path, "wb") as fh:  # a plain write, not cv2.imwrite: a full disk is an OSError with its errno
+        fh.write(encoded.tobytes())
 
 
 def _write_npy(path: Path, arr: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.save(path, arr, allow_pickle=False)
+    buffer = io.BytesIO()  # numpy's own file writer reports a full disk without its errno
+    np.save(buffer, arr, allow_pickle=False)
+    with open(path, "wb") as fh:
+        fh.write(buffer.getbuffer())
 
 
 def camera_json(world: World, w2c: np.ndarray) -> dict[str, Any]:
@@ -288,24 +295,6 @@ def generate_scene(out_dir: str | os.PathLike, params: Mapping[str, Any] | None 
     """
     p = resolve_params(params)
     out = Path(out_dir)
-    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        for stale in out.parent.glob(f".{out.name}.tmp-*"):
-            shutil.rmtree(stale, ignore_errors=True)
-        tmp.mkdir()
-    except OSError as exc:
-        raise MogafError(f"{out}: cannot be written ({exc.strerror or exc})") from None
-    try:
+    with atomic_folder(out) as tmp:
         _write_layout(tmp, p)
-        if out.exists():
-            old = out.parent / f".{out.name}.tmp-{os.getpid()}-old"
-            os.replace(out, old)
-            os.replace(tmp, out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out

@@ -9,6 +9,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..artefact import write_bytes
+from ..errors import MogafError
 from .generate import frame_name
 
 PALETTE = np.array(
@@ -67,7 +69,7 @@ def contact_sheet(
         rows.append(np.full((2, row.shape[1], 3), 255, np.uint8))
     sheet = np.concatenate(rows[:-1], axis=0)
     sheet = cv2.resize(sheet, None, fx=zoom, fy=zoom, interpolation=cv2.INTER_NEAREST)
-    out = Path(out_png)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(out), sheet[..., ::-1])
-    return out
+    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(sheet[..., ::-1]))
+    if not ok:
+        raise MogafError(f"{out_png}: OpenCV could not encode the contact sheet")
+    return write_bytes(out_png, encoded.tobytes())

@@ -1,6 +1,7 @@
 """Shared setup: config validation, wildcards, artefact paths and input functions."""
 
 import functools
+import os
 from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
@@ -22,6 +23,10 @@ def _config_layers():
     Snakefile's configfile, the --configfile files in order, --config."""
     given = [str(f) for f in (workflow.config_settings.configfiles or [])]
     files = [str(f) for f in workflow.configfiles if str(f) not in given] + given
+    # one file given twice (the Snakefile's config/config.yaml and --configfile
+    # config/config.yaml, in two spellings) is one layer, at its last place
+    real = [os.path.realpath(f) for f in files]
+    files = [f for i, f in enumerate(files) if real[i] not in real[i + 1 :]]
     layers = file_layers(files)
     if workflow.config_settings.config:
         layers.append(("--config", workflow.config_settings.config))
@@ -57,6 +62,19 @@ def _check_relations(cfg, where=""):
 _check_relations(config)
 
 # Every pipeline write goes to results/ or the cache folder (kernels, LPIPS).
+# results/ inside a dataset (a link into one) is refused before any job creates
+# its log and benchmark folders there.
+try:
+    mpaths.check_results_folder(
+        "results",
+        [
+            mcfg.scene_dir(config, dataset, scene)
+            for dataset, spec in config["datasets"].items()
+            for scene in spec.get("scenes") or []
+        ],
+    )
+except MogafError as exc:
+    raise WorkflowError(str(exc))
 mpaths.use_cache_dir(config["cache_dir"])
 
 

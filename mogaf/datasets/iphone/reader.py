@@ -11,10 +11,20 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ...camera import scale_intrinsics
+from ...camera import camera_centre_problem, scale_intrinsics
 from ...errors import MogafError, input_error
 from ...scene import SPLIT_CODES, Instances, Scene
-from ..common import as_int, as_list, as_str, load_json, option_bool, option_int, rigidity_of, rigidity_rules
+from ..common import (
+    as_int,
+    as_list,
+    as_str,
+    load_json,
+    option_bool,
+    option_int,
+    rigidity_of,
+    rigidity_rules,
+    warn_dataset,
+)
 from ..images import read_image
 from .loaders import _binary_mask, _load_npy, _points, _run, _tracks
 from .metadata import _keypoints, _read_camera, _read_split, _scene_meta
@@ -149,6 +159,9 @@ def read_iphone_layout(scene_dir: str | os.PathLike, dataset: str, scene: str, o
         raise input_error(cam_dir / f"{names[0]}.json", f"image_size {[W0, H0]} is smaller than the scale factor {S}")
     K = np.stack([scale_intrinsics(c["K"], 1.0 / S) for c in cameras])
     w2c = np.stack([c["w2c"] for c in cameras])
+    outlier = camera_centre_problem(w2c)
+    if outlier is not None:
+        raise input_error(cam_dir / f"{names[outlier[0]]}.json", f"frame {names[outlier[0]]}: {outlier[1]}")
 
     # Time grid.
     time_index = np.asarray(tids, dtype=np.int64)
@@ -278,6 +291,12 @@ def read_iphone_layout(scene_dir: str | os.PathLike, dataset: str, scene: str, o
                 instance_mask[f] = _binary_mask(path, (w, h), "foreground mask")
 
             _run(load_mask, F, workers)
+            if not instance_mask.any():
+                warn_dataset(
+                    mdir,
+                    "every foreground mask is empty: the reconstruction has no foreground to start from; "
+                    "fix the masks or remove the folder",
+                )
             instances = Instances(
                 ids=np.array([1]), names=["foreground"], rigid=np.array([rigidity_of("foreground", rules)])
             )

@@ -1,4 +1,4 @@
-"""Bad inputs and faults that used to get through (issue 20): a full disk, an
+"""Bad inputs and faults that used to get through: a full disk, an
 output that is an input or lies in a dataset folder, degenerate datasets,
 bad metrics.json files, config and name errors, a read-only results folder
 and malformed artefacts. Each gives one line naming the file (exit status 1),
@@ -479,6 +479,23 @@ def _metrics(path: Path, **changes) -> Path:
             "'methods.mogaf.image.psnr' must be a number or null, got True",
         ),
         ({"scene": None}, "'scene' must be a non-empty string"),
+        (
+            {"methods": {"mogaf": {"image": {"psnr": 20.0, "ssim": 7.0}}}},
+            "'methods.mogaf.image.ssim' is 7.0, outside the range [-1, 1] of ssim",
+        ),
+        (
+            {"methods": {"mogaf": {"image": {"psnr": 20.0, "lpips": -3.0}}}},
+            "'methods.mogaf.image.lpips' is -3.0, outside the range [0, inf] of lpips",
+        ),
+        (
+            {"methods": {"mogaf": {"tracking": {"epe_3d": -0.5, "delta_3d@0.05": 0.4}}}},
+            "'methods.mogaf.tracking.epe_3d' is -0.5, outside the range [0, inf] of epe_3d",
+        ),
+        (
+            {"methods": {"mogaf": {"tracking": {"delta_3d@0.10": 1.5}}}},
+            "'methods.mogaf.tracking.delta_3d@0.10' is 1.5, outside the range [0, 1] of delta_3d@0.10",
+        ),
+        ({"grouping": {"mean_iou": 2.0}}, "'grouping.mean_iou' is 2.0, outside the range [0, 1] of mean_iou"),
     ],
 )
 def test_tables_refuse_a_bad_metrics_file(in_repo, tmp_path, capsys, change, words):
@@ -486,6 +503,16 @@ def test_tables_refuse_a_bad_metrics_file(in_repo, tmp_path, capsys, change, wor
     err = _cli_error(capsys, "tables", str(bad), "--out-dir", str(tmp_path / "t"))
     assert f"{bad}: not a usable metrics.json: {words}" in err
     assert not (tmp_path / "t").exists()
+
+
+def test_tables_refuse_a_ratio_that_contradicts_its_folder(in_repo, tmp_path, capsys):
+    bad = _metrics(tmp_path / "results/d/s/ratio0.6/metrics.json", ratio=0.8)
+    err = _cli_error(capsys, "tables", str(bad), "--out-dir", str(tmp_path / "t"))
+    assert err == (
+        f"mogaf: error: {bad}: says ratio 0.8, but lies in a folder of ratio 0.6; "
+        "a metrics.json moved or edited by hand, rerun evaluate"
+    )
+    assert load_metrics([_metrics(tmp_path / "results/d/s/ratio0.8/metrics.json", ratio=0.8)])  # agreeing: read
 
 
 def test_tables_refuse_nan(tmp_path):
@@ -696,7 +723,7 @@ def _edited_scene(scene_h5: Path, out: Path, edit) -> Path:
 def _w2c_3x4(fh) -> None:
     w2c = fh["frames/w2c"][()]
     del fh["frames/w2c"]
-    fh["frames/w2c"] = w2c[:, :3, :]
+    fh.create_dataset("frames/w2c", data=w2c[:, :3, :], fletcher32=True)
 
 
 @pytest.mark.parametrize(
@@ -778,3 +805,281 @@ def test_groups_shorter_than_the_model_are_one_line(tmp_path, stage):
             seed=0,
         )
     assert msg.startswith(f"{groups}: assigns groups to 10 Gaussians, but the model {model} has 12")
+
+
+# ---------------------------------------------------------------- artefacts changed on disk
+def _overwrite_in_file(path: Path, dataset: str, raw: bytes, chunk: int = 0) -> None:
+    """Overwrite bytes of a dataset's stored chunk in place, behind HDF5's back."""
+    with h5py.File(path, "r") as fh:
+        info = fh[dataset].id.get_chunk_info(chunk)
+        offset, size = info.byte_offset, info.size
+    assert len(raw) <= size
+    with open(path, "r+b") as fh:
+        fh.seek(offset)
+        fh.write(raw)
+
+
+def test_an_artefact_changed_on_disk_is_refused_naming_the_entry(tmp_path):
+    from mogaf.representation import load_model
+
+    model = _tiny_model(tmp_path / "recon.h5", 12)
+    load_model(model)  # intact: reads
+    _overwrite_in_file(model, "trajectories/means", np.array([0.25, 0.5, 0.75], np.float32).tobytes())  # finite
+    msg = _fails(load_model, model)
+    assert msg == (
+        f"{model}: entry 'trajectories/means' fails its checksum: the file changed on disk after it was written; "
+        "rerun the stage that wrote it"
+    )
+    # a stage reading the damaged model stops the same way, with nothing written
+    groups = write_groups(
+        tmp_path / "groups.h5",
+        Groups(
+            group_id=np.zeros(12, np.int64),
+            rigid=np.array([1], np.int8),
+            static=np.array([0], np.int8),
+            instance_id=-np.ones(1, np.int64),
+            names=["a"],
+            rigid_source=["config"],
+            method="ours",
+            params={},
+        ),
+    )
+    assert "fails its checksum" in _fails(stages.rigid_init, str(model), str(groups), str(tmp_path / "o.h5"), {})
+    assert not (tmp_path / "o.h5").exists()
+
+
+def test_a_partial_read_of_a_changed_artefact_is_refused(scene_h5, tmp_path):
+    from mogaf.artefact import open_artefact, read_rows
+
+    bad = tmp_path / "scene.h5"
+    shutil.copy(scene_h5, bad)
+    _overwrite_in_file(bad, "frames/K", np.eye(3, dtype=np.float64).tobytes()[:24])
+    with open_artefact(bad) as fh, pytest.raises(MogafError) as err:
+        read_rows(fh, "frames/K", np.array([0]))
+    assert str(err.value).startswith(f"{bad}: entry 'frames/K' fails its checksum")
+
+
+def test_a_changed_string_or_scalar_entry_is_refused(tmp_path):
+    from mogaf.artefact import read_artefact
+
+    path = write_artefact(
+        tmp_path / "a.h5", "demo", {"names": ["left", "right"], "count": np.int64(3)}, config_digest="d"
+    )
+    assert read_artefact(path, "demo")["names"] == ["left", "right"]
+    for key, value in (("names", np.array(["left", "wrong"], dtype=h5py.string_dtype())), ("count", np.int64(4))):
+        edited = tmp_path / f"{key}.h5"
+        shutil.copy(path, edited)
+        with h5py.File(edited, "r+") as fh:
+            fh[key][()] = value  # the stored checksum stays the old one
+        assert _fails(read_artefact, edited, "demo").startswith(f"{edited}: entry '{key}' fails its checksum")
+
+
+def test_an_entry_without_a_checksum_is_refused(tmp_path):
+    from mogaf.artefact import read_artefact
+
+    path = write_artefact(tmp_path / "a.h5", "demo", {"x": np.zeros((4, 3))}, config_digest="d")
+    with h5py.File(path, "r+") as fh:
+        del fh["x"]
+        fh["x"] = np.ones((4, 3))  # a dataset written by hand: no checksum
+    assert _fails(read_artefact, path, "demo") == (
+        f"{path}: entry 'x' has no checksum: not written by this mogaf; rerun the stage"
+    )
+
+
+# ---------------------------------------------------------------- ingest: what used to pass silently
+def test_one_rgb_frame_in_an_rgba_scene_is_refused_naming_it(scene_copy):
+    frame = scene_copy / "train" / "r_002.png"
+    write_png(frame, np.zeros((16, 16, 3), np.uint8))  # its background cannot be composited like the others'
+    msg = _fails(read_scene, "dnerf", scene_copy, dataset="fk", scene="s")
+    assert msg.startswith(f"{frame}: image has no alpha channel, but other frames of the scene do (e.g. ./train/r_000)")
+
+
+def test_a_camera_far_outside_the_scene_is_refused_at_ingest(scene_copy):
+    def far(d):
+        d["frames"][3]["transform_matrix"][0][3] = 1e300
+
+    _edit_json(scene_copy / "transforms_train.json", far)
+    msg = _fails(read_scene, "dnerf", scene_copy, dataset="fk", scene="s")
+    assert msg == (
+        f"{scene_copy / 'transforms_train.json'}: frame 3 (./train/r_003): "
+        "camera centre has a coordinate of 1e+300 (at most 1e+08)"
+    )
+
+    def outlier(d):
+        d["frames"][3]["transform_matrix"][0][3] = 1e5  # finite and representable, but 10^4 scene extents away
+
+    _edit_json(scene_copy / "transforms_train.json", outlier)
+    msg = _fails(read_scene, "dnerf", scene_copy, dataset="fk", scene="s")
+    assert msg.startswith(f"{scene_copy / 'transforms_train.json'}: frame 3 (./train/r_003): camera centre lies 1e+05")
+    assert "times the scene's extent" in msg
+
+
+def test_masks_that_are_all_background_warn_at_ingest_naming_the_folder(scene_copy):
+    for mask in sorted(scene_copy.glob("*/masks/*.png")):
+        write_png(mask, np.zeros((16, 16), np.uint8))
+    with pytest.warns(DatasetWarning) as record:
+        read_scene("dnerf", scene_copy, dataset="fk", scene="s")
+    messages = [str(w.message) for w in record]
+    assert any(
+        m.startswith(f"{scene_copy / 'train' / 'masks'}: every object-id mask is all background") for m in messages
+    )
+
+
+def test_reconstruction_without_any_foreground_warns_at_ingest_and_names_the_scene(tmp_path):
+    """An iPhone scene whose foreground masks are all empty: ingest warns
+    naming the mask folder; recon's error names the scene and says why."""
+    from support.fake_datasets import fake_iphone
+
+    data = fake_iphone(tmp_path / "data" / "s", num_times=8, track_points=20)
+    mask_dir = data / "flow3d_preprocessed" / "track_anything" / "2x"
+    for mask in sorted(mask_dir.glob("*.png")):
+        write_png(mask, np.zeros((12, 16), np.uint8))
+    scene = tmp_path / "scene.h5"
+    with pytest.warns(DatasetWarning, match=f"{mask_dir}: every foreground mask is empty"):
+        stages.ingest(str(data), str(scene), "iphone", {}, "fk", "s")
+    stages.split(str(scene), str(tmp_path / "split.h5"), "0.6")
+    stages.priors(str(scene), str(tmp_path / "split.h5"), str(tmp_path / "priors.h5"), {}, 0)
+    params = {"iterations": 5, "num_fg_init": 100, "num_bg_init": 100}
+    msg = _fails(
+        stages.recon,
+        str(scene),
+        str(tmp_path / "split.h5"),
+        str(tmp_path / "priors.h5"),
+        str(tmp_path / "r.h5"),
+        params,
+        0,
+    )
+    assert msg == (
+        f"{scene}: reconstruction init: fewer than 8 foreground tracks could be lifted with depth; "
+        "every foreground mask of its observed frames is empty"
+    )
+    assert not (tmp_path / "r.h5").exists()
+
+
+# ---------------------------------------------------------------- images smaller than a metric's window
+def test_a_scene_smaller_than_the_ssim_window_reconstructs(scene_h5, tmp_path):
+    """16x16 images: the coarse level (8x8) is below the 11 px SSIM window,
+    which used to end recon in a 41-line convolution traceback."""
+    from mogaf.representation import load_model
+
+    split = stages.split(str(scene_h5), str(tmp_path / "split.h5"), "0.6")
+    priors = stages.priors(str(scene_h5), str(split), str(tmp_path / "priors.h5"), {}, 0)
+    params = {"iterations": 10, "num_fg_init": 100, "num_bg_init": 100, "coarse_downscale": 2}
+    out = stages.recon(str(scene_h5), str(split), str(priors), str(tmp_path / "recon.h5"), params, 0, device="cpu")
+    assert load_model(out).fg.means.shape[0] > 0
+
+
+def test_the_training_ssim_fits_its_window_to_small_images():
+    import torch
+
+    from mogaf.recon.losses import ssim
+
+    torch.manual_seed(0)
+    for side in (8, 9, 10, 1):
+        a, b = torch.rand(1, side, side, 3), torch.rand(1, side, side, 3)
+        assert torch.isfinite(ssim(a, b)) and ssim(a, a).item() == pytest.approx(1.0, abs=1e-5)
+    a = torch.rand(1, 11, 13, 3)
+    assert ssim(a, a).item() == pytest.approx(1.0, abs=1e-5)
+
+
+@pytest.mark.parametrize(
+    "side, left_out",
+    [(32, set()), (16, {"lpips"}), (8, {"lpips", "ssim"})],
+)
+def test_metrics_a_small_image_cannot_have_are_left_out_and_said(side, left_out):
+    from mogaf.metrics import image_metrics, metrics_left_out
+
+    rng = np.random.default_rng(0)
+    pred, gt = rng.uniform(size=(side, side, 3)), rng.uniform(size=(side, side, 3))
+    reasons = metrics_left_out(side, side, use_lpips=True)
+    assert set(reasons) == left_out
+    assert all(f"images are {side}x{side}" in why for why in reasons.values())
+    measured = image_metrics(pred, gt, None, masked=True, use_lpips=True)
+    expected = {"psnr", "ssim", "lpips", "mpsnr", "mssim", "mlpips"}
+    for metric in left_out:
+        expected -= {metric, f"m{metric}"}
+    assert set(measured) == expected and all(np.isfinite(list(measured.values())))
+
+
+def test_results_linked_into_a_dataset_is_refused_before_anything_is_created(scene_copy, tmp_path):
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "results").symlink_to(scene_copy, target_is_directory=True)
+    before = sorted(scene_copy.rglob("*"))  # folders too: logs/ and benchmarks/ were created here
+    res = _snakemake(["-c1", "results/fk/s/scene.h5", "--configfile", _dnerf_config(tmp_path, scene_copy)], work)
+    out = res.stdout + res.stderr
+    assert res.returncode == 1
+    assert (
+        f"results: lies inside the dataset folder {scene_copy.resolve()} (it links to {scene_copy.resolve()}); "
+        "no stage writes into a dataset" in out
+    ), out[-3000:]
+    assert sorted(scene_copy.rglob("*")) == before
+
+
+def test_an_unknown_top_level_key_names_the_one_file_that_holds_it(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("recno:\n  iterations: 3\n")
+    res = _snakemake(["-n", "-c1", "--configfile", "config/config.yaml", str(bad)], REPO)
+    out = res.stdout + res.stderr
+    assert res.returncode == 1
+    assert f"\n{bad}: recno: Additional properties are not allowed ('recno' was unexpected)" in out, out
+    assert "config/config.yaml +" not in out  # neither the other layers nor config.yaml twice
+
+
+def test_cli_names_checks_its_scene_flag_and_its_config(in_repo, tmp_path, capsys):
+    args = ["split", "--scene-h5", "x.h5", "--out", str(tmp_path / "o.h5"), "--ratio", "0.6"]
+    err = _cli_error(capsys, *args, "--dataset", "synthetic", "--scene", "my scene/../x")
+    assert err == (
+        "mogaf: error: --scene 'my scene/../x' is not a valid name: a dataset or scene name: letters, digits, "
+        "'_', '-' and '.', not starting with '.'; no slash or space"
+    )
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("")
+    err = _cli_error(capsys, *args, "--configfile", str(empty))
+    assert err == f"mogaf: error: {empty}: is empty; give the pipeline config (config/config.yaml) or a copy of it"
+    cfg = _dnerf_config(tmp_path, tmp_path / "s")
+    err = _cli_error(capsys, *args, "--configfile", cfg, "--dataset", "nosuch", "--scene", "s")
+    assert err.startswith(f"mogaf: error: {cfg}: unknown dataset 'nosuch' (the config's datasets: ")
+
+
+# ---------------------------------------------------------------- full disk outside the HDF5 writer
+def _only_filler(folder: Path) -> None:
+    assert sorted(p.name for p in folder.iterdir()) == ["filler"]  # nothing written, no hidden temporary
+
+
+def test_full_disk_writing_a_checkpoint_is_one_line(nearly_full_disk):
+    import torch
+
+    from mogaf.recon.checkpoint import save_checkpoint
+
+    out = nearly_full_disk / "recon.ckpt"
+    msg = _fails(save_checkpoint, out, {"weights": torch.arange(100_000, dtype=torch.float32)})  # 400 KB
+    assert msg.startswith(f"{out}: cannot be written: no space left on device")
+    _only_filler(nearly_full_disk)
+
+
+def test_full_disk_writing_renders_and_videos_is_one_line(nearly_full_disk):
+    from mogaf.artefact import atomic_folder
+    from mogaf.evaluate.images import _save_png, _write_video
+
+    rng = np.random.default_rng(0)
+    frames = [rng.integers(0, 256, (96, 128, 3), dtype=np.uint8) for _ in range(12)]  # noise: ~400 KB encoded
+    out = nearly_full_disk / "renders"
+    for write in (
+        lambda tmp: [_save_png(tmp / f"{i}.png", f / 255.0) for i, f in enumerate(frames)],
+        lambda tmp: _write_video(tmp / "m.mp4", frames, 10),
+    ):
+        with pytest.raises(MogafError) as err:
+            with atomic_folder(out) as tmp:
+                write(tmp)
+        assert str(err.value).startswith(f"{out}: cannot be written: no space left on device"), err.value
+        _only_filler(nearly_full_disk)
+
+
+def test_full_disk_synthesizing_a_scene_is_one_line(nearly_full_disk):
+    from mogaf.synth import generate_scene
+
+    out = nearly_full_disk / "scene"
+    msg = _fails(generate_scene, out, {"preset": "default", "width": 64, "height": 48, "num_frames": 12})
+    assert msg.startswith(f"{out}: cannot be written: no space left on device")
+    _only_filler(nearly_full_disk)
