@@ -27,6 +27,7 @@ include: "workflow/rules/grouping_quality.smk"
 include: "workflow/rules/reconstruction_quality.smk"
 include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/report.smk"
+include: "workflow/rules/export.smk"
 
 
 localrules:

@@ -183,6 +183,16 @@ STAGES: tuple[StageSpec, ...] = (
         settings="evaluate",
         digest_sections=("evaluate", "forecast.methods"),
     ),
+    # opt-in, no stage reads it: one method's forecast as 3DGS PLY files
+    # (ply/ beside index.json) for Gaussian-splatting viewers
+    StageSpec(
+        "export",
+        "export",
+        output="export/{method}/index.json",
+        inputs=_paths("model-h5:model", "forecast-h5:forecast", "scene-h5:scene", "split-h5:split"),
+        settings="export",
+        cli="export",
+    ),
 )
 
 BY_NAME: dict[str, StageSpec] = {spec.name: spec for spec in STAGES}

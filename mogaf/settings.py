@@ -246,6 +246,7 @@ SECTIONS: dict[str, tuple[str, str]] = {
     "forecast.gcn": ("mogaf.forecast.params:GCNSettings", "forecast_gcn"),
     "forecast.ode": ("mogaf.forecast.params:ODESettings", "forecast_ode"),
     "evaluate": ("mogaf.evaluate.params:EvaluateSettings", "evaluate"),
+    "export": ("mogaf.export.params:ExportSettings", "export"),
     "grouping_quality": ("mogaf.grouping.params:GroupingQualitySettings", "grouping_quality"),
     "reconstruction_quality": (
         "mogaf.reconstruction_quality.params:ReconstructionQualitySettings",

@@ -375,6 +375,44 @@ def evaluate(
         )
 
 
+def export(
+    model: str,
+    forecast: str,
+    scene: str,
+    split: str,
+    out: str,
+    params: Mapping[str, Any],
+    ply_dir: str | None = None,
+) -> Path:
+    """index.json at `out` and the PLY files it lists in `ply_dir` (default: ply/ beside it)."""
+    from .export import ply_folder, run_export_stage  # local: a stage's package (and torch) loads only when it runs
+
+    plys = ply_dir if ply_dir is not None else ply_folder(out)
+    check_outputs({"out": out, "ply": plys}, [model, forecast, scene, split], directories=("ply",))
+    with stage_inputs(model, forecast, scene, split):
+        check_made_from(forecast, model)  # poses of this very model's Gaussians (refined.h5 vs recon.h5)
+        return run_export_stage(model, forecast, scene, split, out, dict(params), ply_dir=plys)
+
+
+def scene_report(
+    renders: str,
+    metrics: str,
+    grouping_quality: str,
+    reconstruction_quality: str,
+    out_videos: str,
+    out_quality: str,
+) -> list[Path]:
+    """A scene's videos page (a folder with its videos) and its quality figure, for the report."""
+    from .report.pages import scene_report as write_scene_report
+
+    check_outputs(
+        {"videos": out_videos, "quality": out_quality},
+        [renders, metrics, grouping_quality, reconstruction_quality],
+        directories=("videos",),
+    )
+    return write_scene_report(renders, metrics, grouping_quality, reconstruction_quality, out_videos, out_quality)
+
+
 def tables(
     metrics_files: list[str], out_files: list[str], params: Mapping[str, Any], ablations: Mapping[str, Any]
 ) -> list[Path]:

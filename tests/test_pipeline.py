@@ -205,3 +205,112 @@ def test_rerun_after_kill_is_byte_identical(runs):
     a = (runs["first"] / RATIO / "metrics.json").read_bytes()
     b = (runs["second"] / RATIO / "metrics.json").read_bytes()
     assert a == b
+
+
+# ---------------------------------------------------------------- the report, in a real browser
+REPORT_CATEGORIES = {"Tables", "Error vs run time", "Forecast videos", "Grouping and reconstruction quality"}
+# in a frame (a report page): every video and image loaded, and what the page holds
+FRAME_CHECK = """(async () => {
+  const media = Array.from(document.querySelectorAll('video, img'));
+  await Promise.all(media.map(m => new Promise(ok => {
+    if ((m.tagName === 'VIDEO' && m.readyState >= 2) || (m.tagName === 'IMG' && m.complete)) return ok();
+    m.addEventListener(m.tagName === 'VIDEO' ? 'loadeddata' : 'load', ok);
+    m.addEventListener('error', ok);
+    setTimeout(ok, 15000);
+  })));
+  return {
+    videos: Array.from(document.querySelectorAll('video')).map(v => [v.readyState, v.videoWidth, v.error ? v.error.code : 0]),
+    images: Array.from(document.querySelectorAll('img')).map(i => [i.complete, i.naturalWidth]),
+    tables: Array.from(document.querySelectorAll('table')).map(t => t.rows.length),
+    text: document.body.innerText.length,
+    links: Array.from(document.querySelectorAll('a[href]')).map(a => a.getAttribute('href')),
+  };
+})()"""
+
+
+def _artefact_dir() -> Path:
+    """Where the test keeps what a person may want to look at (CI uploads it)."""
+    return Path(os.environ.get("MOGAF_TEST_ARTEFACTS", REPO / ".test-artefacts"))
+
+
+def _open_result(browser, report: Path, category: str, path: str) -> None:
+    """Load the report, click the category in its menu, then the result's view button (the eye)."""
+    browser.open(report.as_uri())
+    found = browser.evaluate(
+        f"""(() => {{
+          const item = Array.from(document.querySelectorAll('a'))
+            .find(e => e.textContent.trim() === {json.dumps(category)});
+          if (item) item.click();
+          return !!item;
+        }})()"""
+    )
+    assert found, f"no menu entry '{category}'"
+    time.sleep(0.3)
+    clicked = browser.evaluate(
+        f"""(() => {{
+          const cell = Array.from(document.querySelectorAll('td')).find(e => e.textContent.trim() === {json.dumps(path)});
+          const eye = cell && cell.closest('tr').querySelector('a[iconname=eye]');
+          if (eye) eye.click();
+          return !!eye;
+        }})()"""
+    )
+    assert clicked, f"no view button for {path} under '{category}'"
+    time.sleep(0.5)
+
+
+def test_the_report_opens_in_a_browser_with_every_table_figure_and_video(runs):
+    """`snakemake --report results/report.zip`, unpacked and opened in headless Chromium:
+    every category and result is there, tables have rows, every video and
+    image loads, no link is broken and the console stays clean."""
+    from support.browser import Browser, find_browser
+
+    executable = find_browser()
+    if executable is None:
+        pytest.skip("no Chromium on PATH (Debian: apt-get install chromium; .ci/run installs it when it can)")
+    import zipfile
+
+    work = runs["first"]
+    archive = work / "results" / "report.zip"
+    res = subprocess.run(
+        _command() + ["--report", str(archive)], cwd=work, env=_env(work), capture_output=True, text=True, timeout=300
+    )
+    assert res.returncode == 0 and archive.is_file(), res.stderr[-3000:]
+    with zipfile.ZipFile(archive) as z:
+        z.extractall(work / "results")
+    report = work / "results" / "report" / "report.html"
+    browser = Browser(executable)
+    try:
+        browser.open(report.as_uri())
+        categories = browser.evaluate("JSON.stringify(window.categories)")
+        categories = {name: [p for sub in subs.values() for p in sub] for name, subs in json.loads(categories).items()}
+        assert set(categories) == REPORT_CATEGORIES
+        seen = {}
+        for category, paths in sorted(categories.items()):
+            for path in paths:
+                _open_result(browser, report, category, path)
+                mime = browser.evaluate(f"window.results[{json.dumps(path)}].mime_type")
+                if mime == "text/html":  # shown in an iframe
+                    frames = browser.child_frames()
+                    assert len(frames) == 1, (path, frames)
+                    seen[path] = browser.evaluate(FRAME_CHECK, frame=frames[0][0])
+                else:  # an image, shown in the page after the report's logo
+                    seen[path] = browser.evaluate(FRAME_CHECK)
+        videos = [
+            v for path, page in seen.items() if path.endswith("/report/videos/index.html") for v in page["videos"]
+        ]
+        assert len(videos) == 1 + len(METHODS)  # all methods side by side, then one per method
+        assert all(state >= 2 and width > 0 and code == 0 for state, width, code in videos), videos
+        tables = seen["results/tables/table_forecast.html"]["tables"]
+        assert tables and tables[0] >= 1 + len(METHODS), tables  # a header row and a row per method
+        figures = [path for path in seen if path.endswith(".png")]
+        assert len(figures) == 2 and all(seen[p]["images"][-1] == [True, seen[p]["images"][-1][1]] for p in figures)
+        assert all(seen[p]["images"][-1][1] > 100 for p in figures)  # the figure itself, not the 16 px logo
+        links = [h for page in seen.values() for h in page["links"]]
+        assert all(h.startswith(("#", "data:", "https:", "http:")) for h in links), links  # nothing local to break
+        assert browser.problems() == []
+        # the page a person looks at first: the forecast videos
+        _open_result(browser, report, "Forecast videos", f"{RATIO}/report/videos/index.html")
+        time.sleep(1)
+        browser.screenshot(_artefact_dir() / "report_forecast_videos.png")
+    finally:
+        browser.close()

@@ -164,13 +164,20 @@ def md_rows(md: str) -> list[list[str]]:
 # ------------------------------------------------------------------ tables
 def test_write_tables_writes_every_format(metrics_files, tmp_path):
     outs = main_table_paths(tmp_path / "tables")
-    assert len(outs) == 3 * len(TABLE_NAMES)
+    assert len(outs) == 4 * len(TABLE_NAMES)
     written = write_tables([str(p) for p in metrics_files], outs, {}, ABLATIONS)
     assert sorted(map(str, written)) == sorted(outs)
     for name in TABLE_NAMES:
         md = Path(tmp_path / "tables" / f"table_{name}.md").read_text()
         tex = Path(tmp_path / "tables" / f"table_{name}.tex").read_text()
         rows = list(csv.reader(io.StringIO(Path(tmp_path / "tables" / f"table_{name}.csv").read_text())))
+        page = Path(tmp_path / "tables" / f"table_{name}.html").read_text()
+        # the HTML table has the CSV's rows (one more header row where columns span a heading)
+        assert (
+            page.startswith("<!DOCTYPE html>")
+            and page.count("<tr>") in (len(rows), len(rows) + 1)
+            or (len(rows) == 1 and "<table>" not in page and NO_RESULT in page)
+        )
         assert md.startswith("### ") and md.endswith("\n")
         assert tex.startswith(r"\begin{table}") and tex.endswith("\\end{table}\n")
         assert rows and all(len(r) == len(rows[0]) for r in rows)
@@ -684,3 +691,37 @@ def test_tables_say_how_many_optimiser_steps_each_group_trained(tmp_path):
     note = f"Optimiser steps per motion group (recorded): {METHOD_LABELS['gcn']} 800-806; {METHOD_LABELS['mogaf_paper']} 800"
     assert note + "." in scenes_table(results)
     assert note in forecast_table(results).notes
+
+
+def test_html_table_escapes_and_keeps_every_cell():
+    from mogaf.report.tables import Table
+
+    t = Table(title="A <b> & c", columns=["scene", "PSNR ↑"], rows=[["x<y", "20.1"], ["z", "–"]], keys=1)
+    page = t.html()
+    assert "A &lt;b&gt; &amp; c" in page and "<th>x&lt;y</th><td>20.1</td>" in page and "<td>–</td>" in page
+    assert page.count("<tr>") == 3
+
+
+def test_scene_videos_page_plays_every_video_under_its_label(tmp_path, metrics_files):
+    """videos_page copies the videos beside an index.html that plays each under
+    its method's label (all methods first); a folder without video is one line."""
+    import imageio.v3 as iio
+    import numpy as np
+
+    from mogaf.errors import MogafError
+    from mogaf.report.pages import videos_page
+
+    renders = tmp_path / "renders"
+    renders.mkdir()
+    for name in ("mogaf", "frozen", "all_methods"):
+        (renders / f"{name}.mp4").write_bytes(b"mp4 " + name.encode())
+    iio.imwrite(renders / "view.png", np.zeros((2, 2), np.uint8))  # a render PNG: not a video
+    out = videos_page(renders, metrics_files[0], tmp_path / "report" / "videos")
+    page = (out / "index.html").read_text()
+    assert sorted(p.name for p in out.iterdir()) == ["all_methods.mp4", "frozen.mp4", "index.html", "mogaf.mp4"]
+    assert page.index('src="all_methods.mp4"') < page.index('src="mogaf.mp4"') < page.index('src="frozen.mp4"')
+    assert "<figcaption>MoGaF (Ours)</figcaption>" in page and "<figcaption>Frozen</figcaption>" in page
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(MogafError, match="holds no video"):
+        videos_page(empty, metrics_files[0], tmp_path / "report2")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mogaf.video import labelled_row, text_strip
+from mogaf.video import colour_legend, enlarge, enlargement, error_panel, labelled_row, text_strip
 
 
 def test_labelled_row_puts_each_label_above_its_panel_and_the_caption_on_top():
@@ -43,3 +43,31 @@ def test_without_ffmpeg_the_video_is_a_gif_beside_the_mp4_name(tmp_path, monkeyp
     images._write_video(tmp_path / "mogaf.mp4", frames, 5)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mogaf.gif"]
     assert iio.imread(tmp_path / "mogaf.gif", index=None).shape == (4, 22, 34, 3)
+
+
+def test_small_panels_are_enlarged_by_an_integer_factor_pixel_for_pixel():
+    assert enlargement(160, 320) == 2 and enlargement(100, 320) == 4 and enlargement(400, 320) == 1
+    assert enlargement(64, 0) == 1
+    img = np.arange(6, dtype=np.uint8).reshape(2, 3, 1)
+    big = enlarge(img, 3)
+    assert big.shape == (6, 9, 1) and (big[::3, ::3] == img).all() and (big[2::3, 2::3] == img).all()
+
+
+def test_error_panel_maps_mean_error_through_a_fixed_scale_with_its_legend_below():
+    gt = np.zeros((4, 5, 3))
+    pred = np.zeros((4, 5, 3))
+    pred[0, 0] = 0.5  # mean |error| 0.5: the top of the scale
+    pred[1, 1] = 1.0  # beyond it: clipped to the top
+    panel = error_panel(pred, gt, vmax=0.5)
+    assert panel.dtype == np.uint8 and panel.shape == (4, 5, 3)
+    np.testing.assert_array_equal(panel[0, 0], panel[1, 1])
+    assert panel[0, 0].sum() > panel[2, 2].sum()  # the top of inferno is bright, zero error dark
+    legend = colour_legend(120, 0.5, 0.3)
+    frame = labelled_row([gt, gt, panel], ["GT", "m", "|error|"], "c", footers=[None, None, legend])
+    strip = text_strip(5, "x", 0.3).shape[0]
+    assert frame.shape[0] == 2 * strip + 4 + legend.shape[0]
+    # the footer sits under the error panel only; under the others the strip stays blank
+    below = frame[2 * strip + 4 :]
+    assert (below[:, :10] == 255).all() and (below[:, 10:] != 255).any()
+    with pytest.raises(ValueError, match="one footer"):
+        labelled_row([gt], ["GT"], "c", footers=[None, None])

@@ -17,6 +17,14 @@ class EvaluateSettings:
     save_renders: bool = setting(True, "PNG per evaluation view and method")
     video: bool = setting(True, "GT | forecast | error video per method")
     video_fps: int = setting(8, "frames per second of the GT / forecast / error videos", minimum=1)
+    video_min_width: int = setting(
+        320,
+        "videos: panels narrower than this (px) are enlarged by an integer factor, nearest neighbour; 0 = never",
+        minimum=0,
+    )
+    video_error_max: float = setting(
+        0.5, "videos: mean absolute RGB error at the top of the error panel's colour scale", exclusive_minimum=0
+    )
     tracking_neighbors: int = setting(4, "Gaussians a GT point is attached to")
     tracking_scale: float = setting(1.0, "scene units -> metres for delta_3D (SoM evaluates in metres)")
     aj_thresholds: list = setting(

@@ -23,7 +23,7 @@ from ..reconstruction_quality import read_reconstruction_quality
 from ..report.tables import METHOD_ORDER, method_label
 from ..representation import load_model
 from ..split import load_frames, read_split
-from ..video import labelled_row, to_uint8
+from ..video import colour_legend, enlarge, enlargement, error_panel, labelled_row, text_scale, to_uint8
 from .images import _save_png, _write_video, render_forecast_views
 from .inputs import _check_forecast, forecast_summary, read_forecast, runtime_section
 from .params import load_settings
@@ -98,6 +98,9 @@ def run_evaluate_stage(
         result["metrics_left_out"] = left_out
     labels: dict[str, str] = {}
     side_by_side: dict[str, list[np.ndarray]] = {}  # uint8 renders for all_methods.mp4
+    factor = enlargement(frames.width, int(p.video_min_width))
+    gt_tiles = [to_uint8(g) for g in gts]
+    legend = colour_legend(frames.width * factor, p.video_error_max, text_scale(frames.width * factor))
     # renders and videos go to a temporary folder that replaces out_renders when complete
     with atomic_folder(out_renders) as renders_tmp:
         for method in methods:
@@ -128,20 +131,22 @@ def run_evaluate_stage(
                 labels[method] = label
                 panels = [
                     labelled_row(
-                        [gts[f], renders[f], np.abs(renders[f] - gts[f])],
+                        [enlarge(gt_tiles[f], factor), enlarge(to_uint8(renders[f]), factor)]
+                        + [enlarge(error_panel(renders[f], gts[f], p.video_error_max), factor)],
                         ["GT", label, "|error|"],
                         f"{label}, time step {int(frames.time_index[f])}, view {frames.frame_names[f]}",
+                        footers=[None, None, legend],
                     )
                     for f in range(frames.num_frames)
                 ]
                 _write_video(renders_tmp / f"{method}.mp4", panels, int(p.video_fps))
-                side_by_side[method] = [to_uint8(r) for r in renders]
+                side_by_side[method] = [enlarge(to_uint8(r), factor) for r in renders]
         if p.video and len(methods) > 1:
             # one video of every method beside the GT, in the tables' order
             order = sorted(methods, key=lambda m: METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER))
             panels = [
                 labelled_row(
-                    [gts[f]] + [side_by_side[m][f] for m in order],
+                    [enlarge(gt_tiles[f], factor)] + [side_by_side[m][f] for m in order],
                     ["GT"] + [labels[m] for m in order],
                     f"time step {int(frames.time_index[f])}, view {frames.frame_names[f]}",
                 )

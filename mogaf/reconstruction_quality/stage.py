@@ -27,9 +27,34 @@ def run_reconstruction_quality_stage(
 ) -> Path:
     p = load_settings(params)
     measured = measure_reconstruction_quality(model_h5, scene_h5, read_split(split_h5), p)
-    data = {"frame_ids": measured["frame_ids"], "timesteps": measured["timesteps"]}
+    data = {
+        "frame_ids": measured["frame_ids"],
+        "timesteps": measured["timesteps"],
+        "per_frame": per_frame_arrays(measured["per_frame"]),
+    }
     attrs = {"params": as_dict(p), "heldout_observed": mean_metrics(measured["per_frame"])}
     return write_artefact(out, RECONSTRUCTION_QUALITY_STAGE, data, config_digest=config_digest(as_dict(p)), attrs=attrs)
+
+
+def per_frame_arrays(per_frame: list[dict[str, float]]) -> dict[str, np.ndarray]:
+    """Each metric every frame has, finite in every frame (a perfect render's
+    PSNR is +inf: left out here, as in the mean), as one array over the frames."""
+    if not per_frame:
+        return {}
+    common = set.intersection(*(set(d) for d in per_frame))
+    arrays = {k: np.array([d[k] for d in per_frame], np.float64) for k in sorted(common)}
+    return {k: v for k, v in arrays.items() if np.all(np.isfinite(v))}
+
+
+def read_per_frame(path: str | os.PathLike) -> dict[str, Any]:
+    """{"timesteps", "per_frame": {metric: values}} of a reconstruction_quality artefact."""
+    art = read_artefact(path, RECONSTRUCTION_QUALITY_STAGE, required=("timesteps",))
+    timesteps = np.asarray(art["timesteps"], np.int64)
+    per_frame = {k: np.asarray(v, np.float64) for k, v in (art.get("per_frame") or {}).items()}
+    for key, values in per_frame.items():
+        if values.shape != timesteps.shape:
+            raise input_error(path, f"entry 'per_frame/{key}' has shape {values.shape}, expected {timesteps.shape}")
+    return {"timesteps": timesteps, "per_frame": per_frame}
 
 
 def read_reconstruction_quality(path: str | os.PathLike) -> dict[str, Any]:

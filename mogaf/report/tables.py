@@ -1,4 +1,4 @@
-"""Paper-layout tables (Markdown, LaTeX, CSV) from metrics.json files.
+"""Paper-layout tables (Markdown, LaTeX, CSV, HTML) from metrics.json files.
 
 Nothing is typed in by hand: every cell comes from a metrics.json. What was
 not run is left out: a row, a column or a method with no result in any file
@@ -15,6 +15,7 @@ missing among present ones shows a dash ("–"; empty in the CSV). Tables:
 from __future__ import annotations
 
 import csv
+import html
 import io
 import math
 import os
@@ -26,6 +27,23 @@ from typing import Any
 from ..artefact import atomic_path
 from ..forecast import METHODS, defaults
 from .metrics_files import NO_RESULT, load_metrics
+
+HTML_PAGE = """<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{title}</title>
+<style>
+body {{ font-family: sans-serif; margin: 1em; }}
+table {{ border-collapse: collapse; }}
+th, td {{ border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: right; }}
+tbody th {{ text-align: left; font-weight: normal; }}
+.note {{ font-size: 0.85em; color: #444; }}
+figure {{ margin: 0 0 1.5em 0; }}
+figcaption {{ font-weight: bold; margin-bottom: 0.3em; }}
+video, img {{ max-width: 100%; image-rendering: pixelated; }}
+</style></head>
+<body>
+{body}
+</body></html>
+"""
 
 # A cell whose result does not exist, among cells that have one.
 MISSING = "–"
@@ -76,6 +94,7 @@ IMAGE_METRICS = ("psnr", "ssim", "lpips")
 MASKED_METRICS = ("mpsnr", "mssim", "mlpips")
 TRACKING_METRICS = ("epe_3d", "delta_3d@0.10", "delta_3d@0.05", "aj", "delta_avg", "occlusion_accuracy")
 TABLE_NAMES = ("forecast", "iphone", "dnerf", "grouping", "groupwise", "masking")
+TABLE_FORMATS = ("md", "tex", "csv", "html")
 
 
 @dataclass
@@ -181,6 +200,32 @@ class Table:
         out += [r"\par{\footnotesize " + esc(n) + "}" for n in self.notes]
         out.append(r"\end{table}")
         return "\n".join(out) + "\n"
+
+    def html(self) -> str:
+        """A self-contained page (the Snakemake report shows HTML inline, Markdown only as a download)."""
+        esc = html.escape
+        parts = [f"<h3>{esc(self.title)}</h3>"]
+        if not self.rows:
+            parts.append(f"<p>{esc(self.empty_line())}</p>")
+        else:
+            head = []
+            if self.spans:
+                head.append(
+                    "<tr>" + "".join(f'<th colspan="{n}">{esc(label)}</th>' for label, n in self.spans) + "</tr>"
+                )
+            head.append("<tr>" + "".join(f"<th>{esc(c)}</th>" for c in self.columns) + "</tr>")
+            body = [
+                "<tr>"
+                + "".join(
+                    f"<{'th' if i < self.keys else 'td'}>{esc(c)}</{'th' if i < self.keys else 'td'}>"
+                    for i, c in enumerate(r)
+                )
+                + "</tr>"
+                for r in self.rows
+            ]
+            parts.append(f"<table><thead>{''.join(head)}</thead><tbody>{''.join(body)}</tbody></table>")
+            parts += [f"<p class=note>{esc(n)}</p>" for n in self.notes]
+        return HTML_PAGE.format(title=esc(self.title), body="\n".join(parts))
 
     def csv(self) -> str:
         buf = io.StringIO()
@@ -456,15 +501,16 @@ def build_tables(results: list[dict[str, Any]], ablations: dict[str, Any]) -> di
 def write_tables(
     metrics_files: list[str], out_files: list[str], params: dict[str, Any], ablations: dict[str, Any]
 ) -> list[Path]:
-    """Write table_<name>.{md,tex,csv} for every table; out_files name them all."""
+    """Write table_<name>.{md,tex,csv,html} for every table; out_files name them all."""
     tables = build_tables(load_metrics(metrics_files), ablations)
     written = []
     for path in out_files:
         p = Path(path)
         name, ext = p.stem.removeprefix("table_"), p.suffix.lstrip(".")
-        if name not in tables or ext not in ("md", "tex", "csv"):
+        if name not in tables or ext not in TABLE_FORMATS:
             raise ValueError(f"unexpected table output {path}")
-        text = {"md": tables[name].markdown, "tex": tables[name].latex, "csv": tables[name].csv}[ext]()
+        table = tables[name]
+        text = {"md": table.markdown, "tex": table.latex, "csv": table.csv, "html": table.html}[ext]()
         with atomic_path(p) as tmp:
             Path(tmp).write_text(text)
         written.append(p)
@@ -472,4 +518,4 @@ def write_tables(
 
 
 def main_table_paths(out_dir: str | os.PathLike) -> list[str]:
-    return [str(Path(out_dir, f"table_{n}.{e}")) for n in TABLE_NAMES for e in ("md", "tex", "csv")]
+    return [str(Path(out_dir, f"table_{n}.{e}")) for n in TABLE_NAMES for e in TABLE_FORMATS]

@@ -291,7 +291,14 @@ def sweep_targets(name):
 def demo_targets():
     demo = config["demo"]
     base = mcfg.ratio_dir(demo["dataset"], demo["scene"], _ratio_str(demo["ratio"]))
-    out = [f"{base}/metrics.json", "results/tables/table_forecast.md", "results/tables/error_vs_runtime.png"]
+    out = [
+        f"{base}/metrics.json",
+        f"{base}/report/videos",
+        f"{base}/report/quality.png",
+        "results/tables/table_forecast.md",
+        "results/tables/table_forecast.html",
+        "results/tables/error_vs_runtime.png",
+    ]
     for name in demo.get("sweeps", []):
         out += sweep_targets(name)
     return out
@@ -402,6 +409,16 @@ def evaluate_inputs(wildcards):
         inputs[f"forecast_{method}"] = forecast_h5(wildcards, method)
     inputs.update(_benchmarks_of(wildcards))
     return inputs
+
+
+def scene_report_inputs(wildcards):
+    cfg = scene_cfg(wildcards)
+    return {
+        "metrics": ratio_path(wildcards, f"{wildcards.prefix}metrics.json"),
+        "renders": ratio_path(wildcards, f"{wildcards.prefix}renders"),
+        "grouping_quality": stage_path("grouping_quality", wildcards),
+        "reconstruction_quality": stage_path(mcfg.reconstruction_quality_stage(cfg), wildcards),
+    }
 
 
 def configured_metrics(wildcards=None):

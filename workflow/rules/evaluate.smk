@@ -7,12 +7,8 @@ rule evaluate:
         unpack(evaluate_inputs),
     output:
         metrics=artefact("evaluate"),
-        renders=report(
-            directory("results/{dataset}/{scene}/ratio{ratio}/{prefix}renders"),
-            patterns=["{name}.mp4"],
-            caption="../report/renders.rst",
-            category="Forecast videos",
-        ),
+        # in the report through the scene_report rule's page (the report plays HTML inline)
+        renders=directory("results/{dataset}/{scene}/ratio{ratio}/{prefix}renders"),
     log:
         log_file("evaluate"),
     benchmark:

@@ -7,18 +7,28 @@ rule tables:
     input:
         configured_metrics,
     output:
+        # HTML in the report: it shows HTML inline, Markdown only as a download
         report(
             multiext(
                 "results/tables/table_",
-                "forecast.md",
-                "iphone.md",
-                "dnerf.md",
-                "grouping.md",
-                "groupwise.md",
-                "masking.md",
+                "forecast.html",
+                "iphone.html",
+                "dnerf.html",
+                "grouping.html",
+                "groupwise.html",
+                "masking.html",
             ),
             caption="../report/tables.rst",
             category="Tables",
+        ),
+        multiext(
+            "results/tables/table_",
+            "forecast.md",
+            "iphone.md",
+            "dnerf.md",
+            "grouping.md",
+            "groupwise.md",
+            "masking.md",
         ),
         multiext(
             "results/tables/table_",
@@ -66,6 +76,32 @@ rule runtime_report:
         other_metrics=other_metrics(),
     script:
         "../scripts/runtime_report.py"
+
+
+# A scene's forecast videos on one page and the quality of the model its
+# forecasts start from, for the report (`make report`).
+rule scene_report:
+    input:
+        unpack(scene_report_inputs),
+    output:
+        # a folder with its page: only a zipped report holds it (mogaf/report/pages.py)
+        videos=report(
+            directory("results/{dataset}/{scene}/ratio{ratio}/{prefix}report/videos"),
+            htmlindex="index.html",
+            caption="../report/renders.rst",
+            category="Forecast videos",
+        ),
+        quality=report(
+            "results/{dataset}/{scene}/ratio{ratio}/{prefix}report/quality.png",
+            caption="../report/quality.rst",
+            category="Grouping and reconstruction quality",
+        ),
+    log:
+        log_file("scene_report"),
+    conda:
+        "../../envs/mogaf.yaml"
+    script:
+        "../scripts/scene_report.py"
 
 
 # One target per sweep of config/ablations.yaml: `snakemake -c2 sweep_<name>`.
