@@ -6,6 +6,7 @@ factor, nearest neighbour: every rendered pixel stays one block."""
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import numpy as np
@@ -18,8 +19,10 @@ def text_scale(width: int) -> float:
     return float(np.clip(width / 420.0, 0.3, 1.0))
 
 
+@functools.lru_cache(maxsize=256)
 def text_strip(width: int, text: str, scale: float) -> np.ndarray:
-    """(h, width, 3) uint8 white strip with `text` in black, clipped to the width."""
+    """(h, width, 3) uint8 white strip with `text` in black, clipped to the width
+    (cached, read-only: a video draws the same labels on every frame)."""
     import cv2
 
     font = cv2.FONT_HERSHEY_SIMPLEX
@@ -27,6 +30,7 @@ def text_strip(width: int, text: str, scale: float) -> np.ndarray:
     h = th + base + 6
     strip = np.full((h, width, 3), BACKGROUND, np.uint8)
     cv2.putText(strip, text, (3, 3 + th), font, scale, (0, 0, 0), 1, cv2.LINE_AA)
+    strip.flags.writeable = False
     return strip
 
 
@@ -51,6 +55,11 @@ def enlarge(img: np.ndarray, factor: int) -> np.ndarray:
     """Each pixel as a factor x factor block (no interpolation)."""
     if factor == 1:
         return img
+    if img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3:
+        import cv2  # the same blocks as np.repeat, several times faster
+
+        h, w = img.shape[:2]
+        return cv2.resize(img, (w * factor, h * factor), interpolation=cv2.INTER_NEAREST)
     return np.repeat(np.repeat(img, factor, axis=0), factor, axis=1)
 
 

@@ -48,9 +48,10 @@ def test_without_ffmpeg_the_video_is_a_gif_beside_the_mp4_name(tmp_path, monkeyp
 def test_small_panels_are_enlarged_by_an_integer_factor_pixel_for_pixel():
     assert enlargement(160, 320) == 2 and enlargement(100, 320) == 4 and enlargement(400, 320) == 1
     assert enlargement(64, 0) == 1
-    img = np.arange(6, dtype=np.uint8).reshape(2, 3, 1)
-    big = enlarge(img, 3)
-    assert big.shape == (6, 9, 1) and (big[::3, ::3] == img).all() and (big[2::3, 2::3] == img).all()
+    for img in (np.arange(6, dtype=np.uint8).reshape(2, 3, 1), np.arange(30, dtype=np.uint8).reshape(2, 5, 3)):
+        big = enlarge(img, 3)
+        assert big.shape == (6, 3 * img.shape[1], img.shape[2])
+        np.testing.assert_array_equal(big, np.repeat(np.repeat(img, 3, axis=0), 3, axis=1))
 
 
 def test_error_panel_maps_mean_error_through_a_fixed_scale_with_its_legend_below():

@@ -27,13 +27,10 @@ import numpy as np
 
 from ..artefact import config_digest, open_artefact, read_artefact, write_artefact
 from ..errors import input_error
-from ..representation import load_model
 from ..scene import SCENE_STAGE
 from ..settings import as_dict, defaults, load
 from ..split import Split, load_evenly_spaced_frames, read_split
-from .metrics import grouping_quality
 from .params import GroupingQualitySettings
-from .stage import load_groups
 
 GROUPING_QUALITY_STAGE = "grouping_quality"
 
@@ -55,6 +52,11 @@ def measure_grouping_quality(
     """The grouping's method and size, and where the scene has GT instance
     masks and held-out views at observed times, its per-object IoU and ARI,
     rendered with the model that was grouped."""
+    # local: reading a grouping_quality.h5 (evaluate, the report) needs neither torch nor scikit-learn
+    from ..representation import load_model
+    from .metrics import grouping_quality
+    from .stage import load_groups
+
     p = _settings(params)
     groups = load_groups(groups_h5)
     out: dict[str, Any] = {"method": groups.method, "num_groups": groups.num_groups}

@@ -14,7 +14,6 @@ from ..errors import input_error
 from ..metrics import mean_metrics
 from ..settings import as_dict
 from ..split import read_split
-from .measure import measure_reconstruction_quality
 from .params import RECONSTRUCTION_QUALITY_STAGE, load_settings
 
 
@@ -25,6 +24,8 @@ def run_reconstruction_quality_stage(
     out: str | os.PathLike,
     params: Mapping[str, Any] | None = None,
 ) -> Path:
+    from .measure import measure_reconstruction_quality  # local: torch; reading the artefact needs none
+
     p = load_settings(params)
     measured = measure_reconstruction_quality(model_h5, scene_h5, read_split(split_h5), p)
     data = {
