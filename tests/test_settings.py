@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 from typing import Literal
 
 import pytest
@@ -82,6 +83,52 @@ def test_every_setting_has_a_source_and_a_schema(path):
         assert name in schema["properties"]
     # the defaults pass their own check
     assert settings.check(cls, path, {}) == settings.defaults(cls)
+
+
+# A setting's source says what it means and why this default, in at most two
+# sentences; measurements, dates and experiment history belong in the git log.
+_ABBREVIATIONS = ("e.g.", "i.e.", "etc.", "vs.", "cf.", "approx.", "supp.", "sec.", "fig.", "eq.", "no.")
+_DATE = re.compile(r"\b\d{4}-\d{2}-\d{2}\b")
+_SCORE = re.compile(
+    r"\bmeasured\b"  # "measured worse", "measured: ..."
+    r"|\d\s*dB\b"  # "21.42 dB", "+0.07 dB"
+    r"|\b(?:m?PSNR|LPIPS|SSIM|EPE|ARI|AJ)\s*[-+]?\d"  # "ARI 0.10", "LPIPS -0.0021"
+    r"|\d\.\d+\s*(?:->|against)\s*[-+]?\d"  # "1.55 -> 0.39 m", "0.059 against 0.049"
+    r"|~\s*\d+(?:\.\d+)?\s*s\b"  # "~20 s CPU"
+    r"|\b\d+(?:\.\d+)?x\s+(?:slower|faster|more|less|better|worse)\b",  # "~3x slower"
+    re.IGNORECASE,
+)
+
+
+def _sentences(text: str) -> list[str]:
+    """`text` split at a full stop (or ! ?) followed by a space or the end; the
+    dots of abbreviations and of numbers (0.25, x 0.25, "0." at the end) do not split."""
+    masked = text
+    for abbreviation in _ABBREVIATIONS:
+        masked = re.sub(re.escape(abbreviation), abbreviation.replace(".", "\0"), masked, flags=re.IGNORECASE)
+    return [part for part in re.split(r"[.!?]+(?:\s+|$)", masked.strip()) if part.strip(" \0")]
+
+
+def test_sentence_counter_ignores_abbreviations_and_numbers():
+    assert len(_sentences("weight, e.g. 0.25 x the extent; i.e. small")) == 1
+    assert len(_sentences("lr x 0.25 (supp. Sec. 3.1), cf. SoM vs. ours, etc. and more.")) == 1
+    assert len(_sentences("--dropout 0.")) == 1
+    assert len(_sentences("SoM: 0.1. CPU: fewer steps")) == 2
+    assert len(_sentences("what it is. why. history")) == 3
+    assert _SCORE.search("held-out 21.4 -> 24.2 dB") and _SCORE.search("ARI 0.10 -> 0.48")
+    assert _DATE.search("the candidates (2026-11-25)")
+    assert not _SCORE.search('"window 10 -> 1"') and not _SCORE.search("linear 40% -> 0% over the first half")
+
+
+@pytest.mark.parametrize("path", list(settings.SECTIONS))
+def test_every_source_is_what_and_why_without_measurements(path):
+    cls = settings.section_class(path)
+    for name, _default, source in settings.describe(cls):
+        where = f"{path}.{name}: {source!r}"
+        assert len(_sentences(source)) <= 2, f"more than two sentences in {where}"
+        assert not _DATE.search(source), f"a date in {where}"
+        score = _SCORE.search(source)
+        assert score is None, f"a measurement ({score and score.group(0)!r}) in {where}"
 
 
 def test_with_defaults_fills_every_section_and_keeps_given_values():

@@ -28,7 +28,8 @@ class StructuredSettings:
     horizon: int = setting(8, "values predicted per forward pass (multi-step head and loss)", minimum=1)
     weight_decay: float = setting(
         0.0,
-        "replaces the paper mode's 0.03: decay shrinks the residual over the prior, so a thrown sphere's fall is not learned (GT benchmark, default/sphere at 0.8: 0.102 m with 0.03, 0.021 m without, measured when the backtest kept one candidate)",
+        "replaces the paper mode's 0.03; none, because decay shrinks the residual over the per-channel constant "
+        "velocity, so a thrown sphere's fall would not be learned",
         minimum=0,
     )
     rigid_residual: float = setting(
@@ -46,13 +47,17 @@ class StructuredSettings:
     )
     backtest_margin: float = setting(
         0.0,
-        "combine: select: the learned forecaster is chosen only when its backtest error is this share below the best other candidate's (0 = the lowest score wins). 0.1 measured: MuJoCo 0.8 mean +0.07 dB, but GT default/sphere 0.6 falls from 0.146 m to constant velocity's 0.196 m",
+        "combine: select: the learned forecaster is chosen only when its backtest error is this share below the best "
+        "other candidate's (0 = the lowest score wins, the learned forecaster treated like the others)",
         minimum=0,
         exclusive_maximum=1,
     )
     combine: Literal["select", "weighted"] = setting(
         "weighted",
-        "how the backtest decides: 'weighted' (every candidate's forecast, weighted by its inverse squared backtest error; a rigid group blends as one pose, so it stays rigid) or 'select' (the lowest score wins). Measured with the current candidates (2026-11-25): weighted has the better MuJoCo means (0.6: 21.42 dB / 0.1672 against 21.38 / 0.1685; 0.8: 20.51 / 0.1786 against 20.32 / 0.1815) and the five demo draws' tracking EPE (0.137 against 0.141 m); select the better GT mean EPE (0.0394 against 0.0491 m over 22 rows, but behind constant velocity on 3 rows, weighted on 1) and the five draws' image means (PSNR +0.01 dB, LPIPS -0.0021, mPSNR +0.03 dB) (docs/forecasting.md)",
+        "how the backtest decides: 'weighted' (every candidate's forecast, weighted by its inverse squared backtest "
+        "error; a rigid group blends as one pose, so it stays rigid) or 'select' (the lowest score wins). Weighted by "
+        "default: one backtest window is a noisy judge, and a choice won by a few percent often does not hold in the "
+        "future (docs/forecasting.md)",
     )
     max_train_windows: int = setting(
         65536, "training windows kept per fit (random, seeded): bounds memory for big groups", minimum=1
@@ -62,10 +67,9 @@ class StructuredSettings:
         "what the backtest weighs (or selects among): any of frozen, constant_velocity (the last step's velocity; "
         "a rigid group's last twist), linear_trend (each series' least-squares line through its last `trend_window` "
         "values), constant_acceleration (each series' least-squares parabola through its last `context` values) and "
-        "learned, at least one. linear_trend replaced constant_velocity in the default: a reconstruction's last "
-        "step is its least constrained (docs/benchmarks.md, 'Where reconstructed motion is least accurate'); "
-        "measured in docs/forecasting.md ('Robust to the reconstruction's last frames'). constant_acceleration "
-        "(the `constant_acceleration` variant) won on GT trajectories and lost on the MuJoCo scenes",
+        "learned, at least one. The default takes linear_trend over constant_velocity, as a reconstruction's last "
+        "step is its least constrained, and leaves out constant_acceleration, whose parabola contacts bend off "
+        "within the forecast (docs/forecasting.md)",
         schema={
             "items": {"enum": list(STRUCTURED_CANDIDATES)},
             "minItems": 1,
@@ -74,19 +78,18 @@ class StructuredSettings:
     )
     trend_window: int = setting(
         8,
-        "values the linear_trend candidate fits its line through (2 = constant velocity per series). 16 (the "
-        "network's context) measured worse: GT mean EPE over the 22 rows 0.059 against 0.049 m (docs/forecasting.md)",
+        "values the linear_trend candidate fits its line through (2 = constant velocity per series). Enough that the "
+        "reconstruction's least accurate last frames move the line little, few enough to follow recent changes of "
+        "motion (docs/forecasting.md)",
         minimum=2,
     )
     backtest_neighbors: int = setting(
         32,
-        "combine: weighted, non-rigid groups: each moving Gaussian is weighted by the candidates' backtest errors "
-        "(and the learned one's drift) averaged over its this many nearest moving Gaussians of the group at the "
-        "last observed frame, itself included, not over the whole group; 0 (or as many as move) = one weighting "
-        "per group (the group_backtest variant). A non-rigid group can join parts that move differently (a swaying cloth and a "
-        "thrown ball beside it); rigid groups and combine: select always decide per group. 32 was set before "
-        "measuring, not tuned: MuJoCo scene7 (its one non-rigid group) 20.63 -> 21.00 dB at 0.6, 21.44 -> 22.37 "
-        "dB at 0.8; the demo's five draws' mean tracking EPE 0.139 -> 0.137 m (docs/forecasting.md)",
+        "combine: weighted, non-rigid groups (rigid groups and combine: select decide per group): each moving "
+        "Gaussian is weighted by the candidates' backtest errors (and the learned one's drift) averaged over its "
+        "this many nearest moving Gaussians of the group at the last observed frame, itself included; 0 (or as "
+        "many as move) = one weighting per group. Per Gaussian because a non-rigid group can join parts that move "
+        "differently (a swaying cloth and a thrown ball beside it); 32 is a plausible neighbourhood, not tuned",
         minimum=0,
     )
     drift_check: bool = setting(
@@ -165,7 +168,10 @@ class MogafSettings:
     # --- optimisation: not in the paper; ours, sized for <= 60 s per group on 2 CPU cores ---
     iterations: int = setting(
         800,
-        "Adam steps per fit of the learned forecaster, both modes (structured: the backtest fit, then the refit on every observed frame: with drift_check always, before the decision; without it, where the learned candidate keeps a weight); cost does not grow with the group size: paper mode ~20 s CPU at 1 thread for T = 36 (~28 s for T = 48), leaving ~2-3x headroom under the 60 s/group budget on a loaded 2-core machine",
+        "Adam steps per fit of the learned forecaster, both modes (structured: the backtest fit, then the refit on "
+        "every observed frame: with drift_check always, before the decision; without it, where the learned "
+        "candidate keeps a weight). CPU: sized for the 60 s per group budget on 2 cores, a cost that does not grow "
+        "with the group size",
         minimum=1,
     )
     batch_size: int = setting(
@@ -180,7 +186,9 @@ class MogafSettings:
     lr_min: float = setting(1e-5, "cosine decay floor")
     weight_decay: float = setting(
         0.03,
-        "L2 on all weights (Adam). A group's sequences are near copies after instance normalisation, so one-target training is under-determined; without decay the free directions of the flatten head make the autoregressive rollout blow up (GT benchmark, ratio 0.6: default/sphere 1.55 -> 0.39 m, hard/box_extra_1 1.87 -> 0.11 m). 0.1 damps further but bends periodic motion (circular test 3% -> 15%)",
+        "L2 on all weights (Adam): a group's sequences are near copies after instance normalisation, so one-target "
+        "training is under-determined, and without decay the flatten head's free directions make the "
+        "autoregressive rollout blow up. Small, since stronger decay bends periodic motion",
         minimum=0,
     )
     grad_clip: float = setting(1.0, "global grad-norm clip")

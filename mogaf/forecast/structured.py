@@ -2,85 +2,57 @@
 (`forecast.mogaf.mode: structured`; `mode: paper` is the paper's forecaster,
 mogaf.forecast.transformer, unchanged).
 
-Why a second mode: the paper trains one window per Gaussian on the 7-channel
-pose, and a rigid group's sequences are near copies after instance
-normalisation, so the fit learns little more than the normalised level of the
-next pose (a falling sphere is rolled upwards), and every Gaussian is rolled
-out on its own, so objects fall apart into drifting clouds. This mode keeps
-the paper's network (the same LW encoder, instance normalisation, masked input
+It keeps the paper's network (LW encoder, instance normalisation, masked input
 training, L_pred + lambda_acc L_acc) and changes what it is fed and how its
-output is used:
+output is used. Why: a rigid group's 7-channel pose sequences are near copies
+after instance normalisation, so the paper's fit learns little beyond the next
+pose's normalised level, and Gaussians rolled out one by one drift apart.
 
-  * Rigid groups forecast ONE group trajectory (centroid + accumulated
-    body-frame rotation vector, relative to the last observed frame) and apply
-    it to every member, so the forecast stays rigid by construction. A group is
-    rigid when the grouping says so, or (no hint) when its rigid-fit residual is
-    below `rigid_residual` of its radius.
-  * Non-rigid groups forecast each Gaussian. In every group, Gaussians whose
-    observed motion is below the trajectories' own noise level (`still_factor`
-    x the median third difference; position and orientation in a non-rigid
-    group, position in a rigid one) stay where they are; a rigid group's
-    moving members follow the group's motion. A still part joined to a
-    moving body is a grouping error the observation shows: moving it with the
-    body would carry a resting object away. (The cost: on a body spinning in
-    place, members on the axis keep their orientation too.)
-  * Channel-independent inputs: every scalar channel (x, y, z of a position,
-    the three rotation-vector components) is its own sequence, normalised on its
-    own (anchored at its last value, divided by its spread), all through one
-    shared network (PatchTST / RevIN style). A linear autoregression on one
-    channel extrapolates a parabola or a sinusoid exactly; the 7-channel mix
-    cannot.
+  * Rigid groups (the grouping's hint, or a rigid-fit residual below
+    `rigid_residual` of the group's radius) forecast one group trajectory
+    (centroid + accumulated body-frame rotation vector, relative to the last
+    observed frame) applied to every member, so they stay rigid. Non-rigid
+    groups forecast each Gaussian.
+  * Gaussians whose observed motion is below the trajectories' own noise
+    level (`still_factor` x the median third difference; position and
+    orientation in a non-rigid group, position in a rigid one) stay where
+    they are; a rigid group's moving members follow its motion. A still part
+    joined to a moving body is a grouping error, and moving it would carry a
+    resting object away. (On a body spinning in place, members on the axis
+    keep their orientation too.)
+  * Channel-independent inputs (PatchTST / RevIN style): every scalar channel
+    is its own sequence, anchored at its last value and divided by its spread,
+    all through one shared network; a linear autoregression on one channel
+    extrapolates a parabola or a sinusoid exactly, the 7-channel mix cannot.
   * The network predicts `horizon` steps at once as a residual over each
-    channel's constant velocity; its output head starts at zero, so the
-    untrained model is that per-channel constant velocity. (For a rigid group
-    this is not the body's constant twist when it turns about an axis away
-    from its centroid, a hinged lid say: the centroid then moves on a circle.
-    The constant_velocity candidate below, a rigid group's last twist,
-    carries such a motion exactly; it is not in the default.) It trains on
-    every sub-window (context `context` -> the next `horizon` values) of
-    every channel, batch_size windows a step (`batch_tokens` is the paper
-    mode's), and the rollout advances `horizon` steps per forward pass.
-  * Candidates the network is weighed against, all fitted per series like it
-    (a rigid group's centroid and accumulated rotation vector): frozen, and a
-    least-squares line through each series' last `trend_window` values
-    (linear_trend, the default's) rather than the last step's velocity
-    (constant_velocity, a rigid group's last twist; selectable). A
-    reconstruction's last frames are its least constrained (one-sided
-    smoothing, occlusion at the end: the last step's velocity error measured
-    1.6-2.7x the mid-window one on five reconstructions of the demo scene,
-    `python -m mogaf.bench recon --score`), and a line through 8 values is
-    much less moved by them than a velocity from two. Optional,
-    not in the default: constant acceleration, each series' least-squares
-    parabola over its last `context` values. It wins on ground-truth
-    trajectories and loses on the MuJoCo scenes, whose contacts bend a
-    parabola off within the forecast (docs/forecasting.md).
-  * A per-group backtest on observed frames only: each candidate
-    (`candidates`) is fitted on the first T - h frames and scored on the
-    last h (h = backtest_frac * T, at most the forecast horizon: a short
-    backtest favours extrapolation, whose error grows with the horizon, over
-    frozen and the learned forecaster). The learned candidate's score is
-    combined (root sum of squares) with its refit drift (`drift_check`): the
-    distance over h steps between the forecasts of the network refitted on
-    all T frames and of the backtested one. The backtest judges a network
-    that never saw the last h frames; the refit learns them too, and on a
-    reconstruction can learn their artefacts as motion and run off. With
-    `combine: weighted` (the default) every candidate is refitted on all T
-    frames and the forecast is their mean weighted by the inverse squared
-    score: one backtest window is a noisy judge, and a choice won by a few
-    percent often does not hold in the future. A rigid group's candidates
-    blend as one group pose, so the blend stays rigid. In a non-rigid group
-    every moving Gaussian has its own weights, from the scores averaged over
-    its `backtest_neighbors` nearest moving Gaussians (0: the group's): one
-    such group can join parts that move differently (a deforming body and
-    its resting base, a cloth and a ball the grouping merged into it). With `combine:
-    select` the best alone is refitted and rolled out (with
-    `backtest_margin` > 0, the learned forecaster only when it scores that
-    share below the best other candidate). The scores, the drift, the
-    weights and the choice (the heaviest candidate) are recorded in the
-    forecast's info. Without enough frames for a backtest the group keeps
-    constant velocity. The decision depends on the forecast length (h
-    does), so the first k steps of a longer forecast need not equal a
-    k-step forecast.
+    channel's constant velocity, with a zero-initialised head, so the
+    untrained model is that constant velocity. It trains on every sub-window
+    (`context` values -> the next `horizon`) of every channel and rolls out
+    `horizon` steps per forward pass.
+  * Candidates, fitted per series like the network (`candidates`; the
+    default: frozen, linear_trend and learned): frozen, constant_velocity (a
+    rigid group's last twist: exact for a hinged lid), linear_trend (a
+    least-squares line through the last `trend_window` values: a
+    reconstruction's last frames are its least constrained, and a line
+    through several values is less moved by them than a velocity from two)
+    and constant_acceleration (a parabola over the last `context` values,
+    which contacts bend off within the forecast).
+  * A per-group backtest on observed frames only: each candidate is fitted
+    on the first T - h frames and scored on the last h (h = backtest_frac * T,
+    at most the forecast horizon). The learned candidate's score is combined
+    (root sum of squares) with its refit drift (`drift_check`), since the
+    refit on all T frames can learn a reconstruction's last-frame artefacts
+    as motion. `combine: weighted` refits every candidate on all T frames and
+    averages their forecasts, weighted by the inverse squared score (one
+    backtest window is a noisy judge); a rigid group blends as one pose, and
+    in a non-rigid group each moving Gaussian's weights come from the scores
+    over its `backtest_neighbors` nearest moving Gaussians. `combine: select`
+    refits and rolls out the best alone (`backtest_margin`: the share by
+    which the learned forecaster must win). Scores, drift, weights and choice
+    are recorded in the forecast's info. Without enough frames for a
+    backtest the group keeps constant velocity. The decision depends on the
+    forecast length (through h), so the first k steps of a longer forecast
+    need not equal a k-step forecast.
 
 Known limit: a rigid group whose members lie on one line has no observable
 rotation about that line; Procrustes then picks one, which can turn the
@@ -107,8 +79,7 @@ from mogaf.progress import Progress
 # forecast.mogaf.mode picks the forecaster; forecast.mogaf.structured holds the
 # structured mode's own settings (the paper mode ignores them). Everything else
 # (architecture, masking, lambda_acc, optimiser, runtime) is the paper mode's.
-# None of these is in the paper: ours, each measured in `python -m mogaf.bench
-# forecast` (docs/forecasting.md).
+# None of these is in the paper: ours (docs/forecasting.md).
 MODES = ("structured", "paper")
 
 
@@ -377,8 +348,7 @@ class GroupMotion:
             self.centroids, self.rotations, _ = decomposition or rigid_decomposition(pos)
             # A still part the grouping joined to a moving body (a hinge's base,
             # a resting object it touched) keeps its last pose; the body's motion
-            # is still the whole group's fit (fitting it on the moving members
-            # alone measured worse: MuJoCo scene4 at 0.6, 19.45 against 19.54 dB).
+            # is still the whole group's fit, not the moving members' alone.
             self.still = rigid_group_still(pos, still_factor)
             self.moving = np.flatnonzero(~self.still)
             radius = float(np.sqrt(np.mean(np.sum((pos[:, -1] - self.centroids[-1]) ** 2, axis=-1))))
@@ -638,8 +608,7 @@ def fit_structured(
     if own.gate and backtest_sizes is not None:
         # Backtest on observed frames only: fit on the first T - h, score on the last h.
         # On short observations the backtested network reads a shorter context
-        # (window_sizes) than the one refitted on all T frames; deploying the
-        # backtest's size instead measured worse (GT cloth at 0.6: 0.0059 -> 0.0135 m).
+        # (window_sizes) than the one refitted on all T frames, which keeps its own.
         past = GroupMotion(obs[:, : T - h], rigid, own.still_factor)
         scores = {}
         backtested = {}

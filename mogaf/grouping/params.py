@@ -60,7 +60,9 @@ class GroupingSettings:
     grow_max_iters: int = setting(100000, 'safety bound on "repeat until no group changes"')
     reseed_grown: bool = setting(
         False,
-        "ours: True = at each keyframe the masks' front Gaussians win over earlier feature-space growth. Algorithm 3's \"seed & merge\" is a union, which leaves a Gaussian grown into one group and seeded into another undecided; False keeps the first assignment. True repairs growth leaking across object contacts (MuJoCo scene7 ARI 0.10 -> 0.48) but costs 0.01 ARI on the synthetic scene, so it is off by default",
+        "ours: True = at each keyframe the masks' front Gaussians win over earlier feature-space growth; False keeps "
+        'the first assignment (Algorithm 3\'s "seed & merge" is a union, which leaves the conflict undecided). Off by '
+        "default: it repairs growth leaking across object contacts but lowers the ARI on the synthetic scene",
     )
     vote_knn: int = setting(8, 'paper: "voting among the 8 nearest group-assigned neighbors"', minimum=1)
     vote_fraction: float = setting(
@@ -90,7 +92,7 @@ class GroupingSettings:
     static_threshold: float = setting(
         0.01, "a group is static if its members move less than this fraction of the scene extent"
     )
-    static_quantile: float = setting(0.95, "... measured at this quantile of per-Gaussian displacement in the group")
+    static_quantile: float = setting(0.95, "... taken at this quantile of per-Gaussian displacement in the group")
     seed: int = setting(0, injected=True)
 
 

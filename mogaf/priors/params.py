@@ -20,7 +20,7 @@ class PriorsSettings:
     dis_preset: Literal["ultrafast", "fast", "medium"] = setting(
         "medium", 'DIS preset: "ultrafast" | "fast" | "medium"'
     )
-    dis_finest_scale: int = setting(0, "finest DIS pyramid level (0 = full resolution: ~3x slower, ~2x more accurate)")
+    dis_finest_scale: int = setting(0, "finest DIS pyramid level (0 = full resolution: slower, the most accurate flow)")
     # ---- chained-flow tracker (mogaf.priors.tracks)
     grid_stride: int = setting(4, "px between query points of the grid", minimum=1)
     num_query_frames: int = setting(8, "evenly spaced query frames (clipped to the number of frames)", minimum=1)

@@ -99,7 +99,8 @@ class ReconSettings:
     w_track: float = setting(2.0, "SoM w_track")
     w_smooth_bases: float = setting(
         10.0,
-        "SoM: 0.1. CPU: ~1.5k single-frame steps instead of ~25k x 8 frames; measured (MuJoCo scene7 held-out 21.4 -> 24.2 dB, synthetic trajectory error 6.3 -> 4.5 cm, scene3 unchanged)",
+        "weight of the motion bases' smoothness (acceleration) prior. CPU: stronger than SoM's 0.1, since a CPU run "
+        "takes ~1.5k single-frame steps instead of SoM's ~25k steps of 8 frames",
     )
     w_smooth_tracks: float = setting(2.0, "SoM w_smooth_tracks")
     w_z_accel: float = setting(1.0, "SoM w_z_accel")
@@ -131,7 +132,8 @@ class ReconSettings:
     loss_quantile: float = setting(0.98, "SoM: robust trimming of mask / depth / track losses")
     gap_interpolation: bool = setting(
         False,
-        "True: steps without a training frame = cubic spline through those with one (False: left to the smoothness prior; measured better on MuJoCo scene7, noisy knots make splines overshoot)",
+        "True: steps without a training frame = cubic spline through those with one; False: left to the smoothness "
+        "prior (the default: splines through noisy knots overshoot)",
     )
     # ---- temporal curriculum (multi-view scenes without depth / tracks)
     curriculum: Literal["auto", "on", "off"] = setting("auto", '"auto" (on when bases start at identity), "on", "off"')
