@@ -22,7 +22,7 @@ from typing import Any
 
 from . import registry
 from .errors import MogafError
-from .forecast.params import inert_settings, param_section, section_params
+from .forecast.params import METHODS, inert_settings, param_section, section_params
 from .settings import section_defaults
 
 # The stage graph (which config sections and upstream stages determine each
@@ -31,7 +31,7 @@ from .settings import section_defaults
 STAGE_SECTIONS: dict[str, tuple[str, ...]] = registry.digest_sections()
 STAGE_UPSTREAM: dict[str, tuple[str, ...]] = registry.upstream()
 ARTEFACT_FILES: dict[str, str] = registry.artefact_files()
-FORECAST_METHODS = ("mogaf", "mogaf_paper", "gcn", "ode", "constant_velocity", "frozen")
+FORECAST_METHODS = METHODS
 VARIANT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 

@@ -20,13 +20,14 @@ import numpy as np
 
 from mogaf.errors import MogafError
 from mogaf.forecast import METHODS
+from mogaf.forecast.params import TRAINED_METHODS
 
 # Shortened training of the baselines for a CPU run (--budget cpu).
 REDUCED: dict[str, dict[str, Any]] = {
     "gcn": {"epochs": 60},  # of 2001
     "ode": {"epochs": 2, "max_gaussians_per_epoch": 1024},  # of 40 epochs over all Gaussians
 }
-TORCH_METHODS = ("mogaf", "mogaf_paper", "gcn", "ode")
+TORCH_METHODS = TRAINED_METHODS  # the methods that train a torch network
 
 
 def format_table(rows: Sequence[Mapping[str, Any]], reduced: Mapping[str, Mapping[str, Any]] | None = None) -> str:

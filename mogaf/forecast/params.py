@@ -7,6 +7,7 @@ Each forecaster's DEFAULTS is defaults(<its settings>).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -360,21 +361,49 @@ class ODESettings:
 ODE_DEFAULTS: dict[str, Any] = defaults(ODESettings)
 
 
-METHODS: tuple[str, ...] = ("mogaf", "mogaf_paper", "gcn", "ode", "constant_velocity", "frozen")
-# each method's settings (constant_velocity and frozen take none)
-METHOD_SETTINGS: dict[str, type] = {
-    "mogaf": MogafSettings,
-    "mogaf_paper": MogafSettings,
-    "gcn": GCNSettings,
-    "ode": ODESettings,
-}
+@dataclass(frozen=True)
+class ForecastMethod:
+    """One forecast method: every list of methods derives from METHOD_TABLE."""
 
-# Methods whose settings live in another method's config section, the
-# settings they fix whatever that section says, and those of the section they
-# do not read (so changing those reruns nothing of theirs).
-PARAM_SECTIONS: dict[str, str] = {"mogaf_paper": "mogaf"}
-FIXED_PARAMS: dict[str, dict[str, Any]] = {"mogaf_paper": {"mode": "paper"}}
-UNREAD_PARAMS: dict[str, tuple[str, ...]] = {"mogaf_paper": ("structured",)}
+    name: str
+    label: str  # in the tables and videos
+    forecaster: str  # "module:Class" under mogaf.forecast, imported when a forecaster is made
+    settings: type | None = None  # its settings dataclass (None: it takes none)
+    section: str = ""  # the config section under forecast it reads ("": its own name)
+    fixed: Mapping[str, Any] = dataclasses.field(default_factory=dict)  # settings it fixes, whatever the section says
+    unread: tuple[str, ...] = ()  # keys of the section it does not read (changing them reruns nothing of it)
+    inline: bool = False  # trains nothing: computed in the merge job, no per-group jobs
+    table_rank: int = 0  # position in the tables (the papers' baselines first)
+
+
+METHOD_TABLE: tuple[ForecastMethod, ...] = (
+    ForecastMethod("mogaf", "MoGaF (Ours)", "transformer:MoGaFForecaster", MogafSettings, table_rank=2),
+    ForecastMethod(
+        "mogaf_paper",
+        "MoGaF (paper)",
+        "transformer:MoGaFPaperForecaster",
+        MogafSettings,
+        section="mogaf",
+        fixed={"mode": "paper"},
+        unread=("structured",),
+        table_rank=3,
+    ),
+    ForecastMethod("gcn", "GSPred-SoM (GCN)", "gcn:GCNForecaster", GCNSettings, table_rank=0),
+    ForecastMethod("ode", "ODE-GS-SoM (latent ODE)", "ode:LatentODEForecaster", ODESettings, table_rank=1),
+    ForecastMethod("constant_velocity", "Const. velocity", "classical:ConstantVelocity", inline=True, table_rank=4),
+    ForecastMethod("frozen", "Frozen", "classical:Frozen", inline=True, table_rank=5),
+)
+METHOD_BY_NAME: dict[str, ForecastMethod] = {m.name: m for m in METHOD_TABLE}
+
+METHODS: tuple[str, ...] = tuple(m.name for m in METHOD_TABLE)
+METHOD_SETTINGS: dict[str, type] = {m.name: m.settings for m in METHOD_TABLE if m.settings is not None}
+PARAM_SECTIONS: dict[str, str] = {m.name: m.section for m in METHOD_TABLE if m.section}
+FIXED_PARAMS: dict[str, dict[str, Any]] = {m.name: dict(m.fixed) for m in METHOD_TABLE if m.fixed}
+UNREAD_PARAMS: dict[str, tuple[str, ...]] = {m.name: m.unread for m in METHOD_TABLE if m.unread}
+INLINE_METHODS: tuple[str, ...] = tuple(m.name for m in METHOD_TABLE if m.inline)
+TRAINED_METHODS: tuple[str, ...] = tuple(m.name for m in METHOD_TABLE if not m.inline)
+METHOD_LABELS: dict[str, str] = {m.name: m.label for m in METHOD_TABLE}
+METHOD_ORDER: list[str] = [m.name for m in sorted(METHOD_TABLE, key=lambda m: m.table_rank)]
 
 
 # forecast.mogaf settings only the paper mode reads: the structured mode has
@@ -429,13 +458,14 @@ def _unread_by_mogaf(net: MogafSettings, own: StructuredSettings, changed: Mappi
     return {k: r for k, r in why.items() if k in changed}
 
 
-def _unread_by_mogaf_paper(changed: Mapping[str, Any]) -> dict[str, str]:
-    """Which of the changed forecast.mogaf keys the `mogaf_paper` method (paper
-    mode whatever `mode` says, no `structured`) does not read, and why."""
+def _unread_by_row(method: ForecastMethod, changed: Mapping[str, Any]) -> dict[str, str]:
+    """Which of the changed keys of its section a method with fixed or unread
+    settings (mogaf_paper: paper mode whatever `mode` says, no `structured`) does not read."""
+    skipped = (*method.fixed, *method.unread)
     return {
-        k: "mogaf_paper reads neither mode nor structured"
+        k: f"{method.name} reads neither {' nor '.join(skipped)}"
         for k in changed
-        if k == "mode" or k.startswith("structured.")
+        if k in method.fixed or k.split(".", 1)[0] in method.unread
     }
 
 
@@ -454,13 +484,15 @@ def inert_settings(forecast: Mapping[str, Any]) -> list[tuple[str, str]]:
     changed = {k: v for k, v in _changed(net, MOGAF_DEFAULTS).items() if k != "structured"}
     changed.update({f"structured.{k}": v for k, v in _changed(own, STRUCTURED_DEFAULTS).items()})
     methods = list(forecast.get("methods") or ())
-    readers = [m for m in ("mogaf", "mogaf_paper") if m in methods]
+    section_readers = [m.name for m in METHOD_TABLE if (m.section or m.name) == "mogaf"]
+    readers = [m for m in section_readers if m in methods]
     if not readers:
-        why = dict.fromkeys(changed, "forecast.methods has neither mogaf nor mogaf_paper")
+        why = dict.fromkeys(changed, f"forecast.methods has neither {' nor '.join(section_readers)}")
     else:
         # a value is without effect only if every method reading forecast.mogaf leaves it
         unread = [
-            _unread_by_mogaf(net, own, changed) if m == "mogaf" else _unread_by_mogaf_paper(changed) for m in readers
+            _unread_by_mogaf(net, own, changed) if m == "mogaf" else _unread_by_row(METHOD_BY_NAME[m], changed)
+            for m in readers
         ]
         why = {k: r for k, r in unread[0].items() if all(k in u for u in unread)}
         if not net.masking:  # neither reader's network masks its inputs, in either mode

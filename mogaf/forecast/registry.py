@@ -6,6 +6,7 @@ their functions, so importing this module stays cheap.
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Mapping
 from typing import Any
 
@@ -13,22 +14,16 @@ import numpy as np
 
 from mogaf.errors import MogafError
 from mogaf.forecast.base import Forecaster, ForecastResult
-from mogaf.forecast.classical import ConstantVelocity, Frozen
-from mogaf.forecast.gcn import GCNForecaster
-from mogaf.forecast.ode import LatentODEForecaster
-from mogaf.forecast.params import METHODS
-from mogaf.forecast.transformer import MoGaFForecaster, MoGaFPaperForecaster
+from mogaf.forecast.params import METHOD_TABLE, METHODS
 
 
 def _registry() -> dict[str, type[Forecaster]]:
-    return {
-        "mogaf": MoGaFForecaster,
-        "mogaf_paper": MoGaFPaperForecaster,
-        "gcn": GCNForecaster,
-        "ode": LatentODEForecaster,
-        "constant_velocity": ConstantVelocity,
-        "frozen": Frozen,
-    }
+    """Each method's Forecaster class, from the method table."""
+    out = {}
+    for method in METHOD_TABLE:
+        module, cls = method.forecaster.split(":")
+        out[method.name] = getattr(importlib.import_module(f"mogaf.forecast.{module}"), cls)
+    return out
 
 
 def make_forecaster(

@@ -34,7 +34,7 @@ from ..errors import MogafError, input_error
 from ..representation import Model4D, load_model, quat_sign_continuity
 from ..split import read_split
 from .coherence import coherence
-from .params import inert_settings, param_section, section_params
+from .params import INLINE_METHODS, inert_settings, param_section, section_params
 from .registry import fit_and_rollout
 
 log = logging.getLogger(__name__)
@@ -72,9 +72,8 @@ def dynamic_members(group_id: np.ndarray, group_static: np.ndarray) -> np.ndarra
     return np.flatnonzero(np.isin(group_id, dynamic))
 
 
-# Methods with nothing to train run inside the merge job: a Snakemake job of
-# their own would take longer to start than to run.
-INLINE_METHODS = ("constant_velocity", "frozen")
+# Methods with nothing to train (params.INLINE_METHODS) run inside the merge
+# job: a Snakemake job of their own would take longer to start than to run.
 
 
 def method_jobs(method: str, jobs: list[str]) -> list[str]:

@@ -26,6 +26,7 @@ from typing import Any
 
 from ..artefact import atomic_path
 from ..forecast import METHODS, defaults
+from ..forecast.params import METHOD_LABELS, METHOD_ORDER, METHOD_TABLE
 from .metrics_files import NO_RESULT, load_metrics
 
 HTML_PAGE = """<!DOCTYPE html>
@@ -48,16 +49,6 @@ video, img {{ max-width: 100%; image-rendering: pixelated; }}
 # A cell whose result does not exist, among cells that have one.
 MISSING = "–"
 
-METHOD_LABELS = {
-    "gcn": "GSPred-SoM (GCN)",
-    "ode": "ODE-GS-SoM (latent ODE)",
-    "mogaf": "MoGaF (Ours)",
-    "mogaf_paper": "MoGaF (paper)",
-    "constant_velocity": "Const. velocity",
-    "frozen": "Frozen",
-}
-METHOD_ORDER = ["gcn", "ode", "mogaf", "mogaf_paper", "constant_velocity", "frozen"]
-
 
 def forecast_record(result: dict[str, Any], method: str) -> dict[str, Any]:
     """methods.<method>.forecast of a metrics.json ({} where the method or its record is absent)."""
@@ -67,8 +58,9 @@ def forecast_record(result: dict[str, Any], method: str) -> dict[str, Any]:
 def method_label(result: dict[str, Any], method: str) -> str:
     """The method's label; MoGaF run in its paper mode (config/paper.yaml) is "MoGaF (paper)"."""
     params = forecast_record(result, method).get("params") or {}
-    if method == "mogaf" and params.get("mode") == "paper":
-        return METHOD_LABELS["mogaf_paper"]
+    for row in METHOD_TABLE:  # a method run with the settings another row fixes is that row
+        if row.section == method and row.fixed and all(params.get(k) == v for k, v in row.fixed.items()):
+            return row.label
     return METHOD_LABELS.get(method, method)
 
 
