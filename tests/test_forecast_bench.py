@@ -215,7 +215,7 @@ def test_docs_forecast_tables_are_made_from_the_committed_rows():
     from support.paths import REPO
 
     bench_dir = REPO / "results" / "bench"
-    page = (REPO / "docs" / "forecasting.md").read_text()
+    page = (REPO / "docs" / "results.md").read_text()
     files = [bench_dir / f"forecast_gt_{name}.json" for name in ("defaults", "paper_gcn", "paper_ode")]
     assert _marked_block(page, "forecast-gt-table") == bench.markdown_report(files)
     # the latent ODE at 800 steps beside its paper budget, on the rows it ran

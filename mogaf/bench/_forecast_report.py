@@ -216,7 +216,7 @@ def per_step_table(
 
 def markdown_report(paths: Sequence[str | Path], only: Sequence[str] = ()) -> str:
     """What --from-json --summary prints: the comparison table, the summary
-    (mean EPE, win counts) and the per-step EPE (docs/forecasting.md keeps it)."""
+    (mean EPE, win counts) and the per-step EPE (docs/results.md shows it)."""
     return "\n\n".join(
         [comparison_table(paths, only), summary_table(paths, only=only), per_step_table(paths, only=only)]
     )

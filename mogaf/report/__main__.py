@@ -1,11 +1,15 @@
-"""`python -m mogaf.report glance METRICS.json... [--write FILE | --check FILE]`
-and `python -m mogaf.report scenes METRICS.json...`.
+"""`python -m mogaf.report glance METRICS.json... [--write FILE | --check FILE]`,
+`python -m mogaf.report scenes METRICS.json...` and
+`python -m mogaf.report results [METRICS.json...] [--bench DIR] [--write FILE | --check FILE]`.
 
 glance: print the results-at-a-glance table (mogaf.report.glance) made from
 metrics.json files; --write puts it between the `<!-- glance:start -->` and
 `<!-- glance:end -->` markers of a Markdown file (the README), --check exits 1
 when that section differs from what the files give. scenes: print a table
-per observation ratio, a row per scene (mogaf.report.scenes).
+per observation ratio, a row per scene (mogaf.report.scenes). results: the
+measured-results page (docs/results.md) from the benchmark rows in
+results/bench/ and any metrics.json files (mogaf.report.results_page);
+--write rewrites FILE with it, --check exits 1 when FILE differs.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import sys
 
 from ..errors import MogafError
 from .glance import glance, section_matches, write_section
+from .results_page import BENCH_DIR, command, page_matches, results_page, write_page
 from .scenes import scenes
 
 
@@ -28,12 +33,20 @@ def main(argv: list[str] | None = None) -> int:
     out.add_argument("--check", metavar="FILE", help="exit 1 if FILE's glance section differs from the table")
     p = sub.add_parser("scenes", help="per-scene PSNR / LPIPS of every method, a table per ratio, with the mean")
     p.add_argument("metrics", nargs="+", help="metrics.json files (written by the evaluate stage)")
+    p = sub.add_parser("results", help="the measured-results page (docs/results.md) from results/bench/ rows")
+    p.add_argument("metrics", nargs="*", help="metrics.json files to add (glance and per-scene tables)")
+    p.add_argument("--bench", default=str(BENCH_DIR), metavar="DIR", help=f"benchmark rows (default: {BENCH_DIR})")
+    out = p.add_mutually_exclusive_group()
+    out.add_argument("--write", metavar="FILE", help="write the page to FILE")
+    out.add_argument("--check", metavar="FILE", help="exit 1 if FILE is not the page these files give")
     args = parser.parse_args(argv)
 
     try:
         if args.command == "scenes":
             sys.stdout.write(scenes(args.metrics))
             return 0
+        if args.command == "results":
+            return _results(args)
         block = glance(args.metrics)
         if args.write:
             changed = write_section(args.write, block)
@@ -52,6 +65,26 @@ def main(argv: list[str] | None = None) -> int:
     except MogafError as exc:
         print(f"mogaf.report: error: {exc}", file=sys.stderr)
         return 1
+    return 0
+
+
+def _results(args: argparse.Namespace) -> int:
+    target = args.write or args.check or "docs/results.md"
+    page = results_page(target, args.bench, args.metrics)
+    if args.write:
+        changed = write_page(args.write, page)
+        print(f"{args.write}: {'rewritten' if changed else 'already up to date'}")
+    elif args.check:
+        if not page_matches(args.check, page):
+            print(
+                f"{args.check}: differs from what {args.bench} gives; rewrite it with: "
+                f"{command(args.check, args.bench, args.metrics)}",
+                file=sys.stderr,
+            )
+            return 1
+        print(f"{args.check}: up to date")
+    else:
+        sys.stdout.write(page)
     return 0
 
 

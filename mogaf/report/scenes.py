@@ -2,7 +2,7 @@
 scene with every method's PSNR / LPIPS (and tracking EPE on scenes with
 ground-truth tracks), the mean over the scenes, what
 MoGaF's backtest chose per motion group and its coherence figures
-(docs/forecasting.md, the MuJoCo tables):
+(docs/results.md prints it for the metrics.json files it is given):
 
     python -m mogaf.report scenes results/mujoco/*/ratio0.6/metrics.json
 
