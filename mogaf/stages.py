@@ -149,7 +149,7 @@ def _check_synthetic_target(out_dir: str) -> None:
 
 # ------------------------------------------------------------------ stages
 def synthesize(out_dir: str, params: Mapping[str, Any]) -> Path:
-    from .synth import generate_scene  # local: a stage's package (and torch) loads only when it runs
+    from .synth.generate import generate_scene  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out_dir}, directories=("out",))
     _check_synthetic_target(out_dir)
@@ -187,7 +187,7 @@ def split(scene: str, out: str, ratio: str | float) -> Path:
 
 
 def priors(scene: str, split: str, out: str, params: Mapping[str, Any], seed: int) -> Path:
-    from .priors import run_priors_stage  # local: a stage's package (and torch) loads only when it runs
+    from .priors.stage import run_priors_stage  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out}, [scene, split])
     with stage_inputs(scene, split):
@@ -204,7 +204,7 @@ def recon(
     device: str = "auto",
     checkpoint: str | None = None,
 ) -> Path:
-    from .recon import run_recon_stage  # local: a stage's package (and torch) loads only when it runs
+    from .recon.stage import run_recon_stage  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out, "checkpoint": checkpoint}, [scene, split, priors])
     with stage_inputs(scene, split, priors):
@@ -214,7 +214,7 @@ def recon(
 
 
 def group(model: str, priors: str, scene: str, out: str, params: Mapping[str, Any], seed: int = 0) -> Path:
-    from .grouping import run_group_stage  # local: a stage's package (and torch) loads only when it runs
+    from .grouping.stage import run_group_stage  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out}, [model, priors, scene])
     with stage_inputs(model, priors, scene):
@@ -222,7 +222,7 @@ def group(model: str, priors: str, scene: str, out: str, params: Mapping[str, An
 
 
 def rigid_init(model: str, groups: str, out: str, params: Mapping[str, Any]) -> Path:
-    from .grouping import run_rigid_init_stage  # local: a stage's package (and torch) loads only when it runs
+    from .grouping.stage import run_rigid_init_stage  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out}, [model, groups])
     with stage_inputs(model, groups):
@@ -243,7 +243,7 @@ def refine(
     device: str = "auto",
     checkpoint: str | None = None,
 ) -> Path:
-    from .refine import run_refine_stage  # local: a stage's package (and torch) loads only when it runs
+    from .refine.stage import run_refine_stage  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out, "checkpoint": checkpoint}, [model, groups, rigid, priors, scene, split])
     with stage_inputs(model, groups, rigid, priors, scene, split):
@@ -316,9 +316,8 @@ def grouping_quality(
 
 
 def reconstruction_quality(model: str, scene: str, split: str, out: str, params: Mapping[str, Any]) -> Path:
-    from .reconstruction_quality import (
-        run_reconstruction_quality_stage,  # local: a stage's package (and torch) loads only when it runs
-    )
+    # local: a stage's package (and torch) loads only when it runs
+    from .reconstruction_quality.stage import run_reconstruction_quality_stage
 
     check_outputs({"out": out}, [model, scene, split])
     with stage_inputs(model, scene, split):
@@ -340,7 +339,7 @@ def evaluate(
     variant: str,
     ids: Mapping[str, str],
 ) -> Path:
-    from .evaluate import run_evaluate_stage  # local: a stage's package (and torch) loads only when it runs
+    from .evaluate.stage import run_evaluate_stage  # local: a stage's package (and torch) loads only when it runs
 
     # groups.h5 is read for its lineage only: the forecasts, the model and the
     # grouping's quality must all come from this one grouping, and the
@@ -385,7 +384,8 @@ def export(
     ply_dir: str | None = None,
 ) -> Path:
     """index.json at `out` and the PLY files it lists in `ply_dir` (default: ply/ beside it)."""
-    from .export import ply_folder, run_export_stage  # local: a stage's package (and torch) loads only when it runs
+    from .export import ply_folder  # local: a stage's package (and torch) loads only when it runs
+    from .export.stage import run_export_stage
 
     plys = ply_dir if ply_dir is not None else ply_folder(out)
     check_outputs({"out": out, "ply": plys}, [model, forecast, scene, split], directories=("ply",))

@@ -26,8 +26,8 @@ from mogaf.artefact import atomic, write_artefact, write_json
 from mogaf.datasets import read_scene
 from mogaf.datasets.common import DatasetWarning
 from mogaf.errors import MogafError
-from mogaf.grouping import write_groups
 from mogaf.grouping.core import Groups
+from mogaf.grouping.stage import write_groups
 from mogaf.paths import check_outputs, unwritable_folder
 from mogaf.report import load_metrics
 from mogaf.representation import GaussianSet, Model4D, save_model
@@ -1079,7 +1079,7 @@ def test_full_disk_writing_renders_and_videos_is_one_line(nearly_full_disk):
 
 
 def test_full_disk_synthesizing_a_scene_is_one_line(nearly_full_disk):
-    from mogaf.synth import generate_scene
+    from mogaf.synth.generate import generate_scene
 
     out = nearly_full_disk / "scene"
     msg = _fails(generate_scene, out, {"preset": "default", "width": 64, "height": 48, "num_frames": 12})

@@ -136,14 +136,14 @@ def test_rigidity_table():
 
 
 def _stage_resolvers():
-    from mogaf.evaluate import run_evaluate_stage
+    from mogaf.evaluate.stage import run_evaluate_stage
     from mogaf.forecast import make_forecaster
     from mogaf.grouping.params import resolve_params as grouping
     from mogaf.grouping.quality import run_grouping_quality_stage
     from mogaf.grouping.stage import run_rigid_init_stage
     from mogaf.priors import resolve_params as priors
     from mogaf.recon.params import resolve_params as recon
-    from mogaf.reconstruction_quality import run_reconstruction_quality_stage
+    from mogaf.reconstruction_quality.stage import run_reconstruction_quality_stage
     from mogaf.refine import resolve_params as refine
     from mogaf.synth.params import resolve_params as synthetic
 

@@ -22,7 +22,7 @@ import pytest
 from mogaf.artefact import read_artefact
 from mogaf.errors import MogafError
 from mogaf.evaluate import DEFAULT_PARAMS as EVAL_PARAMS
-from mogaf.evaluate import tracking_section
+from mogaf.evaluate.tracking import tracking_section
 from mogaf.forecast.stage import (
     INLINE_METHODS,
     forecast_jobs,

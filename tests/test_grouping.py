@@ -7,9 +7,11 @@ import pytest
 from sklearn.metrics import adjusted_rand_score
 
 from mogaf.errors import MogafError
-from mogaf.grouping import DEFAULT_PARAMS, MaskFrames, group_gaussians, mask_gaussians, rigid_init
-from mogaf.grouping.core import InstanceTable
+from mogaf.grouping import DEFAULT_PARAMS
+from mogaf.grouping.api import group_gaussians
+from mogaf.grouping.core import InstanceTable, MaskFrames, mask_gaussians
 from mogaf.grouping.rigidity import decide_rigidity, estimate_rigid
+from mogaf.grouping.stage import rigid_init
 from mogaf.grouping.voting import knn_vote
 from mogaf.scene import Instances
 from support.toy_grouping import look_at, model_from_points, two_object_scene

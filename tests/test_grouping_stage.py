@@ -13,18 +13,12 @@ from sklearn.metrics import adjusted_rand_score
 
 from mogaf.artefact import read_artefact, write_artefact
 from mogaf.errors import MogafError
-from mogaf.grouping import (
-    has_rigid_groups,
-    load_groups,
-    read_rigid_init,
-    run_group_stage,
-    run_rigid_init_stage,
-)
 from mogaf.grouping.core import Groups
 from mogaf.grouping.metrics import adjusted_rand_index, grouping_quality, per_object_iou
 from mogaf.grouping.params import DEFAULT_PARAMS
 from mogaf.grouping.quality import read_grouping_quality, run_grouping_quality_stage
-from mogaf.reconstruction_quality import read_reconstruction_quality, run_reconstruction_quality_stage
+from mogaf.grouping.stage import has_rigid_groups, load_groups, read_rigid_init, run_group_stage, run_rigid_init_stage
+from mogaf.reconstruction_quality.stage import read_reconstruction_quality, run_reconstruction_quality_stage
 from mogaf.representation import save_model
 from mogaf.scene import Instances, Scene, load_scene, save_scene
 from mogaf.split import read_split, split_scene, write_split

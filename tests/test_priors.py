@@ -10,7 +10,8 @@ import pytest
 
 from mogaf.artefact import read_artefact
 from mogaf.errors import MogafError
-from mogaf.priors import DEFAULT_PARAMS, build_priors, run_priors_stage
+from mogaf.priors import DEFAULT_PARAMS
+from mogaf.priors.stage import build_priors, run_priors_stage
 from mogaf.scene import SPLIT_CODES, Instances, Scene, save_scene
 from mogaf.split import split_scene, write_split
 from support.moving_squares import moving_squares

@@ -8,8 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from mogaf.priors import DEFAULT_PARAMS, compute_flow_tracks
+from mogaf.priors import DEFAULT_PARAMS
 from mogaf.priors.instances import cluster_tracks, label_pixels
+from mogaf.priors.tracks import compute_flow_tracks
 from support.moving_squares import moving_squares
 from support.paths import shared_path
 
@@ -123,7 +124,7 @@ def test_carphone_smoke():
 def test_carphone_stage(tmp_path):
     """The whole stage on the clip as a monocular scene (placeholder depth 1)."""
     from mogaf.artefact import read_artefact
-    from mogaf.priors import run_priors_stage
+    from mogaf.priors.stage import run_priors_stage
     from mogaf.scene import SPLIT_CODES, Scene, save_scene
     from mogaf.split import split_scene, write_split
 

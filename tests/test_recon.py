@@ -16,7 +16,7 @@ from support.tiny_scene import TINY_PARAMS, H, T, W, assert_same_arrays, make_ti
 
 @pytest.fixture(scope="module")
 def tiny_run(tiny_scene, tmp_path_factory):
-    from mogaf.recon import run_recon_stage
+    from mogaf.recon.stage import run_recon_stage
 
     out = tmp_path_factory.mktemp("run") / "recon.h5"
     run_recon_stage(*tiny_scene, out, TINY_PARAMS, seed=3, progress=False)
@@ -62,7 +62,7 @@ def test_time_breakdown_splits_the_training_steps(tiny_run):
 
 
 def test_same_seed_same_artefact(tiny_scene, tiny_run, tmp_path):
-    from mogaf.recon import run_recon_stage
+    from mogaf.recon.stage import run_recon_stage
 
     again = run_recon_stage(*tiny_scene, tmp_path / "again.h5", TINY_PARAMS, seed=3, progress=False)
     assert_same_arrays(tiny_run, again)
@@ -72,7 +72,7 @@ def test_future_frames_are_never_read(tiny_scene, tiny_run, tmp_path):
     """Poison every future row of scene.h5 (noise images, NaN cameras): same artefact."""
     import shutil
 
-    from mogaf.recon import run_recon_stage
+    from mogaf.recon.stage import run_recon_stage
 
     scene_h5 = tmp_path / "scene.h5"
     shutil.copy(tiny_scene[0], scene_h5)
@@ -92,7 +92,7 @@ def test_future_frames_are_never_read(tiny_scene, tiny_run, tmp_path):
 
 
 def test_resume_from_checkpoint_matches_uninterrupted(tiny_scene, tiny_run, tmp_path):
-    from mogaf.recon import run_recon_stage
+    from mogaf.recon.stage import run_recon_stage
 
     ckpt = tmp_path / "ckpt" / "recon.pt"
     # interrupted after 15 of 30 iterations (checkpoints every 10 plus one at the stop)
@@ -108,7 +108,7 @@ def test_resume_from_checkpoint_matches_uninterrupted(tiny_scene, tiny_run, tmp_
 
 
 def test_checkpoint_of_other_settings_is_ignored(tiny_scene, tiny_run, tmp_path):
-    from mogaf.recon import run_recon_stage
+    from mogaf.recon.stage import run_recon_stage
 
     ckpt = tmp_path / "recon.pt"
     other = {**TINY_PARAMS, "num_bases": 2}
@@ -118,7 +118,7 @@ def test_checkpoint_of_other_settings_is_ignored(tiny_scene, tiny_run, tmp_path)
 
 
 def test_render_model_reproduces_training_view(tiny_scene, tiny_run):
-    from mogaf.recon import render_model, render_poses
+    from mogaf.rendering import render_model, render_poses
     from mogaf.representation import load_model
     from mogaf.split import load_frames
 
@@ -193,7 +193,7 @@ def test_load_model_refuses_sh_bands_of_another_degree(tiny_run, tmp_path):
 
 def test_static_scene_psnr_rises(tmp_path):
     """Training must improve a sparse, translucent start substantially (this can fail)."""
-    from mogaf.recon import run_recon_stage
+    from mogaf.recon.stage import run_recon_stage
     from mogaf.representation import load_model
 
     inputs = make_tiny_scene(tmp_path / "static", motion=0.0, train_sweep=0.5, seed=5)
@@ -222,7 +222,7 @@ def test_recon_on_cuda_matches_the_cpu_run(tiny_scene, tmp_path, extra):
     if not torch.cuda.is_available():
         pytest.skip("needs CUDA")
     pytest.importorskip("gsplat")
-    from mogaf.recon import run_recon_stage
+    from mogaf.recon.stage import run_recon_stage
 
     params = {**TINY_PARAMS, **extra}
     cpu = run_recon_stage(*tiny_scene, tmp_path / "cpu.h5", {**params, "device": "cpu"}, seed=3, progress=False)

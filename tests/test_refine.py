@@ -8,8 +8,10 @@ import pytest
 from mogaf.errors import MogafError
 from mogaf.grouping.core import Groups
 from mogaf.grouping.stage import load_groups, run_rigid_init_stage, write_groups
-from mogaf.recon import run_recon_stage
-from mogaf.refine import neighbour_pairs, resolve_params, rigid_residuals, run_refine_stage
+from mogaf.recon.stage import run_recon_stage
+from mogaf.refine import resolve_params
+from mogaf.refine.stage import run_refine_stage
+from mogaf.refine.trainer import neighbour_pairs, rigid_residuals
 from mogaf.representation import load_model
 from support.tiny_scene import TINY_PARAMS, assert_same_arrays, make_tiny_scene
 

@@ -16,14 +16,14 @@ import time
 
 import pytest
 
-from mogaf.recon import run_recon_stage
+from mogaf.recon.stage import run_recon_stage
 from support.tiny_scene import TINY_PARAMS, assert_same_arrays, make_tiny_scene
 
 PARAMS = {**TINY_PARAMS, "iterations": 150, "checkpoint_every": 5}
 
 CHILD = """
 import json, sys
-from mogaf.recon import run_recon_stage
+from mogaf.recon.stage import run_recon_stage
 a = json.loads(sys.argv[1])
 run_recon_stage(a["scene"], a["split"], a["priors"], a["out"], a["params"], seed=0, checkpoint=a["checkpoint"],
                 progress=False)

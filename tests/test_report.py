@@ -1,6 +1,6 @@
 """Reports (mogaf.report.tables, .runtime, .glance) from hand-made metrics.json files.
 
-The files are built with the structure mogaf.evaluate.run_evaluate_stage
+The files are built with the structure mogaf.evaluate.stage.run_evaluate_stage
 writes (and written the same way: evaluate._round, then write_json), so the
 tables see exactly what the pipeline gives them.
 """
@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from mogaf.artefact import write_json
-from mogaf.evaluate import _round
+from mogaf.evaluate.stage import _round
 from mogaf.forecast import defaults
 from mogaf.report import NO_RESULT, load_metrics
 from mogaf.report.glance import END, START, glance_table, replace_section, write_section

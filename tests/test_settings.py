@@ -145,8 +145,9 @@ def test_config_readme_is_current():
 
 def test_the_config_schema_and_defaults_load_no_stage_code():
     """Every workflow and CLI start builds the schema and the defaults from the
-    settings classes: that must not import torch, OpenCV or scikit-learn (the
-    stage packages re-export their entry points lazily, mogaf.lazy)."""
+    settings classes: that must not import torch, OpenCV or scikit-learn (a
+    stage package's __init__ imports only its params; its entry points are
+    imported from their modules)."""
     import subprocess
     import sys
 
@@ -158,15 +159,3 @@ def test_the_config_schema_and_defaults_load_no_stage_code():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
-
-
-def test_lazy_exports_resolve_cache_and_refuse_unknown_names():
-    import mogaf.recon
-
-    assert "run_recon_stage" in dir(mogaf.recon)
-    from mogaf.recon.stage import run_recon_stage
-
-    assert mogaf.recon.run_recon_stage is run_recon_stage
-    assert "run_recon_stage" in vars(mogaf.recon)  # cached after the first lookup
-    with pytest.raises(AttributeError, match="has no attribute 'no_such_name'"):
-        mogaf.recon.no_such_name  # noqa: B018

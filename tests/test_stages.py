@@ -28,21 +28,21 @@ def _chain(folder, recon_digest="recon"):
 @pytest.fixture
 def never_run(monkeypatch):
     """Stage bodies that fail the test if the lineage check lets them run."""
-    import mogaf.evaluate
+    import mogaf.evaluate.stage
     import mogaf.forecast.stage
     import mogaf.grouping.quality
-    import mogaf.reconstruction_quality
-    import mogaf.refine
+    import mogaf.reconstruction_quality.stage
+    import mogaf.refine.stage
 
     def body(*args, **kwargs):
         raise AssertionError("the stage ran on inputs of another lineage")
 
     for module, name in (
-        (mogaf.refine, "run_refine_stage"),
+        (mogaf.refine.stage, "run_refine_stage"),
         (mogaf.forecast.stage, "run_forecast_group"),
         (mogaf.grouping.quality, "run_grouping_quality_stage"),
-        (mogaf.evaluate, "run_evaluate_stage"),
-        (mogaf.reconstruction_quality, "run_reconstruction_quality_stage"),
+        (mogaf.evaluate.stage, "run_evaluate_stage"),
+        (mogaf.reconstruction_quality.stage, "run_reconstruction_quality_stage"),
     ):
         monkeypatch.setattr(module, name, body)
 

@@ -12,7 +12,8 @@ import pytest
 
 from mogaf.camera import project
 from mogaf.errors import MogafError
-from mogaf.synth import DEFAULT_PARAMS, PRESETS, generate_scene, resolve_params
+from mogaf.synth import DEFAULT_PARAMS, PRESETS, resolve_params
+from mogaf.synth.generate import generate_scene
 from mogaf.synth.world import build_world, check_world
 
 SMALL = {"width": 64, "height": 48, "num_frames": 6, "supersample": 1, "num_track_points": 16}

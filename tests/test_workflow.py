@@ -139,8 +139,8 @@ def test_slurm_profile_dry_runs_the_paper_grid(tmp_path):
 
 def _groups_tree(root: Path, rigid: list[int]) -> None:
     """A results tree up to groups.h5 (placeholder upstream files, real groups.h5)."""
-    from mogaf.grouping import write_groups
     from mogaf.grouping.core import Groups
+    from mogaf.grouping.stage import write_groups
 
     base = root / "results" / "synthetic" / "default"
     (base / "source").mkdir(parents=True)

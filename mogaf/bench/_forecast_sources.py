@@ -52,7 +52,7 @@ def synthetic_scene_sets(preset: str = "default") -> dict[str, np.ndarray]:
     the cache once."""
     import json as _json
 
-    from mogaf.synth import generate_scene  # local: mogaf.synth imports cv2, which only this path needs
+    from mogaf.synth.generate import generate_scene  # local: mogaf.synth imports cv2, which only this path needs
 
     root = cache_dir("bench_forecast", f"synthetic_{preset}")
     if not (root / "mogaf_gt" / "points3d.npy").exists():

@@ -42,12 +42,13 @@ from mogaf.datasets import read_scene
 from mogaf.errors import MogafError
 from mogaf.metrics.image import mpsnr, psnr
 from mogaf.paths import cache_dir
-from mogaf.priors import run_priors_stage
-from mogaf.recon import render_model, run_recon_stage
+from mogaf.priors.stage import run_priors_stage
+from mogaf.recon.stage import run_recon_stage
+from mogaf.rendering import render_model
 from mogaf.representation import load_model
 from mogaf.scene import save_scene
 from mogaf.split import load_frames, load_ground_truth, read_split, split_scene, write_split
-from mogaf.synth import generate_scene
+from mogaf.synth.generate import generate_scene
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 MUJOCO = ("scene3_collision", "scene7_deformation")

@@ -24,41 +24,6 @@ images (renders, PNGs, videos), tracking (tracking metrics), stage
 (run_evaluate_stage).
 """
 
-from ..lazy import lazy_exports
 from .params import DEFAULT_PARAMS
 
-# Entry points load with their module on first use (mogaf.lazy): importing the
-# package for its settings (params) stays light.
-__getattr__, __dir__ = lazy_exports(
-    __name__,
-    {
-        "render_forecast_views": ".images",
-        "FORECAST_STAGE": ".inputs",
-        "forecast_summary": ".inputs",
-        "read_benchmark": ".inputs",
-        "read_forecast": ".inputs",
-        "runtime_section": ".inputs",
-        "_round": ".stage",
-        "run_evaluate_stage": ".stage",
-        "attach_points": ".tracking",
-        "carry_points": ".tracking",
-        "predicted_gt_tracks": ".tracking",
-        "tracking_section": ".tracking",
-    },
-)
-
-__all__ = [
-    "DEFAULT_PARAMS",
-    "FORECAST_STAGE",
-    "_round",
-    "attach_points",
-    "carry_points",
-    "forecast_summary",
-    "predicted_gt_tracks",
-    "read_benchmark",
-    "read_forecast",
-    "render_forecast_views",
-    "run_evaluate_stage",
-    "runtime_section",
-    "tracking_section",
-]
+__all__ = ["DEFAULT_PARAMS"]

@@ -19,7 +19,7 @@ from ..artefact import atomic_folder, write_json
 from ..grouping.quality import read_grouping_quality
 from ..metrics import image_metrics, mean_metrics, metrics_left_out
 from ..metrics.lpips import load_lpips_weights
-from ..reconstruction_quality import read_reconstruction_quality
+from ..reconstruction_quality.stage import read_reconstruction_quality
 from ..report.tables import METHOD_ORDER, method_label
 from ..representation import load_model
 from ..split import load_frames, read_split

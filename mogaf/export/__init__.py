@@ -21,40 +21,6 @@ read_splat_ply), clouds (a Model4D as splats, their render), stage
 (run_export_stage).
 """
 
-from ..lazy import lazy_exports
 from .params import DEFAULT_PARAMS, EXPORT_STAGE, PLY_FOLDER, ply_folder
 
-# Entry points load with their module on first use (mogaf.lazy): importing the
-# package for its settings (params) stays light.
-__getattr__, __dir__ = lazy_exports(
-    __name__,
-    {
-        "splat_colors": ".colors",
-        "splat_sh": ".colors",
-        "SplatCloud": ".ply",
-        "read_splat_ply": ".ply",
-        "splat_property_names": ".ply",
-        "write_splat_ply": ".ply",
-        "model_splats": ".clouds",
-        "posed_splats": ".clouds",
-        "render_splats": ".clouds",
-        "run_export_stage": ".stage",
-    },
-)
-
-__all__ = [
-    "DEFAULT_PARAMS",
-    "EXPORT_STAGE",
-    "PLY_FOLDER",
-    "SplatCloud",
-    "model_splats",
-    "ply_folder",
-    "posed_splats",
-    "read_splat_ply",
-    "render_splats",
-    "run_export_stage",
-    "splat_colors",
-    "splat_property_names",
-    "splat_sh",
-    "write_splat_ply",
-]
+__all__ = ["DEFAULT_PARAMS", "EXPORT_STAGE", "PLY_FOLDER", "ply_folder"]

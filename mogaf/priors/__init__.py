@@ -62,30 +62,6 @@ write_priors, run_priors_stage), file_tracks (tracks read from files),
 depth, flow, instances, masks, shipped, tracks.
 """
 
-from ..lazy import lazy_exports
 from .params import DEFAULT_PARAMS, resolve_params
 
-# Entry points load with their module on first use (mogaf.lazy): importing the
-# package for its settings (params) stays light.
-__getattr__, __dir__ = lazy_exports(
-    __name__,
-    {
-        "PriorsResult": ".stage",
-        "build_priors": ".stage",
-        "run_priors_stage": ".stage",
-        "write_priors": ".stage",
-        "Tracks": ".tracks",
-        "compute_flow_tracks": ".tracks",
-    },
-)
-
-__all__ = [
-    "DEFAULT_PARAMS",
-    "PriorsResult",
-    "Tracks",
-    "build_priors",
-    "compute_flow_tracks",
-    "resolve_params",
-    "run_priors_stage",
-    "write_priors",
-]
+__all__ = ["DEFAULT_PARAMS", "resolve_params"]

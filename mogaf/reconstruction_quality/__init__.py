@@ -21,24 +21,6 @@ Modules: params (DEFAULT_PARAMS), measure (the metrics), stage (the
 artefact).
 """
 
-from ..lazy import lazy_exports
 from .params import DEFAULT_PARAMS, RECONSTRUCTION_QUALITY_STAGE
 
-# Entry points load with their module on first use (mogaf.lazy): importing the
-# package for its settings (params) stays light.
-__getattr__, __dir__ = lazy_exports(
-    __name__,
-    {
-        "measure_reconstruction_quality": ".measure",
-        "read_reconstruction_quality": ".stage",
-        "run_reconstruction_quality_stage": ".stage",
-    },
-)
-
-__all__ = [
-    "DEFAULT_PARAMS",
-    "RECONSTRUCTION_QUALITY_STAGE",
-    "measure_reconstruction_quality",
-    "read_reconstruction_quality",
-    "run_reconstruction_quality_stage",
-]
+__all__ = ["DEFAULT_PARAMS", "RECONSTRUCTION_QUALITY_STAGE"]

@@ -31,31 +31,6 @@ Modules: params (REFINE_DEFAULTS, resolve_params), trainer (RefineTrainer and
 the neighbour pairs), stage (run_refine_stage).
 """
 
-from ..lazy import lazy_exports
 from .params import FIXED_RECON, REFINE_DEFAULTS, resolve_params
 
-# Entry points load with their module on first use (mogaf.lazy): importing the
-# package for its settings (params) stays light.
-__getattr__, __dir__ = lazy_exports(
-    __name__,
-    {
-        "STAGE": ".stage",
-        "run_refine_stage": ".stage",
-        "stage_digest": ".stage",
-        "RefineTrainer": ".trainer",
-        "neighbour_pairs": ".trainer",
-        "rigid_residuals": ".trainer",
-    },
-)
-
-__all__ = [
-    "FIXED_RECON",
-    "REFINE_DEFAULTS",
-    "STAGE",
-    "RefineTrainer",
-    "neighbour_pairs",
-    "resolve_params",
-    "rigid_residuals",
-    "run_refine_stage",
-    "stage_digest",
-]
+__all__ = ["FIXED_RECON", "REFINE_DEFAULTS", "resolve_params"]

@@ -82,7 +82,7 @@ def run_refine_stage(
     """Refine recon.h5 group-wise and write refined.h5 (recon.h5's schema plus groups/).
 
     rigid_h5 may be None only when groups.h5 has no rigid group. checkpoint /
-    stop_at: as in mogaf.recon.run_recon_stage (resumable training state).
+    stop_at: as in mogaf.recon.stage.run_recon_stage (resumable training state).
     """
     t_start = time.perf_counter()
     model = load_model(model_h5, ("recon",))

@@ -10,17 +10,6 @@ their 2D tracks, rigid poses) is written beside the iPhone layout in
 `mogaf_gt/`. See generate.py for the file layout and params.py for the knobs.
 """
 
-from ..lazy import lazy_exports
 from .params import DEFAULT_PARAMS, PRESETS, resolve_params
 
-# Entry points load with their module on first use (mogaf.lazy): importing the
-# package for its settings (params) stays light.
-__getattr__, __dir__ = lazy_exports(
-    __name__,
-    {
-        "frame_name": ".generate",
-        "generate_scene": ".generate",
-    },
-)
-
-__all__ = ["DEFAULT_PARAMS", "PRESETS", "frame_name", "generate_scene", "resolve_params"]
+__all__ = ["DEFAULT_PARAMS", "PRESETS", "resolve_params"]

@@ -321,7 +321,7 @@ def refine_inputs(wildcards):
         "scene": scene_h5(wildcards),
         "split": split_h5(wildcards),
     }
-    from mogaf.grouping import has_rigid_groups
+    from mogaf.grouping.stage import has_rigid_groups
 
     if has_rigid_groups(inputs["groups"]):
         inputs["rigid"] = stage_path("rigid_init", wildcards)
@@ -378,7 +378,7 @@ def _benchmarks_of(wildcards):
     model_stage = mcfg.forecast_input_stage(cfg)
     if model_stage == "refine":
         stages.append("refine")
-        from mogaf.grouping import has_rigid_groups
+        from mogaf.grouping.stage import has_rigid_groups
 
         if has_rigid_groups(groups_h5(wildcards)):
             stages.append("rigid_init")
