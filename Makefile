@@ -8,7 +8,7 @@ CORES ?= 2
 STAMP := $(VENV)/.installed-$(shell sha1sum pyproject.toml | cut -c1-12)
 LPIPS_CACHE := .cache/mogaf/lpips/alexnet_lpips.npz
 
-.PHONY: demo report test setup lint lint-check format clean-results
+.PHONY: demo report test setup lint lint-check format clean-results cluster-test
 demo: setup
 	$(BIN)/snakemake --cores $(CORES) demo --configfile config/config.yaml config/demo.yaml
 
@@ -59,6 +59,17 @@ $(LPIPS_CACHE): | $(STAMP)
 
 lint: setup
 	$(BIN)/snakemake --lint
+
+# The SLURM profile on a real (one-node, localhost) cluster: scripts/slurm-localhost.sh
+# installs and starts it (root, apt-get), scripts/cluster_check.py runs the suite's
+# tiny demo through profiles/slurm and checks it against a local run. The cluster
+# goes down again unless CLUSTER_KEEP=1.
+CLUSTER_WORK ?= /tmp/mogaf-cluster-test
+cluster-test: setup
+	@start=$$(date +%s); scripts/slurm-localhost.sh up \
+		&& $(BIN)/python scripts/cluster_check.py --work $(CLUSTER_WORK); rc=$$?; \
+	[ -n "$(CLUSTER_KEEP)" ] || scripts/slurm-localhost.sh down; \
+	echo "make cluster-test: $$(( $$(date +%s) - start )) s in all"; exit $$rc
 
 clean-results:
 	rm -rf results/* .snakemake

@@ -49,7 +49,7 @@ def test_documented_commands_exist():
             assert name in benches, f"{page.name}: no benchmark {name}"
         for name in re.findall(r"\bsweep_(\w+)", text):
             assert f"sweep_{name}" in sweeps, f"{page.name}: no target sweep_{name}"
-        for target in re.findall(r"`make (\w+)", text):
+        for target in re.findall(r"`make ([\w-]+)", text):
             assert re.search(rf"^{target}:", makefile, re.M), f"{page.name}: no make target {target}"
 
 

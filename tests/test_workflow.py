@@ -131,10 +131,22 @@ def test_slurm_profile_dry_runs_the_paper_grid(tmp_path):
     assert counts["evaluate"] == 102
     recon = job_blocks(res.stdout, "recon")
     assert len(recon) == 49
-    assert all("gpu=1" in b and "mem_mb=32000" in b and "runtime=240" in b and "cpus_per_task=4" in b for b in recon)
+    # the profile's sizes (first attempt); the GPU comes from the rule, as device=cuda (the profile's)
+    assert all("gpu=1" in b and "mem_mb=4000" in b and "runtime=15" in b for b in recon)
     group = job_blocks(res.stdout, "group")
-    assert len(group) == 54 and all("gpu=1" not in b and "mem_mb=16000" in b for b in group)
+    assert len(group) == 54 and all("gpu=1" not in b and "mem_mb=1500" in b for b in group)
     assert len(job_blocks(res.stdout, "tables")) == 1
+
+
+def test_slurm_profile_asks_for_no_gpu_with_device_cpu(tmp_path):
+    """`--config device=cpu` (replacing the profile's device=cuda) drops every GPU request."""
+    pytest.importorskip("snakemake_executor_plugin_slurm")
+    profile = ["--profile", str(REPO / "profiles" / "slurm"), "--config", "device=cpu"]
+    res = snakemake(["-n", "demo", *profile], tmp_path, configfiles=(CONFIG, str(REPO / ".test" / "config.yaml")))
+    assert res.returncode == 0, res.stderr[-3000:]
+    for rule in ("recon", "refine"):
+        (block,) = job_blocks(res.stdout, rule)
+        assert "gpu=0" in block and "mem_mb=4000" in block, block
 
 
 def _groups_tree(root: Path, rigid: list[int]) -> None:
