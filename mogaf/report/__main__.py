@@ -48,20 +48,15 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "results":
             return _results(args)
         block = glance(args.metrics)
-        if args.write:
-            changed = write_section(args.write, block)
-            print(f"{args.write}: glance section {'rewritten' if changed else 'already up to date'}")
-        elif args.check:
-            if not section_matches(args.check, block):
-                print(
-                    f"{args.check}: glance section differs from {', '.join(args.metrics)}; "
-                    f"rewrite it with: python -m mogaf.report glance {' '.join(args.metrics)} --write {args.check}",
-                    file=sys.stderr,
-                )
-                return 1
-            print(f"{args.check}: glance section up to date")
-        else:
-            sys.stdout.write(block)
+        return _write_or_check(
+            args,
+            block,
+            write_section,
+            section_matches,
+            "glance section ",
+            f"{', '.join(args.metrics)}",
+            f"python -m mogaf.report glance {' '.join(args.metrics)} --write {args.check}",
+        )
     except MogafError as exc:
         print(f"mogaf.report: error: {exc}", file=sys.stderr)
         return 1
@@ -71,20 +66,23 @@ def main(argv: list[str] | None = None) -> int:
 def _results(args: argparse.Namespace) -> int:
     target = args.write or args.check or "docs/results.md"
     page = results_page(target, args.bench, args.metrics)
+    return _write_or_check(
+        args, page, write_page, page_matches, "", f"what {args.bench} gives", command(target, args.bench, args.metrics)
+    )
+
+
+def _write_or_check(args, text, write, matches, what: str, sources: str, rewrite: str) -> int:
+    """--write FILE, --check FILE (exit 1 naming the command that rewrites it), or print `text`."""
     if args.write:
-        changed = write_page(args.write, page)
-        print(f"{args.write}: {'rewritten' if changed else 'already up to date'}")
+        changed = write(args.write, text)
+        print(f"{args.write}: {what}{'rewritten' if changed else 'already up to date'}")
     elif args.check:
-        if not page_matches(args.check, page):
-            print(
-                f"{args.check}: differs from what {args.bench} gives; rewrite it with: "
-                f"{command(args.check, args.bench, args.metrics)}",
-                file=sys.stderr,
-            )
+        if not matches(args.check, text):
+            print(f"{args.check}: {what}differs from {sources}; rewrite it with: {rewrite}", file=sys.stderr)
             return 1
-        print(f"{args.check}: up to date")
+        print(f"{args.check}: {what}up to date")
     else:
-        sys.stdout.write(page)
+        sys.stdout.write(text)
     return 0
 
 
