@@ -98,13 +98,24 @@ class Scene:
 
     def validate(self, source: str | os.PathLike) -> None:
         """Raise a one-line MogafError naming `source` if the scene is inconsistent."""
+        problem = (
+            self._layout_problem()
+            or self._values_problem()
+            or self._cameras_problem()
+            or self._optional_arrays_problem()
+        )
+        if problem:
+            raise input_error(source, problem)
+
+    def _layout_problem(self) -> str | None:
+        """The layout, and the type and shape of every per-frame array."""
         F = self.num_frames
         if self.layout not in LAYOUTS:
-            raise input_error(source, f"unknown layout '{self.layout}'")
+            return f"unknown layout '{self.layout}'"
         if F == 0:
-            raise input_error(source, "scene has no frames")
+            return "scene has no frames"
         if self.images.ndim != 4 or self.images.shape[-1] != 3 or self.images.dtype != np.uint8:
-            raise input_error(source, f"images must be (F, H, W, 3) uint8, got {self.images.shape} {self.images.dtype}")
+            return f"images must be (F, H, W, 3) uint8, got {self.images.shape} {self.images.dtype}"
         expect = {
             "K": (F, 3, 3),
             "w2c": (F, 4, 4),
@@ -116,35 +127,48 @@ class Scene:
         for key, shape in expect.items():
             arr = getattr(self, key)
             if arr.shape != shape:
-                raise input_error(source, f"{key} has shape {arr.shape}, expected {shape} (one per frame)")
+                return f"{key} has shape {arr.shape}, expected {shape} (one per frame)"
         if len(self.frame_names) != F:
-            raise input_error(source, f"{len(self.frame_names)} frame names for {F} frames")
+            return f"{len(self.frame_names)} frame names for {F} frames"
+        return None
+
+    def _values_problem(self) -> str | None:
+        """Finite cameras and times, times and time indices in range, positive focal lengths."""
         for key in ("K", "w2c", "time"):
             if not np.all(np.isfinite(getattr(self, key))):
-                raise input_error(source, f"{key} has non-finite values")
+                return f"{key} has non-finite values"
         if np.any(self.time < 0) or np.any(self.time > 1):
-            raise input_error(source, "frame times must lie in [0, 1]")
+            return "frame times must lie in [0, 1]"
         if self.num_timesteps < 1 or np.any(self.time_index < 0) or np.any(self.time_index >= self.num_timesteps):
-            raise input_error(source, f"time_index must lie in [0, {self.num_timesteps})")
+            return f"time_index must lie in [0, {self.num_timesteps})"
         if np.any(self.K[:, 0, 0] <= 0) or np.any(self.K[:, 1, 1] <= 0):
-            raise input_error(source, "focal lengths must be positive")
-        for f in range(F):
+            return "focal lengths must be positive"
+        return None
+
+    def _cameras_problem(self) -> str | None:
+        """Rigid camera poses, no camera far off the others."""
+        for f in range(self.num_frames):
             problem = pose_problem(self.w2c[f])
             if problem:
-                raise input_error(source, f"frame {self.frame_names[f]}: {problem}")
+                return f"frame {self.frame_names[f]}: {problem}"
         outlier = camera_centre_problem(self.w2c)
         if outlier is not None:
-            raise input_error(source, f"frame {self.frame_names[outlier[0]]}: {outlier[1]}")
-        H, W = self.height, self.width
+            return f"frame {self.frame_names[outlier[0]]}: {outlier[1]}"
+        return None
+
+    def _optional_arrays_problem(self) -> str | None:
+        """The optional per-frame arrays' shapes, and finite, non-negative depth."""
+        F, H, W = self.num_frames, self.height, self.width
         for key in OPTIONAL_FRAME_ARRAYS:
             arr = getattr(self, key)
             if arr is not None and arr.shape[:3] != (F, H, W):
-                raise input_error(source, f"{key} has shape {arr.shape}, expected ({F}, {H}, {W})")
+                return f"{key} has shape {arr.shape}, expected ({F}, {H}, {W})"
         if self.depth is not None:
             if not np.all(np.isfinite(self.depth)):
-                raise input_error(source, "depth has NaN or infinite values")
+                return "depth has NaN or infinite values"
             if np.any(self.depth < 0):
-                raise input_error(source, "depth has negative values")
+                return "depth has negative values"
+        return None
 
 
 def _scene_payload(scene: Scene) -> tuple[dict[str, Any], dict[str, Any]]:

@@ -243,8 +243,8 @@ SECTIONS: dict[str, tuple[str, str]] = {
     "refine": ("mogaf.refine.params:RefineSettings", "refine"),
     "forecast.mogaf": ("mogaf.forecast.params:MogafSettings", "forecast_mogaf"),
     "forecast.mogaf.structured": ("mogaf.forecast.params:StructuredSettings", ""),  # nested in forecast_mogaf
-    "forecast.gcn": ("mogaf.forecast.params:GCNSettings", "forecast_gcn"),
-    "forecast.ode": ("mogaf.forecast.params:ODESettings", "forecast_ode"),
+    "forecast.gcn": ("mogaf.forecast.baseline_params:GCNSettings", "forecast_gcn"),
+    "forecast.ode": ("mogaf.forecast.baseline_params:ODESettings", "forecast_ode"),
     "evaluate": ("mogaf.evaluate.params:EvaluateSettings", "evaluate"),
     "export": ("mogaf.export.params:ExportSettings", "export"),
     "grouping_quality": ("mogaf.grouping.params:GroupingQualitySettings", "grouping_quality"),

@@ -28,7 +28,7 @@ from mogaf.metrics import (
     lpips_map,
     mlpips,
 )
-from mogaf.metrics.lpips import SDIST_NAME
+from mogaf.metrics.lpips_weights import SDIST_NAME
 from support.paths import shared_path
 
 # ----------------------------------------------------------------- no weights needed

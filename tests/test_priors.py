@@ -133,42 +133,64 @@ def write_inputs(tmp_path, scene: Scene) -> tuple[str, str]:
     return str(scene_h5), str(split_h5)
 
 
+def _poison_disparity(fh, rng, bad: np.ndarray) -> None:
+    """Shipped disparity rows of the frames in `bad`."""
+    if "shipped/disparity" not in fh:
+        return
+    ds = fh["shipped/disparity/values"]
+    for i, r in enumerate(fh["shipped/disparity/frame"][()]):
+        if r in bad:
+            ds[i] = rng.uniform(0.1, 50.0, ds.shape[1:])
+
+
+def _poison_shipped_tracks(fh, rng) -> None:
+    """Shipped 2D tracks: future targets, and every target of a future query."""
+    if "shipped/tracks_2d" not in fh:
+        return
+    g = fh["shipped/tracks_2d"]
+    ds, off = g["values"], g["offsets"][()]
+    ds[:, T_OBS:] = rng.uniform(-5, 60, ds[:, T_OBS:].shape)
+    for q, qt in enumerate(g["query_time_index"][()]):
+        if qt >= T_OBS:
+            ds[off[q] : off[q + 1]] = rng.uniform(-5, 60, ds[off[q] : off[q + 1]].shape)
+
+
+def _poison_frames(fh, rng, bad: np.ndarray) -> None:
+    """Images, depth and instance masks of the frames in `bad`."""
+    for key in ("frames/images", "frames/depth", "frames/instance_mask"):
+        if key not in fh:
+            continue
+        ds = fh[key]
+        for r in bad:
+            if ds.dtype == np.uint8:
+                ds[r] = rng.integers(0, 256, ds.shape[1:], dtype=np.uint8)
+            elif ds.dtype.kind == "i":
+                ds[r] = rng.integers(0, 3, ds.shape[1:])
+            else:
+                ds[r] = rng.uniform(0.1, 50.0, ds.shape[1:])
+
+
+def _poison_ground_truth(fh, rng) -> None:
+    """Future steps of the ground-truth tracks and visibility."""
+    for key in ("ground_truth/tracks2d",):
+        if key in fh:
+            ds = fh[key]
+            ds[:, T_OBS:] = rng.uniform(0, 60, ds[:, T_OBS:].shape)
+    for key in ("ground_truth/visible",):
+        if key in fh:
+            ds = fh[key]
+            ds[:, T_OBS:] = rng.integers(0, 2, ds[:, T_OBS:].shape)
+
+
 def poison_future(scene_h5: str, t_idx: np.ndarray, train_code_rows: np.ndarray) -> None:
     """Overwrite everything a stage must not see: future frames, future GT/shipped steps, held-out frames."""
     rng = np.random.default_rng(99)
     bad = np.flatnonzero((t_idx >= T_OBS) | ~train_code_rows)
     with h5py.File(scene_h5, "r+", locking=False) as fh:
-        if "shipped/disparity" in fh:
-            ds = fh["shipped/disparity/values"]
-            for i, r in enumerate(fh["shipped/disparity/frame"][()]):
-                if r in bad:
-                    ds[i] = rng.uniform(0.1, 50.0, ds.shape[1:])
-        if "shipped/tracks_2d" in fh:
-            g = fh["shipped/tracks_2d"]
-            ds, off = g["values"], g["offsets"][()]
-            ds[:, T_OBS:] = rng.uniform(-5, 60, ds[:, T_OBS:].shape)
-            for q, qt in enumerate(g["query_time_index"][()]):
-                if qt >= T_OBS:
-                    ds[off[q] : off[q + 1]] = rng.uniform(-5, 60, ds[off[q] : off[q + 1]].shape)
-        for key in ("frames/images", "frames/depth", "frames/instance_mask"):
-            if key not in fh:
-                continue
-            ds = fh[key]
-            for r in bad:
-                if ds.dtype == np.uint8:
-                    ds[r] = rng.integers(0, 256, ds.shape[1:], dtype=np.uint8)
-                elif ds.dtype.kind == "i":
-                    ds[r] = rng.integers(0, 3, ds.shape[1:])
-                else:
-                    ds[r] = rng.uniform(0.1, 50.0, ds.shape[1:])
-        for key in ("ground_truth/tracks2d",):
-            if key in fh:
-                ds = fh[key]
-                ds[:, T_OBS:] = rng.uniform(0, 60, ds[:, T_OBS:].shape)
-        for key in ("ground_truth/visible",):
-            if key in fh:
-                ds = fh[key]
-                ds[:, T_OBS:] = rng.integers(0, 2, ds[:, T_OBS:].shape)
+        _poison_disparity(fh, rng, bad)
+        _poison_shipped_tracks(fh, rng)
+        _poison_frames(fh, rng, bad)
+        _poison_ground_truth(fh, rng)
 
 
 def assert_same(a, b) -> None:

@@ -20,9 +20,9 @@ from mogaf.forecast import defaults
 from mogaf.report import NO_RESULT, load_metrics
 from mogaf.report.glance import END, START, glance_table, replace_section, write_section
 from mogaf.report.runtime import collect_points, pareto_front, write_runtime_report
+from mogaf.report.table_format import MISSING
 from mogaf.report.tables import (
     METHOD_LABELS,
-    MISSING,
     TABLE_NAMES,
     build_tables,
     dnerf_table,
@@ -694,7 +694,7 @@ def test_tables_say_how_many_optimiser_steps_each_group_trained(tmp_path):
 
 
 def test_html_table_escapes_and_keeps_every_cell():
-    from mogaf.report.tables import Table
+    from mogaf.report.table_format import Table
 
     t = Table(title="A <b> & c", columns=["scene", "PSNR ↑"], rows=[["x<y", "20.1"], ["z", "–"]], keys=1)
     page = t.html()

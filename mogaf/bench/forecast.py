@@ -179,7 +179,7 @@ def run_benchmark(
     return rows
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m mogaf.bench forecast", description=__doc__.split("\n\n")[0])
     ap.add_argument(
         "--sets", default=",".join(TRAJECTORY_SETS), help="built-in procedural sets (comma list, or 'none')"
@@ -225,68 +225,136 @@ def main(argv: Sequence[str] | None = None) -> int:
         action="store_true",
         help="with --from-json: also the mean EPE and win counts per method, and the EPE at the first, middle and last step",
     )
-    args = ap.parse_args(list(argv) if argv is not None else None)
+    return ap
+
+
+def _comma_list(text: str) -> list[str]:
+    """The non-empty, stripped items of a comma-separated option."""
+    return [x.strip() for x in text.split(",") if x.strip()]
+
+
+def _parse_methods(text: str) -> list[str]:
+    methods = _comma_list(text)
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        raise MogafError(f"bench forecast: unknown method(s) {', '.join(bad)} (choose from {', '.join(METHODS)})")
+    return methods
+
+
+def _parse_overrides(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise MogafError(f"bench forecast: --params is not JSON ({exc})") from None
+
+
+def _method_params(
+    methods: Sequence[str], budget: str, threads: int, overrides: Mapping[str, Any]
+) -> tuple[dict[str, dict[str, Any]], dict[str, dict[str, Any]]]:
+    """(each method's parameters, the reduced-budget ones of those run on --budget cpu, without num_threads)."""
+    params: dict[str, dict[str, Any]] = {}
+    reduced: dict[str, dict[str, Any]] = {}
+    for m in methods:
+        p: dict[str, Any] = {}
+        shortened = budget == "cpu" and m in REDUCED
+        if shortened:
+            p.update(REDUCED[m])
+        if m in TORCH_METHODS:
+            p["num_threads"] = threads
+        p.update(overrides.get(m, {}))
+        params[m] = p
+        if shortened:
+            reduced[m] = {k: v for k, v in p.items() if k != "num_threads"}
+    return params, reduced
+
+
+def _builtin_sources(sets: str, gaussians: int, frames: int) -> dict[str, Any]:
+    """--sets: the named procedural sets, each made when it is run."""
+    sources: dict[str, Any] = {}
+    if sets == "none":
+        return sources
+    for name in _comma_list(sets):
+        if name not in TRAJECTORY_SETS:
+            raise MogafError(f"bench forecast: unknown set '{name}' (choose from {', '.join(TRAJECTORY_SETS)})")
+        fn = TRAJECTORY_SETS[name]
+        sources[name] = lambda fn=fn: fn(gaussians, frames)
+    return sources
+
+
+def _npz_sources(paths: Sequence[str]) -> dict[str, Any]:
+    """--npz: every array of every file, one set each."""
+    sources: dict[str, Any] = {}
+    for path in paths:
+        try:
+            with np.load(path) as data:
+                for key in data.files:
+                    sources[f"{key}"] = np.array(data[key])
+        except OSError as exc:
+            raise MogafError(f"{path}: cannot read ({exc})") from None
+    return sources
+
+
+def _select_sources(args: argparse.Namespace, patterns: Sequence[str]) -> dict[str, Any]:
+    """The trajectory sets of --sets, --npz and --source, those --only keeps."""
+    sources = _builtin_sources(args.sets, args.gaussians, args.frames)
+    sources.update(_npz_sources(args.npz))
+    for spec in args.source:
+        sources.update(_load_source(spec))
+    if patterns:
+        sources = {k: v for k, v in sources.items() if set_selected(k, patterns)}
+    if not sources:
+        raise MogafError("bench forecast: no trajectory sets selected")
+    return sources
+
+
+def _done_rows(args: argparse.Namespace, header: dict[str, Any]) -> list[dict[str, Any]]:
+    """The rows --resume keeps (may widen header["params"] by the file's other methods)."""
+    if args.resume:
+        if not args.json:
+            raise MogafError("bench forecast: --resume needs --json (the file the rows are kept in)")
+        return _resumable_rows(Path(args.json), header)
+    if args.json and Path(args.json).exists():
+        # rows of a paper-budget run cost hours: never overwrite them by accident
+        raise MogafError(f"{args.json}: exists; pass --resume to go on with it, or remove it")
+    return []
+
+
+def _progress_writer(
+    json_path: str | None, header: Mapping[str, Any], kept: list[dict[str, Any]]
+) -> Callable[[dict[str, Any]], None]:
+    """Reports each scored row on stderr; with --json also keeps it and rewrites the file."""
+
+    def progress(row: dict[str, Any]) -> None:
+        if json_path:
+            kept.append(row)
+            _write_json(Path(json_path), {**header, "rows": kept})
+        print(
+            f"  {row['set']} ratio={row['ratio']:.2f} {row['method']}: EPE {row['epe']:.4f} "
+            f"rot {row['rot_err_deg']:.2f} deg, train {row['train_s']:.1f} s",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    return progress
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(list(argv) if argv is not None else None)
 
     try:
-        patterns = [x.strip() for x in args.only.split(",") if x.strip()]
+        patterns = _comma_list(args.only)
         if args.from_json:
             report = markdown_report if args.summary else comparison_table
             print(report(args.from_json, patterns))
             return 0
-        methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-        bad = [m for m in methods if m not in METHODS]
-        if bad:
-            raise MogafError(f"bench forecast: unknown method(s) {', '.join(bad)} (choose from {', '.join(METHODS)})")
+        methods = _parse_methods(args.methods)
         ratios = [float(r) for r in args.ratios.split(",")]
-        try:
-            overrides = json.loads(args.params)
-        except json.JSONDecodeError as exc:
-            raise MogafError(f"bench forecast: --params is not JSON ({exc})") from None
-        params: dict[str, dict[str, Any]] = {}
-        reduced: dict[str, dict[str, Any]] = {}
-        for m in methods:
-            p: dict[str, Any] = {}
-            if args.budget == "cpu" and m in REDUCED:
-                p.update(REDUCED[m])
-                reduced[m] = {}
-            if m in TORCH_METHODS:
-                p["num_threads"] = args.threads
-            p.update(overrides.get(m, {}))
-            params[m] = p
-            if m in reduced:
-                reduced[m] = {k: v for k, v in p.items() if k != "num_threads"}
-
-        sources: dict[str, Any] = {}
-        if args.sets != "none":
-            for name in [s.strip() for s in args.sets.split(",") if s.strip()]:
-                if name not in TRAJECTORY_SETS:
-                    raise MogafError(f"bench forecast: unknown set '{name}' (choose from {', '.join(TRAJECTORY_SETS)})")
-                fn = TRAJECTORY_SETS[name]
-                sources[name] = lambda fn=fn: fn(args.gaussians, args.frames)
-        for path in args.npz:
-            try:
-                with np.load(path) as data:
-                    for key in data.files:
-                        sources[f"{key}"] = np.array(data[key])
-            except OSError as exc:
-                raise MogafError(f"{path}: cannot read ({exc})") from None
-        for spec in args.source:
-            sources.update(_load_source(spec))
-        if patterns:
-            sources = {k: v for k, v in sources.items() if set_selected(k, patterns)}
-        if not sources:
-            raise MogafError("bench forecast: no trajectory sets selected")
+        params, reduced = _method_params(methods, args.budget, args.threads, _parse_overrides(args.params))
+        sources = _select_sources(args, patterns)
         # the device the rows are computed on ("auto" resolved: a CPU-only machine's rows are CPU rows)
         device = resolve_device(args.device, "bench forecast").type
         header = {"budget": args.budget, "params": params, "seed": args.seed, "device": device}
-        done: list[dict[str, Any]] = []
-        if args.resume:  # may widen header["params"] by the file's other methods
-            if not args.json:
-                raise MogafError("bench forecast: --resume needs --json (the file the rows are kept in)")
-            done = _resumable_rows(Path(args.json), header)
-        elif args.json and Path(args.json).exists():
-            # rows of a paper-budget run cost hours: never overwrite them by accident
-            raise MogafError(f"{args.json}: exists; pass --resume to go on with it, or remove it")
+        done = _done_rows(args, header)
 
         print(
             f"forecast benchmark: budget={args.budget}, threads={args.threads}, seed={args.seed}, device={device}",
@@ -294,18 +362,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
 
         kept = list(done)
-
-        def progress(row: dict[str, Any]) -> None:
-            if args.json:
-                kept.append(row)
-                _write_json(Path(args.json), {**header, "rows": kept})
-            print(
-                f"  {row['set']} ratio={row['ratio']:.2f} {row['method']}: EPE {row['epe']:.4f} "
-                f"rot {row['rot_err_deg']:.2f} deg, train {row['train_s']:.1f} s",
-                file=sys.stderr,
-                flush=True,
-            )
-
+        progress = _progress_writer(args.json, header, kept)
         rows = run_benchmark(sources, ratios, methods, params, args.seed, progress, done, device)
     except MogafError as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -256,24 +256,8 @@ def _class_mapping(scene_dir: Path, frames: list[_Frame]) -> tuple[dict[int, str
     return None, None
 
 
-def read_dnerf_scene(
-    scene_dir: str | os.PathLike, *, dataset: str, scene: str, options: Mapping | None = None
-) -> Scene:
-    scene_dir = Path(scene_dir)
-    options = dict(options or {})
-    where = f"dataset '{dataset}' options"
-    if not scene_dir.is_dir():
-        raise MogafError(missing_message(scene_dir, dataset, scene))
-    s = option_int(options, "downscale", 1, hi=64, where=where)
-    stride = option_int(options, "frame_stride", 1, hi=1 << 20, where=where)
-    workers = option_int(options, "workers", min(8, os.cpu_count() or 1), hi=64, where=where)
-    background = option_background(options, where=where)
-    rules = rigidity_rules(options, where=where)
-    T_opt = options.get("num_timesteps")
-    if T_opt is not None:
-        T_opt = option_int(options, "num_timesteps", 1, lo=1, hi=1 << 24, where=where)
-    use_masks = option_bool(options, "masks", True, where=where)
-
+def _read_all_frames(scene_dir: Path, scene: str) -> list[_Frame]:
+    """Every frame of every split's json (train then val then test), each listed once."""
     if not (scene_dir / "transforms_train.json").exists():
         raise input_error(scene_dir / "transforms_train.json", f"missing (the D-NeRF train cameras of scene '{scene}')")
     all_frames: list[_Frame] = []
@@ -285,7 +269,145 @@ def read_dnerf_scene(
         if fr.name in seen:
             raise input_error(fr.json_path, f"frame {fr.index} ({fr.file_path}) is listed twice")
         seen[fr.name] = fr
+    return all_frames
 
+
+def _source_size(first: _Frame, s: int) -> tuple[int, int]:
+    """(W, H) of the first image (header only when it is a PNG), checked against the downscale factor."""
+    header = png_size(first.image)
+    if header is None:
+        probe = read_image(first.image)
+        W0, H0 = probe.shape[1], probe.shape[0]
+    else:
+        W0, H0 = header[0], header[1]
+    if s > W0 or s > H0:
+        raise input_error(first.image, f"image {W0}x{H0} is smaller than the downscale factor {s}")
+    return W0, H0
+
+
+class _Decoded:
+    """The scene's images, alpha and masks at the output size, filled frame by frame by `load`."""
+
+    def __init__(
+        self,
+        frames: list[_Frame],
+        source_size: tuple[int, int],
+        downscale: int,
+        background: np.ndarray,
+        has_masks: bool,
+        mapping: dict[int, str] | None,
+        mapping_path: Path | None,
+    ) -> None:
+        F, s = len(frames), downscale
+        h, w = source_size[1] // s, source_size[0] // s
+        self.frames, self.source_size, self.downscale, self.background = frames, source_size, s, background
+        self.mapping, self.mapping_path = mapping, mapping_path
+        # An empty mapping lists no id: every non-zero mask id is then unknown (not "anything goes").
+        self.known_ids = np.array(sorted(mapping), dtype=np.int64) if mapping is not None else None
+        self.images = np.empty((F, h, w, 3), np.uint8)
+        self.alpha = np.full((F, h, w), 255, np.uint8)
+        self.has_alpha = np.zeros(F, bool)
+        self.masks = np.zeros((F, h, w), np.int32) if has_masks else None
+        self.ids_seen = np.zeros(MAX_MASK_ID, bool) if has_masks else None
+
+    def load(self, f: int) -> None:
+        fr = self.frames[f]
+        try:
+            self._load_image(f, fr)
+            if self.masks is not None:
+                self._load_mask(f, fr)
+        except cv2.error as exc:
+            raise input_error(
+                fr.image, f"image processing failed ({str(exc).splitlines()[0] if str(exc) else 'cv2 error'})"
+            ) from None
+
+    def _load_image(self, f: int, fr: _Frame) -> None:
+        s = self.downscale
+        img = read_image(fr.image, expect_size=self.source_size)
+        if img.ndim == 2:
+            img = np.repeat(img[..., None], 3, axis=2)
+        if img.shape[2] == 4:
+            self.has_alpha[f] = True
+            self.images[f], self.alpha[f] = composite_downscale(img, self.background, s)
+        else:
+            self.images[f] = downscale_area(img[..., :3], s)
+
+    def _load_mask(self, f: int, fr: _Frame) -> None:
+        if not fr.mask.exists():
+            raise input_error(fr.mask, f"missing object-id mask for frame {fr.name} (other frames have masks)")
+        m = read_label_image(fr.mask, expect_size=self.source_size)
+        present = np.flatnonzero(np.bincount(m.ravel()))
+        if self.known_ids is not None:
+            self._check_mask_ids(fr, present)
+        self.ids_seen[present] = True
+        self.masks[f] = downscale_labels(m, self.downscale, present)
+
+    def _check_mask_ids(self, fr: _Frame, present: np.ndarray) -> None:
+        """Every object id of the mask is listed in the class mapping."""
+        unknown = np.setdiff1d(present, self.known_ids)
+        objects = unknown[unknown != 0]
+        if not self.mapping and objects.size:
+            raise input_error(
+                self.mapping_path,
+                f"lists no class, but the mask {fr.mask} has object id "
+                f"{int(objects[0])}; list every id of the masks (0 = background)",
+            )
+        if self.mapping and unknown.size:
+            raise input_error(fr.mask, f"mask has id {int(unknown[0])} that {self.mapping_path.name} does not list")
+
+    def load_all(self, workers: int) -> None:
+        F = len(self.frames)
+        if workers <= 1 or F <= 1:
+            for f in range(F):
+                self.load(f)
+        else:
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                # list() re-raises the first failure (in frame order).
+                list(pool.map(self.load, range(F)))
+
+    def check_alpha(self) -> None:
+        """Refuse a mix of frames with and without alpha."""
+        frames, has_alpha = self.frames, self.has_alpha
+        if has_alpha.any() and not has_alpha.all():
+            # its background cannot be replaced like the others': refuse rather than mix two backgrounds
+            rgb, rgba = frames[int(np.argmin(has_alpha))], frames[int(np.argmax(has_alpha))]
+            raise input_error(
+                rgb.image,
+                f"image has no alpha channel, but other frames of the scene do (e.g. {rgba.file_path}): "
+                "give every frame an alpha channel or none, so that one background applies to all",
+            )
+
+
+def _instances(mapping: dict[int, str] | None, ids_seen: np.ndarray, rules: list) -> Instances:
+    """The mask's instances: those of the class mapping, else every id seen in a mask."""
+    if mapping is None:
+        ids = np.flatnonzero(ids_seen)
+        mapping = {int(i): f"id{int(i)}" for i in ids}
+        mapping[0] = "background"
+    inst_ids = np.array(sorted(k for k in mapping if k != 0), dtype=np.int64)
+    names = [mapping[int(i)] for i in inst_ids]
+    return Instances(ids=inst_ids, names=names, rigid=np.array([rigidity_of(n, rules) for n in names], dtype=np.int8))
+
+
+def read_dnerf_scene(
+    scene_dir: str | os.PathLike, *, dataset: str, scene: str, options: Mapping | None = None
+) -> Scene:
+    scene_dir = Path(scene_dir)
+    options = dict(options or {})
+    if not scene_dir.is_dir():
+        raise MogafError(missing_message(scene_dir, dataset, scene))
+    where = f"dataset '{dataset}' options"
+    s = option_int(options, "downscale", 1, hi=64, where=where)
+    stride = option_int(options, "frame_stride", 1, hi=1 << 20, where=where)
+    workers = option_int(options, "workers", min(8, os.cpu_count() or 1), hi=64, where=where)
+    background = option_background(options, where=where)
+    rules = rigidity_rules(options, where=where)
+    T_opt = options.get("num_timesteps")
+    if T_opt is not None:
+        T_opt = option_int(options, "num_timesteps", 1, lo=1, hi=1 << 24, where=where)
+    use_masks = option_bool(options, "masks", True, where=where)
+
+    all_frames = _read_all_frames(scene_dir, scene)
     # Time grid over every frame of every split (before any stride).
     idx_all, T, snap_err = time_grid(
         np.array([fr.time for fr in all_frames]), scene_dir / "transforms_train.json", T_opt
@@ -297,106 +419,29 @@ def read_dnerf_scene(
     for split in SPLITS:
         frames.extend([fr for fr in all_frames if fr.split == split][::stride])
 
-    # Source size from the first image (header only when it is a PNG).
-    first = frames[0]
-    header = png_size(first.image)
-    if header is None:
-        probe = read_image(first.image)
-        W0, H0 = probe.shape[1], probe.shape[0]
-    else:
-        W0, H0 = header[0], header[1]
-    if s > W0 or s > H0:
-        raise input_error(first.image, f"image {W0}x{H0} is smaller than the downscale factor {s}")
-    h, w = H0 // s, W0 // s
+    W0, H0 = _source_size(frames[0], s)
     K_all = np.stack([scale_intrinsics(_intrinsics(fr, W0, H0), 1.0 / s) for fr in frames])
 
     has_masks = use_masks and any(fr.mask.parent.is_dir() for fr in frames)
     mapping, mapping_path = _class_mapping(scene_dir, frames) if has_masks else (None, None)
-    # An empty mapping lists no id: every non-zero mask id is then unknown (not "anything goes").
-    known_ids = np.array(sorted(mapping), dtype=np.int64) if mapping is not None else None
 
     F = len(frames)
-    images = np.empty((F, h, w, 3), np.uint8)
-    alpha = np.full((F, h, w), 255, np.uint8)
-    has_alpha = np.zeros(F, bool)
-    masks = np.zeros((F, h, w), np.int32) if has_masks else None
-    ids_seen = np.zeros(MAX_MASK_ID, bool) if has_masks else None
-
-    def load(f: int) -> None:
-        fr = frames[f]
-        try:
-            img = read_image(fr.image, expect_size=(W0, H0))
-            if img.ndim == 2:
-                img = np.repeat(img[..., None], 3, axis=2)
-            if img.shape[2] == 4:
-                has_alpha[f] = True
-                images[f], alpha[f] = composite_downscale(img, background, s)
-            else:
-                images[f] = downscale_area(img[..., :3], s)
-            if masks is not None:
-                if not fr.mask.exists():
-                    raise input_error(fr.mask, f"missing object-id mask for frame {fr.name} (other frames have masks)")
-                m = read_label_image(fr.mask, expect_size=(W0, H0))
-                present = np.flatnonzero(np.bincount(m.ravel()))
-                if known_ids is not None:
-                    unknown = np.setdiff1d(present, known_ids)
-                    objects = unknown[unknown != 0]
-                    if not mapping and objects.size:
-                        raise input_error(
-                            mapping_path,
-                            f"lists no class, but the mask {fr.mask} has object id "
-                            f"{int(objects[0])}; list every id of the masks (0 = background)",
-                        )
-                    if mapping and unknown.size:
-                        raise input_error(
-                            fr.mask, f"mask has id {int(unknown[0])} that {mapping_path.name} does not list"
-                        )
-                ids_seen[present] = True
-                masks[f] = downscale_labels(m, s, present)
-        except cv2.error as exc:
-            raise input_error(
-                fr.image, f"image processing failed ({str(exc).splitlines()[0] if str(exc) else 'cv2 error'})"
-            ) from None
-
-    if workers <= 1 or F <= 1:
-        for f in range(F):
-            load(f)
-    else:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            # list() re-raises the first failure (in frame order).
-            list(pool.map(load, range(F)))
-
-    if masks is not None and not masks.any():
+    decoded = _Decoded(frames, (W0, H0), s, background, has_masks, mapping, mapping_path)
+    decoded.load_all(workers)
+    if decoded.masks is not None and not decoded.masks.any():
         warn_dataset(
             frames[0].mask.parent,
             "every object-id mask is all background (id 0): grouping has no object to start from, "
             "and a scene without depth has no foreground to reconstruct; fix the masks or set the "
             "dataset option masks: false",
         )
-    if has_alpha.any() and not has_alpha.all():
-        # its background cannot be replaced like the others': refuse rather than mix two backgrounds
-        rgb, rgba = frames[int(np.argmin(has_alpha))], frames[int(np.argmax(has_alpha))]
-        raise input_error(
-            rgb.image,
-            f"image has no alpha channel, but other frames of the scene do (e.g. {rgba.file_path}): "
-            "give every frame an alpha channel or none, so that one background applies to all",
-        )
+    decoded.check_alpha()
     w2c = np.stack([rigid_inverse(fr.c2w @ GL_TO_CV) for fr in frames])
     outlier = camera_centre_problem(w2c)
     if outlier is not None:
         fr = frames[outlier[0]]
         raise input_error(fr.json_path, f"frame {fr.index} ({fr.file_path}): {outlier[1]}")
-    instances = None
-    if has_masks:
-        if mapping is None:
-            ids = np.flatnonzero(ids_seen)
-            mapping = {int(i): f"id{int(i)}" for i in ids}
-            mapping[0] = "background"
-        inst_ids = np.array(sorted(k for k in mapping if k != 0), dtype=np.int64)
-        names = [mapping[int(i)] for i in inst_ids]
-        instances = Instances(
-            ids=inst_ids, names=names, rigid=np.array([rigidity_of(n, rules) for n in names], dtype=np.int8)
-        )
+    instances = _instances(mapping, decoded.ids_seen, rules) if has_masks else None
 
     point_cloud, pc_colour = None, None
     ply = scene_dir / "fused.ply"
@@ -418,7 +463,7 @@ def read_dnerf_scene(
         name=scene,
         layout="dnerf",
         frame_names=[fr.name for fr in frames],
-        images=images,
+        images=decoded.images,
         K=K_all,
         w2c=w2c,
         time=np.array([fr.time for fr in frames], dtype=np.float64),
@@ -426,8 +471,8 @@ def read_dnerf_scene(
         num_timesteps=int(T),
         camera_id=np.arange(F, dtype=np.int64),
         source_split=np.array([SPLIT_CODES[fr.split] for fr in frames], dtype=np.int8),
-        alpha=alpha if has_alpha.any() else None,
-        instance_mask=masks,
+        alpha=decoded.alpha if decoded.has_alpha.any() else None,
+        instance_mask=decoded.masks,
         instances=instances,
         point_cloud=point_cloud,
         meta=meta,

@@ -84,31 +84,10 @@ def _read_instances(path: Path) -> tuple[Instances, dict[int, int]]:
     return Instances(ids=np.array(ids), names=names, rigid=np.array(rigid)), pose_index
 
 
-def read_synthetic_scene(
-    scene_dir: str | os.PathLike, *, dataset: str, scene: str, options: Mapping[str, Any] | None = None
-) -> Scene:
-    """Read a generated synthetic scene (iPhone layout + mogaf_gt/) into a Scene."""
-    d = Path(scene_dir)
-    if not d.is_dir():
-        raise MogafError(describe_missing(d, dataset=dataset, scene=scene))
-    options = dict(options or {})
-    options.setdefault("scale", 1)
-    if int(options["scale"]) != 1:
-        raise MogafError(
-            f"dataset '{dataset}' options: synthetic scenes are written at scale 1 only (rgb/1x), got scale {options['scale']}"
-        )
-    out = read_iphone_layout(d, dataset=dataset, scene=scene, options=options)
-    gt = d / GT
-
-    params = load_json(gt / "params.json", what="synthetic generator parameters")
-    generator = params.get("params", {})
-    ship_masks = generator.get("ship_instance_masks", True) if isinstance(generator, dict) else True
-    if not isinstance(ship_masks, bool):
-        raise input_error(gt / "params.json", f"params.ship_instance_masks must be true or false, got {ship_masks!r}")
-    instances, pose_index = _read_instances(gt / "instances.json")
-    known = {int(i) for i in instances.ids} | {0}
-    masks = np.zeros((out.num_frames if ship_masks else 0, out.height, out.width), np.int32)
-    for f, name in enumerate(out.frame_names if ship_masks else []):
+def _instance_masks(out: Scene, gt: Path, known: set[int]) -> np.ndarray:
+    """(F, H, W) ground-truth instance ids of every frame, each listed in instances.json."""
+    masks = np.zeros((out.num_frames, out.height, out.width), np.int32)
+    for f, name in enumerate(out.frame_names):
         path = gt / "instance" / "1x" / f"{name}.png"
         if not path.is_file():
             raise input_error(path, f"missing instance mask of frame {name}")
@@ -117,11 +96,11 @@ def read_synthetic_scene(
         if bad:
             raise input_error(path, f"instance ids {sorted(bad)} are not listed in {GT}/instances.json")
         masks[f] = m
-    if ship_masks:
-        out.instance_mask = masks
-        out.instances = instances
+    return masks
 
-    T = out.num_timesteps
+
+def _ground_truth(gt: Path, T: int, known: set[int], pose_index: dict[int, int]) -> dict[str, Any]:
+    """The GT arrays of mogaf_gt/, their shapes and ids checked against each other and instances.json."""
     points3d = _load_array(gt / "points3d.npy", dtype_kind="f", ndim=3, what="GT 3D trajectories")
     P = points3d.shape[0]
     if points3d.shape != (P, T, 3):
@@ -162,7 +141,37 @@ def read_synthetic_scene(
             "tracks2d": tracks_all[c].astype(np.float32),
             "visible": visible_all[c].astype(bool),
         }
-    out.ground_truth = ground_truth
+    return ground_truth
+
+
+def read_synthetic_scene(
+    scene_dir: str | os.PathLike, *, dataset: str, scene: str, options: Mapping[str, Any] | None = None
+) -> Scene:
+    """Read a generated synthetic scene (iPhone layout + mogaf_gt/) into a Scene."""
+    d = Path(scene_dir)
+    if not d.is_dir():
+        raise MogafError(describe_missing(d, dataset=dataset, scene=scene))
+    options = dict(options or {})
+    options.setdefault("scale", 1)
+    if int(options["scale"]) != 1:
+        raise MogafError(
+            f"dataset '{dataset}' options: synthetic scenes are written at scale 1 only (rgb/1x), got scale {options['scale']}"
+        )
+    out = read_iphone_layout(d, dataset=dataset, scene=scene, options=options)
+    gt = d / GT
+
+    params = load_json(gt / "params.json", what="synthetic generator parameters")
+    generator = params.get("params", {})
+    ship_masks = generator.get("ship_instance_masks", True) if isinstance(generator, dict) else True
+    if not isinstance(ship_masks, bool):
+        raise input_error(gt / "params.json", f"params.ship_instance_masks must be true or false, got {ship_masks!r}")
+    instances, pose_index = _read_instances(gt / "instances.json")
+    known = {int(i) for i in instances.ids} | {0}
+    if ship_masks:
+        out.instance_mask = _instance_masks(out, gt, known)
+        out.instances = instances
+
+    out.ground_truth = _ground_truth(gt, out.num_timesteps, known, pose_index)
 
     out.meta["synthetic"] = True
     out.meta["synthetic_params"] = params.get("params", {})

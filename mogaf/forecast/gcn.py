@@ -37,10 +37,10 @@ import numpy as np
 from mogaf.errors import MogafError
 from mogaf.forecast import quat
 from mogaf.forecast.base import Forecaster, epochs_for, torch_determinism
-from mogaf.forecast.params import GCN_DEFAULTS
+from mogaf.forecast.baseline_params import GCN_DEFAULTS
 from mogaf.progress import Progress
 
-DEFAULTS: dict[str, Any] = GCN_DEFAULTS  # forecast.params.GCNSettings
+DEFAULTS: dict[str, Any] = GCN_DEFAULTS  # forecast.baseline_params.GCNSettings
 
 
 def farthest_point_sampling(points: np.ndarray, k: int) -> np.ndarray:
@@ -162,7 +162,7 @@ class GCNForecaster(Forecaster):
         import torch
 
         p = self.settings
-        # each setting's own bounds are checked by its settings class (mogaf.forecast.params)
+        # each setting's own bounds are checked by its settings class (mogaf.forecast.baseline_params)
         g, t, _ = obs.shape
         out_size = p.output_size
         # Window: upstream's 10 frames, clipped so at least two training windows exist.

@@ -39,11 +39,11 @@ import numpy as np
 from mogaf.errors import MogafError
 from mogaf.forecast import quat
 from mogaf.forecast.base import Forecaster, epochs_for, torch_determinism
+from mogaf.forecast.baseline_params import ODE_DEFAULTS
 from mogaf.forecast.classical import constant_twist_rollout
-from mogaf.forecast.params import ODE_DEFAULTS
 from mogaf.progress import Progress
 
-DEFAULTS: dict[str, Any] = ODE_DEFAULTS  # forecast.params.ODESettings
+DEFAULTS: dict[str, Any] = ODE_DEFAULTS  # forecast.baseline_params.ODESettings
 
 
 class _StepCapHit(Exception):
@@ -174,7 +174,7 @@ class LatentODEForecaster(Forecaster):
         import torch
 
         p = self.settings
-        # each setting's own bounds are checked by its settings class (mogaf.forecast.params)
+        # each setting's own bounds are checked by its settings class (mogaf.forecast.baseline_params)
         if p.d_model % p.nhead:
             raise MogafError(f"forecast.ode: d_model ({p.d_model}) must be divisible by nhead ({p.nhead})")
         g, t, _ = obs.shape

@@ -9,14 +9,13 @@ is used.
 from mogaf.metrics.image import gaussian_window, masked_mean, mpsnr, mssim, psnr, ssim
 from mogaf.metrics.lpips import (
     convert_lpips_sdist,
-    default_weights_path,
     get_lpips_model,
     load_lpips_weights,
-    load_numpy_pickle,
     lpips,
     lpips_map,
     mlpips,
 )
+from mogaf.metrics.lpips_weights import default_weights_path, load_numpy_pickle
 from mogaf.metrics.tracking import (
     average_jaccard,
     delta_3d,

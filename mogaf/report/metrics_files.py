@@ -61,8 +61,8 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
-def _metrics_problem(data: dict[str, Any]) -> str | None:
-    """What makes a parsed metrics.json unusable for the tables, or None."""
+def _header_problem(data: dict[str, Any]) -> str | None:
+    """What is wrong with the result's dataset, scene, ratio, variant or protocol, or None."""
     for key in ("dataset", "scene"):
         if not isinstance(data.get(key), str) or not data[key]:
             return f"'{key}' must be a non-empty string, got {data.get(key)!r}"
@@ -72,34 +72,59 @@ def _metrics_problem(data: dict[str, Any]) -> str | None:
     for key in ("variant", "protocol"):
         if data.get(key) is not None and not isinstance(data[key], str):
             return f"'{key}' must be a string, got {data[key]!r}"
-    if not isinstance(data["methods"], dict):
-        return "'methods' must be an object"
-    for method, section in data["methods"].items():
-        if not isinstance(section, dict):
-            return f"'methods.{method}' must be an object"
-        for part in METRIC_SECTIONS:
-            values = section.get(part)
-            if values is None:
-                continue
-            if not isinstance(values, dict):
-                return f"'methods.{method}.{part}' must be an object"
-            for name, value in values.items():
-                if value is not None and not _is_number(value):
-                    return f"'methods.{method}.{part}.{name}' must be a number or null, got {value!r}"
-                why = None if value is None else _out_of_range(part, name, value)
-                if why:
-                    return f"'methods.{method}.{part}.{name}' {why}"
-    grouping = data.get("grouping")
+    return None
+
+
+def _value_problem(where: str, section: str, name: str, value: Any) -> str | None:
+    """What is wrong with one metric value (a number in its range, or null) at `where`, or None."""
+    if value is not None and not _is_number(value):
+        return f"'{where}' must be a number or null, got {value!r}"
+    why = None if value is None else _out_of_range(section, name, value)
+    if why:
+        return f"'{where}' {why}"
+    return None
+
+
+def _method_problem(method: str, section: Any) -> str | None:
+    """What is wrong with methods.<method>, or None."""
+    if not isinstance(section, dict):
+        return f"'methods.{method}' must be an object"
+    for part in METRIC_SECTIONS:
+        values = section.get(part)
+        if values is None:
+            continue
+        if not isinstance(values, dict):
+            return f"'methods.{method}.{part}' must be an object"
+        for name, value in values.items():
+            problem = _value_problem(f"methods.{method}.{part}.{name}", part, name, value)
+            if problem:
+                return problem
+    return None
+
+
+def _grouping_problem(grouping: Any) -> str | None:
+    """What is wrong with the 'grouping' section, or None."""
     if grouping is not None and not isinstance(grouping, dict):
         return "'grouping' must be an object"
     for name in ("ari", "mean_iou"):
-        value = (grouping or {}).get(name)
-        if value is not None and not _is_number(value):
-            return f"'grouping.{name}' must be a number or null, got {value!r}"
-        why = None if value is None else _out_of_range("grouping", name, value)
-        if why:
-            return f"'grouping.{name}' {why}"
+        problem = _value_problem(f"grouping.{name}", "grouping", name, (grouping or {}).get(name))
+        if problem:
+            return problem
     return None
+
+
+def _metrics_problem(data: dict[str, Any]) -> str | None:
+    """What makes a parsed metrics.json unusable for the tables, or None."""
+    problem = _header_problem(data)
+    if problem:
+        return problem
+    if not isinstance(data["methods"], dict):
+        return "'methods' must be an object"
+    for method, section in data["methods"].items():
+        problem = _method_problem(method, section)
+        if problem:
+            return problem
+    return _grouping_problem(data.get("grouping"))
 
 
 def _result_key(data: dict[str, Any]) -> tuple[str, str, float, str]:

@@ -21,7 +21,8 @@ import numpy as np
 
 from ..artefact import atomic_folder, atomic_path
 from ..errors import input_error
-from .tables import HTML_PAGE, METHOD_ORDER, method_label
+from .table_format import HTML_PAGE
+from .tables import METHOD_ORDER, method_label
 
 VIDEO_SUFFIXES = (".mp4", ".gif")
 

@@ -16,7 +16,8 @@ from typing import Any
 
 from ..artefact import atomic_path
 from .metrics_files import load_metrics
-from .tables import METHOD_LABELS, METHOD_ORDER, METRICS, Table, _metric, _variant, fmt
+from .table_format import Table
+from .tables import METHOD_LABELS, METHOD_ORDER, METRICS, _metric, _variant, fmt
 
 HIGHER_IS_BETTER = {
     "psnr",

@@ -255,42 +255,62 @@ def build_world(params: dict[str, Any] | SyntheticSettings) -> World:
     return world
 
 
+def _view_problem(world: World, o: Object, pts: np.ndarray, ti: int, margin_px: float) -> str | None:
+    """Why the object's extent points at frame `ti` leave the room or a camera's view, or None."""
+    W, H = world.width, world.height
+    if pts[:, 2].min() < -1e-6:
+        return f"{o.name} goes below the ground at frame {ti}"
+    if pts[:, 1].max() > WALL_Y - 0.02:
+        return f"{o.name} reaches the back wall at frame {ti}"
+    for cam in (0, 1, 2):
+        w2c = world.camera_w2c(cam, ti)
+        cam_pts = pts @ w2c[:3, :3].T + w2c[:3, 3]
+        if cam_pts[:, 2].min() < 0.3:
+            return f"{o.name} is behind or too close to camera {cam} at frame {ti}"
+        uv = cam_pts @ world.K.T
+        uv = uv[:, :2] / uv[:, 2:3]
+        if uv.min() < margin_px or uv[:, 0].max() > W - margin_px or uv[:, 1].max() > H - margin_px:
+            return f"{o.name} leaves the view of camera {cam} at frame {ti}"
+    return None
+
+
+def _collision_problem(objs: list[Object], bounds: dict[int, list], ti: int) -> str | None:
+    """Which two objects' bounding spheres come close at frame `ti`, or None."""
+    for i, a in enumerate(objs):
+        for b in objs[i + 1 :]:
+            for ca, ra in bounds[a.inst]:
+                for cb, rb in bounds[b.inst]:
+                    if np.linalg.norm(ca - cb) < ra + rb + 0.03:
+                        return f"{a.name} and {b.name} may collide at frame {ti}"
+    return None
+
+
+def _pole_problem(objs: list[Object], bounds: dict[int, list], static_boxes: list[Box], ti: int) -> str | None:
+    """Which free object comes close to a static box (the pole) at frame `ti`, or None."""
+    for a in objs:
+        if a.kind in ("cloth", "arm"):
+            continue  # pinned on the pole / standing on the plinth
+        for ca, ra in bounds[a.inst]:
+            for box in static_boxes:
+                gap = np.maximum(np.abs((ca - box.c) @ box.R) - box.half, 0.0)
+                if np.linalg.norm(gap) < ra + 0.03:
+                    return f"{a.name} may hit the pole at frame {ti}"
+    return None
+
+
 def check_world(world: World, margin_px: float = 1.0) -> str | None:
     """Why the world is unusable (object out of a view, colliding, in the background), or None."""
-    W, H = world.width, world.height
     objs = world.objects
     static_boxes = [prim for prim in world.static if isinstance(prim, Box)]
     for ti, tau in enumerate(world.taus):
         tau = float(tau)
         ext = {o.inst: o.extent_points(tau) for o in objs}
         for o in objs:
-            pts = ext[o.inst]
-            if pts[:, 2].min() < -1e-6:
-                return f"{o.name} goes below the ground at frame {ti}"
-            if pts[:, 1].max() > WALL_Y - 0.02:
-                return f"{o.name} reaches the back wall at frame {ti}"
-            for cam in (0, 1, 2):
-                w2c = world.camera_w2c(cam, ti)
-                cam_pts = pts @ w2c[:3, :3].T + w2c[:3, 3]
-                if cam_pts[:, 2].min() < 0.3:
-                    return f"{o.name} is behind or too close to camera {cam} at frame {ti}"
-                uv = cam_pts @ world.K.T
-                uv = uv[:, :2] / uv[:, 2:3]
-                if uv.min() < margin_px or uv[:, 0].max() > W - margin_px or uv[:, 1].max() > H - margin_px:
-                    return f"{o.name} leaves the view of camera {cam} at frame {ti}"
+            problem = _view_problem(world, o, ext[o.inst], ti, margin_px)
+            if problem:
+                return problem
         bounds = {o.inst: o.bounds(tau) for o in objs}
-        for i, a in enumerate(objs):
-            for b in objs[i + 1 :]:
-                for ca, ra in bounds[a.inst]:
-                    for cb, rb in bounds[b.inst]:
-                        if np.linalg.norm(ca - cb) < ra + rb + 0.03:
-                            return f"{a.name} and {b.name} may collide at frame {ti}"
-        for a in objs:
-            if a.kind in ("cloth", "arm"):
-                continue  # pinned on the pole / standing on the plinth
-            for ca, ra in bounds[a.inst]:
-                for box in static_boxes:
-                    gap = np.maximum(np.abs((ca - box.c) @ box.R) - box.half, 0.0)
-                    if np.linalg.norm(gap) < ra + 0.03:
-                        return f"{a.name} may hit the pole at frame {ti}"
+        problem = _collision_problem(objs, bounds, ti) or _pole_problem(objs, bounds, static_boxes, ti)
+        if problem:
+            return problem
     return None
