@@ -244,9 +244,6 @@ class Trainer(TrainerSchedule, FrameLosses):
         allowed = self.allowed_frames(it)
         bs = min(p.batch_size, int(allowed.numel()))
         pick = allowed[torch.randperm(int(allowed.numel()), generator=self.gen)[:bs]]
-        m = self.model
-        T = self.data.num_timesteps
-        q = p.loss_quantile
         total = torch.zeros((), device=self.dev)
         terms: dict[str, float] = {}
 
@@ -257,60 +254,102 @@ class Trainer(TrainerSchedule, FrameLosses):
         outs = []
         psnrs = []
         for f in pick.tolist():
-            extra_fg = extra_bg = None
-            targets = None
-            if self.tracks_xy is not None and p.w_track > 0 and p.track_targets > 0:
-                cand = allowed[allowed != f]
-                if cand.numel() > 0:
-                    k = min(p.track_targets, int(cand.numel()))
-                    targets = cand[torch.randperm(int(cand.numel()), generator=self.gen)[:k]]
-                    tt = self.tidx[targets]
-                    tm = m.fg_means_at(tt.to(self.dev))  # (N, k, 3)
-                    extra_fg = tm.reshape(m.num_fg, -1)
-                    if self.has_bg:
-                        extra_bg = m.bg.get("means").repeat(1, len(tt))
-            with self.clock.phase("render"):
-                out, means_f = self.render_frame(f, extra_fg, extra_bg)
+            out, loss, psnr = self._frame_loss(f, allowed, note)
             outs.append(out)
-            feats = out.features
-            rgb = feats[..., :3]
-            acc = out.alpha
-            gt = self.images[f]
-            fgm = self.masks[f][..., None]
-            loss = p.w_rgb * note("rgb", rgb_loss(rgb[None], gt[None], p.ssim_weight))
-            with torch.no_grad():
-                mse = float(((rgb - gt) ** 2).mean())
-                psnrs.append(-10 * math.log10(max(mse, 1e-10)))
-            # mask
-            if p.w_mask > 0:
-                if self.has_bg:
-                    ml = ((acc - 1) ** 2).mean() + masked_l1(feats[..., 3:4], fgm, None, q)
-                else:
-                    ml = ((acc - fgm) ** 2).mean()
-                loss = loss + p.w_mask * note("mask", ml)
-            # depth (disparity, scene-scale free)
-            if self.depth is not None and (p.w_depth > 0 or p.w_depth_grad > 0):
-                dmask = self.depth_valid[f][..., None]
-                if not self.has_bg:
-                    dmask = dmask * (fgm > 0.5)
-                pd = self.scale / (out.depth + 1e-5 * self.scale)
-                td = self.scale / (self.depth[f][..., None] + 1e-5 * self.scale)
-                td = torch.where(dmask > 0, td, torch.zeros_like(td))
-                if p.w_depth > 0:
-                    loss = loss + p.w_depth * note("depth", masked_l1(pd, td, dmask, q))
-                if p.w_depth_grad > 0:
-                    loss = loss + p.w_depth_grad * note(
-                        "depth_grad", gradient_loss(pd[None], td[None], dmask[None], 0.95)
-                    )
-            if self.silhouette:
-                wsil = p.w_silhouette * (1 - p.silhouette_decay * min(1.0, it / max(1, p.iterations)))
-                loss = loss + wsil * note("silhouette", self.silhouette_loss(f, means_f))
-            # 2D tracks
-            if targets is not None:
-                loss = loss + p.w_track * note("track", self.track_loss(f, targets, feats, acc, q))
+            psnrs.append(psnr)
             total = total + loss
         total = total / len(outs)
-        # regularisers (once per step)
+        total = total + self._regularisers(pick, note)
+        self.last_terms = terms
+        for opt in self.optimizers.values():
+            opt.zero_grad(set_to_none=True)
+        with self.clock.phase("backward"):
+            total.backward()
+        with self.clock.phase("density_control"):
+            for out in outs:
+                grad = out.means2d_grad if hasattr(out, "means2d_grad") else getattr(out.means2d, "grad", None)
+                if grad is not None:
+                    radii = out.radii.max(dim=-1).values if out.radii.ndim == 2 else out.radii
+                    self.stats.accumulate(grad, radii, self.W, self.H, len(outs))
+        with self.clock.phase("optimizer"):
+            for opt in self.optimizers.values():
+                opt.step()
+        self.fill_gaps()
+        self.iteration += 1
+        with self.clock.phase("density_control"):
+            self.control()
+        return float(total.detach()), float(np.mean(psnrs))
+
+    def _track_targets(self, f: int, allowed: torch.Tensor) -> torch.Tensor | None:
+        """Frames (other than f) whose 2D tracks the fg Gaussians rendered at f must hit; None without tracks."""
+        p = self.p
+        if self.tracks_xy is None or p.w_track <= 0 or p.track_targets <= 0:
+            return None
+        cand = allowed[allowed != f]
+        if cand.numel() == 0:
+            return None
+        k = min(p.track_targets, int(cand.numel()))
+        return cand[torch.randperm(int(cand.numel()), generator=self.gen)[:k]]
+
+    def _frame_loss(self, f: int, allowed: torch.Tensor, note) -> tuple[Any, torch.Tensor, float]:
+        """Render frame f (with the track targets' positions as extra features) and its loss terms."""
+        p = self.p
+        m = self.model
+        q = p.loss_quantile
+        extra_fg = extra_bg = None
+        targets = self._track_targets(f, allowed)
+        if targets is not None:
+            tt = self.tidx[targets]
+            tm = m.fg_means_at(tt.to(self.dev))  # (N, k, 3)
+            extra_fg = tm.reshape(m.num_fg, -1)
+            if self.has_bg:
+                extra_bg = m.bg.get("means").repeat(1, len(tt))
+        with self.clock.phase("render"):
+            out, means_f = self.render_frame(f, extra_fg, extra_bg)
+        feats = out.features
+        rgb = feats[..., :3]
+        acc = out.alpha
+        gt = self.images[f]
+        fgm = self.masks[f][..., None]
+        loss = p.w_rgb * note("rgb", rgb_loss(rgb[None], gt[None], p.ssim_weight))
+        with torch.no_grad():
+            mse = float(((rgb - gt) ** 2).mean())
+            psnr = -10 * math.log10(max(mse, 1e-10))
+        if p.w_mask > 0:
+            if self.has_bg:
+                ml = ((acc - 1) ** 2).mean() + masked_l1(feats[..., 3:4], fgm, None, q)
+            else:
+                ml = ((acc - fgm) ** 2).mean()
+            loss = loss + p.w_mask * note("mask", ml)
+        if self.depth is not None and (p.w_depth > 0 or p.w_depth_grad > 0):
+            loss = self._add_depth_loss(loss, f, out, fgm, note)
+        if self.silhouette:
+            wsil = p.w_silhouette * (1 - p.silhouette_decay * min(1.0, self.iteration / max(1, p.iterations)))
+            loss = loss + wsil * note("silhouette", self.silhouette_loss(f, means_f))
+        if targets is not None:
+            loss = loss + p.w_track * note("track", self.track_loss(f, targets, feats, acc, q))
+        return out, loss, psnr
+
+    def _add_depth_loss(self, loss: torch.Tensor, f: int, out, fgm: torch.Tensor, note) -> torch.Tensor:
+        """`loss` plus the disparity L1 and disparity-gradient terms (scene-scale free)."""
+        p = self.p
+        dmask = self.depth_valid[f][..., None]
+        if not self.has_bg:
+            dmask = dmask * (fgm > 0.5)
+        pd = self.scale / (out.depth + 1e-5 * self.scale)
+        td = self.scale / (self.depth[f][..., None] + 1e-5 * self.scale)
+        td = torch.where(dmask > 0, td, torch.zeros_like(td))
+        if p.w_depth > 0:
+            loss = loss + p.w_depth * note("depth", masked_l1(pd, td, dmask, p.loss_quantile))
+        if p.w_depth_grad > 0:
+            loss = loss + p.w_depth_grad * note("depth_grad", gradient_loss(pd[None], td[None], dmask[None], 0.95))
+        return loss
+
+    def _regularisers(self, pick: torch.Tensor, note) -> torch.Tensor:
+        """The once-per-step terms: smooth bases and tracks, z velocity, scale variance, extra_loss."""
+        p = self.p
+        m = self.model
+        T = self.data.num_timesteps
         reg = torch.zeros((), device=self.dev)
         if p.w_smooth_bases > 0 and T >= 3:
             reg = reg + p.w_smooth_bases * note(
@@ -332,26 +371,7 @@ class Trainer(TrainerSchedule, FrameLosses):
                 reg = reg + p.w_scale_var * torch.var(g.get("log_scales"), dim=-1).mean()
         if self.extra_loss is not None:
             reg = reg + self.extra_loss(pick, note)
-        total = total + reg
-        self.last_terms = terms
-        for opt in self.optimizers.values():
-            opt.zero_grad(set_to_none=True)
-        with self.clock.phase("backward"):
-            total.backward()
-        with self.clock.phase("density_control"):
-            for out in outs:
-                grad = out.means2d_grad if hasattr(out, "means2d_grad") else getattr(out.means2d, "grad", None)
-                if grad is not None:
-                    radii = out.radii.max(dim=-1).values if out.radii.ndim == 2 else out.radii
-                    self.stats.accumulate(grad, radii, self.W, self.H, len(outs))
-        with self.clock.phase("optimizer"):
-            for opt in self.optimizers.values():
-                opt.step()
-        self.fill_gaps()
-        self.iteration += 1
-        with self.clock.phase("density_control"):
-            self.control()
-        return float(total.detach()), float(np.mean(psnrs))
+        return reg
 
     # -------------------------------------------------------------- density control
     def control(self) -> dict | None:
