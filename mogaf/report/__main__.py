@@ -1,5 +1,6 @@
 """`python -m mogaf.report glance METRICS.json... [--write FILE | --check FILE]`,
-`python -m mogaf.report scenes METRICS.json...` and
+`python -m mogaf.report scenes METRICS.json...`,
+`python -m mogaf.report timing PIPELINE.json [--write FILE | --check FILE]` and
 `python -m mogaf.report results [METRICS.json...] [--bench DIR] [--write FILE | --check FILE]`.
 
 glance: print the results-at-a-glance table (mogaf.report.glance) made from
@@ -9,7 +10,9 @@ when that section differs from what the files give. scenes: print a table
 per observation ratio, a row per scene (mogaf.report.scenes). results: the
 measured-results page (docs/results.md) from the benchmark rows in
 results/bench/ and any metrics.json files (mogaf.report.results_page);
---write rewrites FILE with it, --check exits 1 when FILE differs.
+--write rewrites FILE with it, --check exits 1 when FILE differs. timing:
+the README's timing line (mogaf.report.timing) from one
+`python -m mogaf.bench pipeline --json` file, between the timing markers.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from ..errors import MogafError
 from .glance import glance, section_matches, write_section
 from .results_page import BENCH_DIR, command, page_matches, results_page, write_page
 from .scenes import scenes
+from .timing import MARKERS, timing_line
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -39,6 +43,11 @@ def main(argv: list[str] | None = None) -> int:
     out = p.add_mutually_exclusive_group()
     out.add_argument("--write", metavar="FILE", help="write the page to FILE")
     out.add_argument("--check", metavar="FILE", help="exit 1 if FILE is not the page these files give")
+    p = sub.add_parser("timing", help="the README's timing line from a `python -m mogaf.bench pipeline --json` file")
+    p.add_argument("pipeline", help="the benchmark file (results/bench/pipeline_demo_cpu.json)")
+    out = p.add_mutually_exclusive_group()
+    out.add_argument("--write", metavar="FILE", help="rewrite FILE's section between the timing markers")
+    out.add_argument("--check", metavar="FILE", help="exit 1 if FILE's timing section differs from the line")
     args = parser.parse_args(argv)
 
     try:
@@ -47,6 +56,16 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if args.command == "results":
             return _results(args)
+        if args.command == "timing":
+            return _write_or_check(
+                args,
+                timing_line(args.pipeline),
+                lambda path, text: write_section(path, text, MARKERS),
+                lambda path, text: section_matches(path, text, MARKERS),
+                "timing section ",
+                args.pipeline,
+                f"python -m mogaf.report timing {args.pipeline} --write {args.check}",
+            )
         block = glance(args.metrics)
         return _write_or_check(
             args,

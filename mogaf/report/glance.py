@@ -80,22 +80,25 @@ def glance_table(results: list[dict[str, Any]]) -> str:
     return "\n".join(out) + "\n"
 
 
-def replace_section(text: str, block: str, where: str | os.PathLike = "text") -> str:
-    """`text` with what lies between the glance markers replaced by `block`."""
-    start = text.find(START)
-    end = text.find(END, start + len(START)) if start >= 0 else -1
+def replace_section(
+    text: str, block: str, where: str | os.PathLike = "text", markers: tuple[str, str] = (START, END)
+) -> str:
+    """`text` with what lies between the markers (default: the glance ones) replaced by `block`."""
+    first, last = markers
+    start = text.find(first)
+    end = text.find(last, start + len(first)) if start >= 0 else -1
     if start < 0 or end < 0:
-        raise input_error(where, f"has no '{START}' ... '{END}' section to write the table into")
-    return text[: start + len(START)] + "\n" + block.rstrip("\n") + "\n" + text[end:]
+        raise input_error(where, f"has no '{first}' ... '{last}' section to write into")
+    return text[: start + len(first)] + "\n" + block.rstrip("\n") + "\n" + text[end:]
 
 
-def write_section(path: str | os.PathLike, block: str) -> bool:
-    """Rewrite the glance section of the file at `path`; True if it changed."""
+def write_section(path: str | os.PathLike, block: str, markers: tuple[str, str] = (START, END)) -> bool:
+    """Rewrite the marked section (default: the glance one) of the file at `path`; True if it changed."""
     p = Path(path)
     if not p.is_file():
         raise input_error(p, "no such file")
     text = p.read_text(encoding="utf-8")
-    new = replace_section(text, block, p)
+    new = replace_section(text, block, p, markers)
     if new == text:
         return False
     with atomic_path(p) as tmp:
@@ -103,13 +106,13 @@ def write_section(path: str | os.PathLike, block: str) -> bool:
     return True
 
 
-def section_matches(path: str | os.PathLike, block: str) -> bool:
-    """Whether the glance section of the file at `path` holds `block` already."""
+def section_matches(path: str | os.PathLike, block: str, markers: tuple[str, str] = (START, END)) -> bool:
+    """Whether the marked section (default: the glance one) of the file at `path` holds `block` already."""
     p = Path(path)
     if not p.is_file():
         raise input_error(p, "no such file")
     text = p.read_text(encoding="utf-8")
-    return replace_section(text, block, p) == text
+    return replace_section(text, block, p, markers) == text
 
 
 def glance(metrics_files: list[str | os.PathLike]) -> str:
