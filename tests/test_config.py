@@ -137,7 +137,7 @@ def test_rigidity_table():
 
 def _stage_resolvers():
     from mogaf.evaluate.stage import run_evaluate_stage
-    from mogaf.forecast import make_forecaster
+    from mogaf.forecast.registry import make_forecaster
     from mogaf.grouping.params import resolve_params as grouping
     from mogaf.grouping.quality import run_grouping_quality_stage
     from mogaf.grouping.stage import run_rigid_init_stage

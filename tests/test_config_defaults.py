@@ -44,7 +44,8 @@ def library_defaults() -> dict[str, dict[str, Any]]:
     import mogaf.recon.params
     import mogaf.reconstruction_quality
     import mogaf.refine
-    from mogaf.forecast import METHODS, defaults
+    from mogaf.forecast.params import METHODS
+    from mogaf.forecast.registry import defaults
 
     out = {
         "priors": mogaf.priors.DEFAULT_PARAMS,
@@ -56,7 +57,7 @@ def library_defaults() -> dict[str, dict[str, Any]]:
         "grouping_quality": mogaf.grouping.quality.DEFAULT_PARAMS,
         "reconstruction_quality": mogaf.reconstruction_quality.DEFAULT_PARAMS,
     }
-    from mogaf.forecast import param_section
+    from mogaf.forecast.params import param_section
 
     # a method reading another's section (mogaf_paper: forecast.mogaf) has no section of its own
     out.update({f"forecast.{m}": defaults(m) for m in METHODS if param_section(m) == m})
@@ -107,8 +108,9 @@ def test_resolved_params_are_the_library_defaults():
     import mogaf.priors
     import mogaf.recon.params
     import mogaf.refine
-    from mogaf.forecast import METHODS, defaults
     from mogaf.forecast.base import merge_params
+    from mogaf.forecast.params import METHODS
+    from mogaf.forecast.registry import defaults
     from mogaf.forecast.stage import method_params
 
     cfg = load_config()

@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 
 from mogaf.errors import MogafError
-from mogaf.forecast import METHODS, defaults, fit_and_rollout, make_forecaster, quat
+from mogaf.forecast import quat
 from mogaf.forecast.base import epochs_for
 from mogaf.forecast.gcn import farthest_point_sampling
+from mogaf.forecast.params import METHODS
+from mogaf.forecast.registry import defaults, fit_and_rollout, load_settings, make_forecaster
 from mogaf.forecast.synthetic import rigid_box, rigid_motion
 from support.forecast_params import FAST
 
@@ -100,6 +102,22 @@ def test_bad_arguments_are_errors():
         fit_and_rollout("mogaf", obs[:, :2], 3)
     with pytest.raises(MogafError, match="before fit"):
         make_forecaster("frozen").rollout(3)
+    with pytest.raises(MogafError, match="n_steps"):
+        make_forecaster("frozen").fit(obs, horizon=0)
+
+
+def test_a_fit_for_a_horizon_rolls_out_that_horizon():
+    """fit(horizon=n) promises rollout(n): a forecaster whose fit depends on
+    the horizon (MoGaF's structured mode) needs it, and any other, given one,
+    keeps to it."""
+    obs = rigid_box(16, 12)
+    with pytest.raises(MogafError, match=r"forecast.mogaf: fit needs the forecast horizon"):
+        make_forecaster("mogaf", {"iterations": 2}).fit(obs)
+    fc = make_forecaster("frozen").fit(obs, horizon=4)
+    assert fc.rollout(4).shape == (16, 4, 7)
+    with pytest.raises(MogafError, match="fitted for a 4-step forecast, asked for 5 steps"):
+        fc.rollout(5)
+    assert make_forecaster("frozen").fit(obs).rollout(5).shape == (16, 5, 7)  # no horizon: any length
 
 
 # ---------------------------------------------------------------- references
@@ -151,11 +169,15 @@ def test_gcn_skinning_carries_rigid_motion_exactly():
 
 
 def test_mask_schedule_anneals_from_40_to_0_percent():
-    fc = make_forecaster("mogaf", {"iterations": 100})
-    assert fc.mask_ratio(0) == pytest.approx(0.4)
-    assert fc.mask_ratio(25) == pytest.approx(0.2)
-    assert fc.mask_ratio(50) == 0.0 and fc.mask_ratio(99) == 0.0
-    assert make_forecaster("mogaf", {"masking": False}).mask_ratio(0) == 0.0
+    from mogaf.forecast.transformer_net import mask_ratio
+
+    net = load_settings("mogaf", {"iterations": 100}).net  # both modes' schedule
+    assert mask_ratio(net, 0) == pytest.approx(0.4)
+    assert mask_ratio(net, 25) == pytest.approx(0.2)
+    assert mask_ratio(net, 50) == 0.0 and mask_ratio(net, 99) == 0.0
+    fc = make_forecaster("mogaf_paper", {"iterations": 100})
+    assert [fc.mask_ratio(it) for it in (0, 25, 99)] == [mask_ratio(net, it) for it in (0, 25, 99)]
+    assert make_forecaster("mogaf_paper", {"masking": False}).mask_ratio(0) == 0.0
 
 
 def test_hc_variant_and_no_masking_run():

@@ -23,8 +23,8 @@ from mogaf.artefact import read_artefact
 from mogaf.errors import MogafError
 from mogaf.evaluate import DEFAULT_PARAMS as EVAL_PARAMS
 from mogaf.evaluate.tracking import tracking_section
+from mogaf.forecast.params import INLINE_METHODS
 from mogaf.forecast.stage import (
-    INLINE_METHODS,
     forecast_jobs,
     method_jobs,
     run_forecast_group,
@@ -217,19 +217,57 @@ def test_group_job_checks_model_against_split(inputs, tmp_path):
             job=str(RIGID),
             seed=0,
         )
+    # the groups of another model: refused by the stage (mogaf.stages), once, before the job runs
+    from mogaf.stages import forecast_group
+
     gid = np.repeat([0, 1], N_PER)
     small = write_groups(tmp_path / "small.h5", _groups(gid, static=[1, 0], rigid=[1, 1]))
-    with pytest.raises(MogafError, match="Gaussians"):
-        run_forecast_group(
+    with pytest.raises(MogafError, match=f"assigns groups to {2 * N_PER} Gaussians, but the model .* has {N}"):
+        forecast_group(
             str(inputs["model"]),
             str(small),
             str(inputs["split"]),
             str(tmp_path / "x.h5"),
             {},
             method="constant_velocity",
-            job="1",
+            group="1",
             seed=0,
         )
+
+
+@pytest.mark.parametrize("method", ["mogaf", "gcn"])
+def test_a_job_loads_and_checks_its_settings_once(inputs, tmp_path, monkeypatch, method):
+    """Each setting's bounds (settings.check) and MoGaF's structured part and
+    relations (params.load_mogaf) are checked once per job, where it starts."""
+    import mogaf.forecast.base
+    import mogaf.forecast.mogaf_settings
+    import mogaf.forecast.params
+
+    calls = {"check": 0, "load_mogaf": 0}
+
+    def counted(name, fn):
+        def wrapper(*args, **kwargs):
+            calls[name] += 1
+            return fn(*args, **kwargs)
+
+        return wrapper
+
+    monkeypatch.setattr(mogaf.forecast.base, "check", counted("check", mogaf.forecast.base.check))
+    load_mogaf = counted("load_mogaf", mogaf.forecast.params.load_mogaf)
+    monkeypatch.setattr(mogaf.forecast.params, "load_mogaf", load_mogaf)
+    monkeypatch.setattr(mogaf.forecast.mogaf_settings, "load_mogaf", load_mogaf)
+    params = {"mogaf": {"iterations": 5}, "gcn": {"n_nodes": 4, "num_stage": 1, "linear_size": 8, "epochs": 1}}
+    run_forecast_group(
+        str(inputs["model"]),
+        str(inputs["groups"]),
+        str(inputs["split"]),
+        str(tmp_path / "x.h5"),
+        params,
+        method=method,
+        job=str(RIGID),
+        seed=0,
+    )
+    assert calls == {"check": 1, "load_mogaf": 1 if method == "mogaf" else 0}
 
 
 # ------------------------------------------------------------------ merge

@@ -8,27 +8,29 @@ import numpy as np
 import pytest
 
 from mogaf.errors import MogafError
-from mogaf.forecast import fit_and_rollout, make_forecaster, quat
-from mogaf.forecast.coherence import coherence, rigid_distance_change
-from mogaf.forecast.params import inert_settings
-from mogaf.forecast.structured import (
-    CANDIDATES,
-    GroupMotion,
+from mogaf.forecast import quat
+from mogaf.forecast.candidates import (
     WeightedCandidates,
-    accumulated_rotvec,
     backtest_weights,
     blend_trajectories,
-    fit_structured,
-    integrate_rotvec,
-    local_polynomial,
     nearest_members,
     neighbour_mean,
+)
+from mogaf.forecast.channel_net import window_sizes
+from mogaf.forecast.coherence import coherence, rigid_distance_change
+from mogaf.forecast.group_motion import GroupMotion
+from mogaf.forecast.params import STRUCTURED_CANDIDATES, inert_settings
+from mogaf.forecast.registry import fit_and_rollout, make_forecaster
+from mogaf.forecast.structured import StructuredMoGaF
+from mogaf.forecast.synthetic import add_noise, ballistic_sphere, rigid_box, waving_sheet
+from mogaf.forecast.trajectory import (
+    accumulated_rotvec,
+    integrate_rotvec,
+    local_polynomial,
     rigid_decomposition,
     rigid_group_still,
     still_gaussians,
-    window_sizes,
 )
-from mogaf.forecast.synthetic import add_noise, ballistic_sphere, rigid_box, waving_sheet
 
 # Small budgets: behaviour, not converged accuracy.
 QUICK = {"iterations": 60, "batch_size": 32}
@@ -45,6 +47,14 @@ def _weights_of_the_scores(info: dict) -> dict[str, float]:
     scores = {c: info[f"backtest_epe_{c}"] for c in DEFAULT_CANDIDATES}
     scores["learned"] = float(np.hypot(scores["learned"], info["learned_refit_drift"]))
     return backtest_weights(scores)
+
+
+def _fit_structured(obs: np.ndarray, params: dict, seed: int, rigid: bool | None, horizon: int):
+    """The structured forecaster fitted for a forecast of `horizon` steps:
+    (what it rolls out, a candidate or their blend; its info, times left out)."""
+    fc = make_forecaster("mogaf", params, seed).fit(obs, rigid=rigid, horizon=horizon)
+    assert isinstance(fc, StructuredMoGaF)
+    return fc.fitted, {k: v for k, v in fc.info.items() if not k.endswith("_time_s")}
 
 
 def _pairwise_change(poses: np.ndarray, last: np.ndarray) -> float:
@@ -325,9 +335,9 @@ def test_member_backtest_weighs_each_part_of_a_non_rigid_group_by_its_own_motion
         return np.linalg.norm(poses[part, :, :3] - fut[part, :, :3], axis=-1).mean()
 
     flap_part, slider = slice(0, 24), slice(24, 48)
-    model, info = fit_structured(obs, {**QUICK, "structured": {"backtest_neighbors": 8}}, 0, False, 10)
+    model, info = _fit_structured(obs, {**QUICK, "structured": {"backtest_neighbors": 8}}, 0, False, 10)
     assert info["backtest_neighbors"] == 8 and not info["rigid"]
-    assert fit_structured(obs, QUICK, 0, False, 10)[1]["backtest_neighbors"] == 32  # the default
+    assert _fit_structured(obs, QUICK, 0, False, 10)[1]["backtest_neighbors"] == 32  # the default
     assert isinstance(model, WeightedCandidates)
     np.testing.assert_array_equal(model.motion.moving, np.arange(48))  # the resting copy is still
     assert model.weights.shape == (len(model.candidates), 48)
@@ -339,13 +349,13 @@ def test_member_backtest_weighs_each_part_of_a_non_rigid_group_by_its_own_motion
     assert info["backtest_weight_frozen"] == pytest.approx(frozen_w.mean())
     poses = model.rollout(10)
     np.testing.assert_array_equal(poses[48:], np.repeat(obs[48:, -1:], 10, axis=1))
-    per_group, group_info = fit_structured(obs, {**QUICK, "structured": {"backtest_neighbors": 0}}, 0, False, 10)
+    per_group, group_info = _fit_structured(obs, {**QUICK, "structured": {"backtest_neighbors": 0}}, 0, False, 10)
     assert "backtest_neighbors" not in group_info
     group_poses = per_group.rollout(10)
     assert epe(poses, flap_part) < 0.8 * epe(group_poses, flap_part)
     assert epe(poses, slider) < 1e-9 < 1e-3 < epe(group_poses, slider)
     # neighbourhoods covering the moving members: the group's own weighting, exactly
-    whole, whole_info = fit_structured(obs, {**QUICK, "structured": {"backtest_neighbors": 48}}, 0, False, 10)
+    whole, whole_info = _fit_structured(obs, {**QUICK, "structured": {"backtest_neighbors": 48}}, 0, False, 10)
     assert {k: v for k, v in whole_info.items() if k != "final_loss"} == {
         k: v for k, v in group_info.items() if k != "final_loss"
     }
@@ -397,7 +407,7 @@ def test_weighted_blend_is_the_weighted_mean_of_the_candidates_forecasts():
     position is the weighted mean of the candidates' mean positions, and each
     member turns by the weighted quaternion mean of the candidates' turns."""
     obs = add_noise(rigid_box(48, 30), pos_sigma=0.002, rot_sigma=0.0)
-    blend, info = fit_structured(obs, {**QUICK, "structured": {"combine": "weighted"}}, 0, True, 12)
+    blend, info = _fit_structured(obs, {**QUICK, "structured": {"combine": "weighted"}}, 0, True, 12)
     assert isinstance(blend, WeightedCandidates) and len(blend.candidates) == len(DEFAULT_CANDIDATES)
     assert blend.motion.still.sum() == 0
     poses = blend.rollout(12)
@@ -467,25 +477,51 @@ def test_paper_mode_is_selectable_and_equals_mogaf_paper():
     np.testing.assert_array_equal(a.poses, c.poses)
 
 
+def test_the_mode_picks_the_forecaster_class():
+    from mogaf.forecast.registry import load_settings
+    from mogaf.forecast.transformer import MoGaFForecaster, MoGaFPaperForecaster
+
+    assert type(make_forecaster("mogaf")) is StructuredMoGaF
+    assert type(make_forecaster("mogaf", {"mode": "paper"})) is MoGaFForecaster
+    assert type(make_forecaster("mogaf_paper", {"mode": "structured"})) is MoGaFPaperForecaster
+    # settings loaded once are passed on as they are, and still pick the class
+    assert type(make_forecaster("mogaf", load_settings("mogaf", {"mode": "paper"}))) is MoGaFForecaster
+    with pytest.raises(MogafError, match="run by StructuredMoGaF, not MoGaFForecaster"):
+        MoGaFForecaster({})
+
+
+def test_the_structured_fit_fits_and_the_rollout_only_rolls_out():
+    """Everything is decided and trained in fit (for the horizon it is given);
+    rollout rolls the refit candidates out, the same poses every time."""
+    obs = rigid_box(32, 24)
+    fc = make_forecaster("mogaf", QUICK, seed=0).fit(obs, horizon=6)
+    assert fc.info["choice"] in DEFAULT_CANDIDATES and fc.info["iterations"] == 2 * QUICK["iterations"]
+    trained = dict(fc.info)
+    first = fc.rollout(6)
+    np.testing.assert_array_equal(fc.rollout(6), first)
+    assert {k: v for k, v in fc.info.items() if k != "rollout_time_s"} == trained
+    np.testing.assert_array_equal(fit_and_rollout("mogaf", obs, 6, QUICK, seed=0).poses, first)
+
+
 def test_bad_structured_settings_are_refused_by_name():
-    obs = rigid_box(16, 12)
+    """When the settings are loaded: before anything is fitted."""
     with pytest.raises(MogafError, match="mode"):
-        make_forecaster("mogaf", {"mode": "fancy"}).fit(obs)
+        make_forecaster("mogaf", {"mode": "fancy"})
     with pytest.raises(MogafError, match="structured.*contxt"):
-        make_forecaster("mogaf", {"structured": {"contxt": 4}}).fit(obs)
+        make_forecaster("mogaf", {"structured": {"contxt": 4}})
     with pytest.raises(MogafError, match="backtest_frac"):
-        make_forecaster("mogaf", {"structured": {"backtest_frac": 1.5}}).fit(obs)
+        make_forecaster("mogaf", {"structured": {"backtest_frac": 1.5}})
     with pytest.raises(MogafError, match="context"):
-        make_forecaster("mogaf", {"structured": {"context": 1}}).fit(obs)
+        make_forecaster("mogaf", {"structured": {"context": 1}})
     with pytest.raises(MogafError, match="combine"):
-        make_forecaster("mogaf", {"structured": {"combine": "mean"}}).fit(obs)
+        make_forecaster("mogaf", {"structured": {"combine": "mean"}})
     with pytest.raises(MogafError, match="trend_window"):
-        make_forecaster("mogaf", {"structured": {"trend_window": 1}}).fit(obs)
+        make_forecaster("mogaf", {"structured": {"trend_window": 1}})
     with pytest.raises(MogafError, match="backtest_margin applies to combine: select"):
-        make_forecaster("mogaf", {"structured": {"backtest_margin": 0.1}}).fit(obs)
+        make_forecaster("mogaf", {"structured": {"backtest_margin": 0.1}})
     for bad in (["frozen", "kalman"], [], ["frozen", "frozen"]):
         with pytest.raises(MogafError, match="candidates must be distinct names"):
-            make_forecaster("mogaf", {"structured": {"candidates": bad}}).fit(obs)
+            make_forecaster("mogaf", {"structured": {"candidates": bad}})
 
 
 # ---------------------------------------------------------------- settings without effect
@@ -600,7 +636,7 @@ def test_linear_trend_is_exact_on_uniform_motion_and_steadier_than_the_last_step
     traj = _uniform_box(48, 40)
     obs, fut = traj[:, :30], traj[:, 30:]
     settings = {**QUICK, "structured": {"candidates": ["linear_trend"]}}
-    trend, info = fit_structured(obs, settings, 0, True, 10)
+    trend, info = _fit_structured(obs, settings, 0, True, 10)
     poses = trend.rollout(10)
     np.testing.assert_allclose(poses[..., :3], fut[..., :3], atol=1e-9)
     assert np.all(quat.angle_between(poses[..., 3:], fut[..., 3:]) < 1e-9)
@@ -612,7 +648,7 @@ def test_linear_trend_is_exact_on_uniform_motion_and_steadier_than_the_last_step
     def epe(p):
         return np.linalg.norm(p[..., :3] - fut[..., :3], axis=-1).mean()
 
-    trend_err = epe(fit_structured(bad, settings, 0, True, 10)[0].rollout(10))
+    trend_err = epe(_fit_structured(bad, settings, 0, True, 10)[0].rollout(10))
     velocity_err = epe(fit_and_rollout("constant_velocity", bad, 10).poses)
     assert trend_err < 0.25 * velocity_err
 
@@ -647,7 +683,7 @@ def test_constant_acceleration_carries_a_thrown_sphere_exactly_and_rigidly():
     network, and the backtest of all four weighs it most."""
     traj = ballistic_sphere(64, 48)
     obs, fut = traj[:, :36], traj[:, 36:]
-    only, info = fit_structured(obs, {**QUICK, "structured": {"candidates": ["constant_acceleration"]}}, 0, True, 12)
+    only, info = _fit_structured(obs, {**QUICK, "structured": {"candidates": ["constant_acceleration"]}}, 0, True, 12)
     poses = only.rollout(12)
     assert np.all(quat.angle_between(poses[..., 3:], fut[..., 3:]) < 1e-7)
     cv = fit_and_rollout("constant_velocity", obs, 12).poses
@@ -658,7 +694,7 @@ def test_constant_acceleration_carries_a_thrown_sphere_exactly_and_rigidly():
     assert epe(poses) < 0.1 * epe(cv)
     assert info["choice"] == "constant_acceleration" and info["iterations"] == 0
     assert "backtest_epe_learned" not in info
-    every = {**QUICK, "structured": {"candidates": list(CANDIDATES)}}
+    every = {**QUICK, "structured": {"candidates": list(STRUCTURED_CANDIDATES)}}
     res = fit_and_rollout("mogaf", obs, 12, every, seed=0)
     assert res.info["choice"] == "constant_acceleration"
     assert res.info["backtest_weight_constant_acceleration"] > 0.5
@@ -697,7 +733,7 @@ def test_a_fast_spin_is_a_moving_body_for_the_forecaster_and_the_coherence_figur
     """Spinning 1.2 rad a frame, every member's third differences exceed its
     reach, so each alone looks still; with no moving member left, the
     forecaster and the coherence figure both treat the whole group as the
-    moving body (one test, mogaf.forecast.structured.rigid_group_still)."""
+    moving body (one test, mogaf.forecast.trajectory.rigid_group_still)."""
     angles = 1.2 * np.arange(30)
     radii = np.linspace(0.5, 1.0, 12)
     phase = np.linspace(0, 2 * np.pi, 12, endpoint=False)

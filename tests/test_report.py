@@ -16,7 +16,7 @@ import pytest
 
 from mogaf.artefact import write_json
 from mogaf.evaluate.stage import _round
-from mogaf.forecast import defaults
+from mogaf.forecast.registry import defaults
 from mogaf.report import NO_RESULT, load_metrics
 from mogaf.report.glance import END, START, glance_table, replace_section, write_section
 from mogaf.report.runtime import collect_points, pareto_front, write_runtime_report

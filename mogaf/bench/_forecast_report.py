@@ -19,8 +19,7 @@ from typing import Any
 import numpy as np
 
 from mogaf.errors import MogafError
-from mogaf.forecast import METHODS
-from mogaf.forecast.params import TRAINED_METHODS
+from mogaf.forecast.params import METHODS, TRAINED_METHODS
 
 # Shortened training of the baselines for a CPU run (--budget cpu).
 REDUCED: dict[str, dict[str, Any]] = {

@@ -45,7 +45,9 @@ import numpy as np
 from mogaf.artefact import atomic_path
 from mogaf.devices import resolve_device
 from mogaf.errors import MogafError
-from mogaf.forecast import METHODS, fit_and_rollout, quat
+from mogaf.forecast import quat
+from mogaf.forecast.params import METHODS
+from mogaf.forecast.registry import fit_and_rollout
 from mogaf.forecast.synthetic import TRAJECTORY_SETS
 
 from ._forecast_report import (  # noqa: F401  (read_rows, summary_table, per_step_table, column_name re-exported)

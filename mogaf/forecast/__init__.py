@@ -22,9 +22,17 @@ Every method sign-canonicalises its input quaternions first, so q -> -q in the
 observation never changes a prediction. Torch-based methods are deterministic
 on CPU for a given seed (forked RNG, deterministic kernels).
 
+A forecaster's settings are loaded and checked once (registry.load_settings,
+or make_forecaster from a mapping); fit(observed, rigid, horizon) fits and
+rollout(n_steps) rolls out (structured MoGaF needs the horizon at fit time).
+
 Modules: params (METHODS, the config section of each method), registry
-(make_forecaster, defaults, fit_and_rollout), stage (the pipeline stage),
-one module per forecaster (classical, gcn, ode, transformer, structured).
+(load_settings, make_forecaster, defaults, fit_and_rollout), stage (the
+pipeline stage), base (Forecaster), one module per forecaster (classical,
+gcn, ode, transformer: the paper mode, structured: the default mode), and the
+structured mode's parts: mogaf_settings (MogafRun), trajectory, group_motion,
+channel_net, candidates. Import a name from the module defining it; the
+names below remain here only for callers outside mogaf.forecast not yet moved.
 """
 
 from mogaf.forecast.base import Forecaster, ForecastResult

@@ -124,18 +124,45 @@ def torch_determinism(seed: int, num_threads: int | None, device: Any = None) ->
 
 
 class Forecaster:
-    """fit(observed) then rollout(n_steps). Subclasses set NAME, DEFAULTS and
-    MIN_FRAMES and implement _fit / _rollout on the checked float64 array."""
+    """A forecaster of one group: settings loaded once (load_settings, or
+    given already loaded), then fit(observed, rigid, horizon), then
+    rollout(n_steps). Subclasses set NAME, DEFAULTS, MIN_FRAMES (and
+    NEEDS_HORIZON) and implement _fit / _rollout on the checked float64 array."""
 
     NAME = "base"
     DEFAULTS: Mapping[str, Any] = {}
     MIN_FRAMES = 1
+    # The fit depends on the forecast's length (MoGaF's structured mode: the
+    # backtest holds back at most the horizon): fit(horizon=) is required.
+    NEEDS_HORIZON = False
 
-    def __init__(self, params: Mapping[str, Any] | None = None, seed: int = 0, device: str = "cpu"):
-        self.params = merge_params(self.NAME, self.DEFAULTS, params)  # the dict recorded with the forecast
-        # what the method reads: its frozen settings (None for a method without settings)
-        cls = METHOD_SETTINGS.get(self.NAME)
-        self.settings = cls(**self.params) if cls is not None else None
+    @classmethod
+    def load_settings(cls, params: Any) -> Any:
+        """The typed settings this forecaster reads (its class in
+        mogaf.forecast.params.METHOD_SETTINGS; None for a method without
+        settings): `params` (a mapping) over DEFAULTS, each checked once.
+        Settings already loaded are returned as they are."""
+        settings_cls = METHOD_SETTINGS.get(cls.NAME)
+        if settings_cls is not None and isinstance(params, settings_cls):
+            return params
+        merged = merge_params(cls.NAME, cls.DEFAULTS, params)
+        return settings_cls(**merged) if settings_cls is not None else None
+
+    @classmethod
+    def for_settings(cls, settings: Any) -> type[Forecaster]:
+        """The class that runs these (loaded) settings: this one, unless a
+        setting picks another (MoGaF's mode)."""
+        return cls
+
+    def __init__(self, params: Any = None, seed: int = 0, device: str = "cpu"):
+        """`params`: a mapping over DEFAULTS, or the settings load_settings returned."""
+        self.settings = self.load_settings(params)  # what the method reads (None for a method without settings)
+        picked = self.for_settings(self.settings)
+        if picked is not type(self):
+            raise MogafError(
+                f"forecast.{self.NAME}: these settings are run by {picked.__name__}, not {type(self).__name__} "
+                "(make_forecaster picks the class)"
+            )
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
             raise MogafError(f"forecast.{self.NAME}: seed must be an integer, got {seed!r}")
         self.seed = int(seed)
@@ -145,13 +172,25 @@ class Forecaster:
         self._device = None
         self.info: dict[str, Any] = {"method": self.NAME}
         self._obs: np.ndarray | None = None
+        self.rigid_hint: bool | None = None
+        self.horizon: int | None = None
 
-    def fit(self, observed: np.ndarray, rigid: bool | None = None) -> Forecaster:
+    def fit(self, observed: np.ndarray, rigid: bool | None = None, horizon: int | None = None) -> Forecaster:
         """`rigid`: whether the group moves rigidly (the grouping's flag), None
-        when unknown; methods without a notion of groups ignore it."""
+        when unknown; methods without a notion of groups ignore it. `horizon`:
+        the steps the forecast will roll out (rollout then takes exactly
+        that many); required where NEEDS_HORIZON, optional elsewhere."""
         obs = check_observed(observed, self.NAME, self.MIN_FRAMES)
+        if horizon is not None:
+            horizon = check_steps(horizon, self.NAME)
+        elif self.NEEDS_HORIZON:
+            raise MogafError(
+                f"forecast.{self.NAME}: fit needs the forecast horizon (fit(observed, horizon=n_steps)): "
+                "its fit depends on the forecast's length"
+            )
         self._obs = obs
         self.rigid_hint = rigid
+        self.horizon = horizon
         t0 = time.perf_counter()
         self._fit(obs)
         self.info["train_time_s"] = time.perf_counter() - t0
@@ -160,15 +199,19 @@ class Forecaster:
         return self
 
     def rollout(self, n_steps: int) -> np.ndarray:
+        """(G, n_steps, 7) poses after the observed ones; n_steps: the fit's
+        horizon where one was given."""
         if self._obs is None:
             raise MogafError(f"forecast.{self.NAME}: rollout called before fit")
         n = check_steps(n_steps, self.NAME)
+        if self.horizon is not None and n != self.horizon:
+            raise MogafError(
+                f"forecast.{self.NAME}: fitted for a {self.horizon}-step forecast, asked for {n} steps (fit again)"
+            )
         t0 = time.perf_counter()
-        trained = self.info.get("train_time_s", 0.0)
         poses = self._rollout(n)
         poses = finish_poses(poses, self._obs[:, -1, 3:])
-        # a method that fits once the horizon is known (MoGaF's structured mode) adds to train_time_s
-        self.info["rollout_time_s"] = time.perf_counter() - t0 - (self.info.get("train_time_s", 0.0) - trained)
+        self.info["rollout_time_s"] = time.perf_counter() - t0
         if not np.isfinite(poses).all():
             # Never hand out NaNs: this is a bug or an unrecoverable blow-up.
             raise MogafError(f"forecast.{self.NAME}: rollout produced non-finite poses")

@@ -11,7 +11,7 @@ the forecast poses and the observed trajectories only (no ground truth):
   still_displacement: the mean distance of still Gaussians from their last
       observed position over the forecast. Still: members of dynamic groups
       that never moved more than STILL_FACTOR x their group's noise level
-      while observed (mogaf.forecast.structured.still_gaussians; in a rigid
+      while observed (mogaf.forecast.trajectory.still_gaussians; in a rigid
       group rigid_group_still, the forecaster's own test: none unless 3
       members move). Members of
       static groups are left out: no forecaster moves them (the merge keeps
@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from mogaf.forecast.structured import rigid_group_still, still_gaussians
+from mogaf.forecast.trajectory import rigid_group_still, still_gaussians
 
 STILL_FACTOR = 3.0  # fixed here (not the forecaster's setting), so every method is measured alike
 MAX_PAIR_MEMBERS = 256  # members sampled per group for the pairwise distances

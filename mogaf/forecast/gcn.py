@@ -40,8 +40,6 @@ from mogaf.forecast.base import Forecaster, epochs_for, torch_determinism
 from mogaf.forecast.baseline_params import GCN_DEFAULTS
 from mogaf.progress import Progress
 
-DEFAULTS: dict[str, Any] = GCN_DEFAULTS  # forecast.baseline_params.GCNSettings
-
 
 def farthest_point_sampling(points: np.ndarray, k: int) -> np.ndarray:
     """Indices of k points by FPS, starting from the point farthest from the
@@ -155,7 +153,7 @@ def _build_model(n_nodes: int, p: dict[str, Any]):
 
 class GCNForecaster(Forecaster):
     NAME = "gcn"
-    DEFAULTS = DEFAULTS
+    DEFAULTS = GCN_DEFAULTS  # forecast.baseline_params.GCNSettings
     MIN_FRAMES = 4  # two training windows of at least two frames (BatchNorm needs a batch > 1)
 
     def _fit(self, obs: np.ndarray) -> None:

@@ -43,8 +43,6 @@ from mogaf.forecast.baseline_params import ODE_DEFAULTS
 from mogaf.forecast.classical import constant_twist_rollout
 from mogaf.progress import Progress
 
-DEFAULTS: dict[str, Any] = ODE_DEFAULTS  # forecast.baseline_params.ODESettings
-
 
 class _StepCapHit(Exception):
     """The adaptive solver needed more steps than allowed (or broke down)."""
@@ -157,7 +155,7 @@ def _solve(model, z0, times, p: dict[str, Any]):
 
 class LatentODEForecaster(Forecaster):
     NAME = "ode"
-    DEFAULTS = DEFAULTS
+    DEFAULTS = ODE_DEFAULTS  # forecast.baseline_params.ODESettings
     MIN_FRAMES = 4
 
     def _layout(self, t: int) -> tuple[float, int, int]:

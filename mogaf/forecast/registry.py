@@ -1,4 +1,4 @@
-"""The forecasters by method name: make_forecaster, defaults, fit_and_rollout.
+"""The forecasters by method name: load_settings, make_forecaster, defaults, fit_and_rollout.
 
 The torch-backed modules (gcn, ode, transformer) import torch lazily, inside
 their functions, so importing this module stays cheap.
@@ -14,49 +14,52 @@ import numpy as np
 
 from mogaf.errors import MogafError
 from mogaf.forecast.base import Forecaster, ForecastResult
-from mogaf.forecast.params import METHOD_TABLE, METHODS
+from mogaf.forecast.params import METHOD_BY_NAME, METHODS
 
 
-def _registry() -> dict[str, type[Forecaster]]:
-    """Each method's Forecaster class, from the method table."""
-    out = {}
-    for method in METHOD_TABLE:
-        module, cls = method.forecaster.split(":")
-        out[method.name] = getattr(importlib.import_module(f"mogaf.forecast.{module}"), cls)
-    return out
-
-
-def make_forecaster(
-    method: str, params: Mapping[str, Any] | None = None, seed: int = 0, device: str = "cpu"
-) -> Forecaster:
-    """`device`: auto | cpu | cuda, where the torch-based methods compute."""
-    reg = _registry()
-    if method not in reg:
+def method_class(method: str) -> type[Forecaster]:
+    """The Forecaster class the method table names for `method` (which may
+    hand its settings to another: Forecaster.for_settings)."""
+    entry = METHOD_BY_NAME.get(method)
+    if entry is None:
         raise MogafError(f"forecast: unknown method '{method}' (choose from {', '.join(METHODS)})")
-    return reg[method](params, seed, device)
+    module, cls = entry.forecaster.split(":")
+    return getattr(importlib.import_module(f"mogaf.forecast.{module}"), cls)
+
+
+def load_settings(method: str, params: Mapping[str, Any] | None) -> Any:
+    """`method`'s settings, loaded and checked once: pass them to
+    make_forecaster or fit_and_rollout as `params`."""
+    return method_class(method).load_settings(params)
+
+
+def make_forecaster(method: str, params: Any = None, seed: int = 0, device: str = "cpu") -> Forecaster:
+    """`params`: a mapping of the method's settings, or what load_settings
+    returned; `device`: auto | cpu | cuda, where the torch-based methods compute."""
+    cls = method_class(method)
+    settings = cls.load_settings(params)
+    return cls.for_settings(settings)(settings, seed, device)
 
 
 def defaults(method: str) -> dict[str, Any]:
     """A copy of the method's DEFAULTS."""
-    reg = _registry()
-    if method not in reg:
-        raise MogafError(f"forecast: unknown method '{method}' (choose from {', '.join(METHODS)})")
-    return dict(reg[method].DEFAULTS)
+    return dict(method_class(method).DEFAULTS)
 
 
 def fit_and_rollout(
     method: str,
     observed: np.ndarray,
     n_steps: int,
-    params: Mapping[str, Any] | None = None,
+    params: Any = None,
     seed: int = 0,
     rigid: bool | None = None,
     device: str = "cpu",
 ) -> ForecastResult:
-    """Fit `method` on one group's observed poses and roll out n_steps.
-    `rigid`: the grouping's rigid flag of the group (None: unknown);
-    `device`: auto | cpu | cuda, where the torch-based methods compute."""
+    """Fit `method` on one group's observed poses for a forecast of n_steps
+    and roll it out. `params`: as make_forecaster's; `rigid`: the grouping's
+    rigid flag of the group (None: unknown); `device`: auto | cpu | cuda,
+    where the torch-based methods compute."""
     fc = make_forecaster(method, params, seed, device)
-    fc.fit(observed, rigid=rigid)
+    fc.fit(observed, rigid=rigid, horizon=n_steps)
     poses = fc.rollout(n_steps)
     return ForecastResult(poses=poses, info=dict(fc.info))

@@ -34,8 +34,8 @@ from ..errors import MogafError, input_error
 from ..representation import Model4D, load_model, quat_sign_continuity
 from ..split import read_split
 from .coherence import coherence
-from .params import INLINE_METHODS, inert_settings, param_section, section_params
-from .registry import fit_and_rollout
+from .params import INLINE_METHODS, param_section, section_params
+from .registry import fit_and_rollout, load_settings
 
 log = logging.getLogger(__name__)
 
@@ -130,10 +130,11 @@ def _job_seed(seed: int, job: str) -> int:
 
 
 def _load_inputs(model_h5, groups_h5, split_h5):
+    """The model, its groups and the split. That groups_h5 groups this very
+    model's Gaussians is the stage's check (mogaf.stages.forecast_group and
+    forecast_merge), made before this runs."""
     model = load_model(model_h5)
     group_id, group_static = _groups(groups_h5)
-    if group_id.size != len(model.fg):
-        raise input_error(groups_h5, f"groups {group_id.size} Gaussians, the model {model_h5} has {len(model.fg)}")
     split = read_split(split_h5)
     if model.trajectory_means.shape[1] != split.num_observed_timesteps:
         raise input_error(
@@ -148,7 +149,7 @@ def forecast_job(
     model: Model4D,
     members: np.ndarray,
     horizon: int,
-    params: Mapping[str, Any],
+    settings: Any,
     method: str,
     job: str,
     seed: int,
@@ -156,17 +157,15 @@ def forecast_job(
     device: str = "cpu",
 ) -> tuple[np.ndarray, dict[str, Any], float]:
     """Fit `method` on the members' observed trajectories; (poses (G, horizon, 7), info, wall seconds).
+    `settings`: the method's, loaded once for the job (registry.load_settings);
     `rigid`: the grouping's rigid flag of the job's group (None for the job of every dynamic Gaussian);
-    `device`: auto | cpu | cuda, where a torch-based method computes."""
+    `device`: auto | cpu | cuda, where a torch-based method computes. The
+    forecaster refuses non-finite poses (Forecaster.rollout)."""
     observed = observed_states(model, members)
     start = time.perf_counter()
-    result = fit_and_rollout(
-        method, observed, horizon, method_params(params, method), _job_seed(seed, job), rigid=rigid, device=device
-    )
+    result = fit_and_rollout(method, observed, horizon, settings, _job_seed(seed, job), rigid=rigid, device=device)
     wall = time.perf_counter() - start
     poses = np.asarray(result.poses, np.float64)
-    if not np.all(np.isfinite(poses)):
-        raise MogafError(f"forecast {method} job {job}: the forecaster produced non-finite poses")
     info = {k: v for k, v in dict(result.info).items() if isinstance(v, (int, float, str, bool)) or v is None}
     log.info("forecast %s job %s: %d Gaussians, %.1f s, info %s", method, job, members.size, wall, info)
     return poses, info, wall
@@ -184,17 +183,16 @@ def run_forecast_group(
     seed: int,
     device: str = "cpu",
 ) -> Path:
-    if method == "mogaf":
-        # a value the other settings leave without effect is said in the job's log
-        for _, line in inert_settings({"methods": [method], "mogaf": params.get("mogaf") or {}}):
-            log.warning("forecast %s job %s: %s", method, job, line)
+    """One forecast_group job. Its settings are loaded and checked here, once
+    (values without effect are said when the workflow starts: mogaf.config.inert_forecaster_settings)."""
+    settings = load_settings(method, method_params(params, method))
     model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
     members = job_members(job, group_id, group_static, groups_h5)
     poses, info, wall = forecast_job(
         model,
         members,
         int(split.forecast_timesteps.size),
-        params,
+        settings,
         method,
         job,
         seed,
@@ -262,10 +260,11 @@ def run_forecast_merge(
     if method in INLINE_METHODS:
         if parts:
             raise MogafError(f"forecast {method}: computed in the merge job, it takes no group files")
+        settings = load_settings(method, method_params(params, method))  # once for every job of the merge
         for job in _job_names(group_id, group_static, bool(params.get("groupwise", True))):
             members = job_members(job, group_id, group_static, groups_h5)
             poses, info, _ = forecast_job(
-                model, members, T, params, method, job, seed, job_rigid_hint(job, group_rigid)
+                model, members, T, settings, method, job, seed, job_rigid_hint(job, group_rigid)
             )
             means[members] = poses[..., :3]
             quats[members] = poses[..., 3:]

@@ -33,20 +33,17 @@ Choices where the paper is silent (each a parameter, see DEFAULTS):
 
 from __future__ import annotations
 
-import dataclasses
-import time
 from typing import Any
 
 import numpy as np
 
 from mogaf.forecast import quat
 from mogaf.forecast.base import Forecaster, torch_determinism
+from mogaf.forecast.mogaf_settings import MogafRun, load_run
 from mogaf.forecast.params import MOGAF_DEFAULTS
-from mogaf.forecast.structured import fit_structured, structured_settings
+from mogaf.forecast.structured import StructuredMoGaF
 from mogaf.forecast.transformer_net import _build_model, mask_ratio, minibatches, optimiser_step, span_masks
 from mogaf.progress import Progress
-
-DEFAULTS: dict[str, Any] = MOGAF_DEFAULTS  # forecast.params.MogafSettings
 
 
 def batch_for_window(batch_size: int, batch_tokens: int, window: int) -> int:
@@ -65,41 +62,33 @@ def instance_norm(window: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarra
 
 
 class MoGaFForecaster(Forecaster):
-    """The paper's lightweight (LW) forecaster; `num_layers: 5` gives HC."""
+    """The paper's lightweight (LW) forecaster (forecast.mogaf, `mode: paper`);
+    `num_layers: 5` gives HC. The method `mogaf` runs it in paper mode only:
+    for_settings gives the structured forecaster otherwise."""
 
     NAME = "mogaf"
-    DEFAULTS = DEFAULTS
+    DEFAULTS: dict[str, Any] = MOGAF_DEFAULTS  # forecast.params.MogafSettings
+    FIXED: dict[str, Any] = {}  # settings this class fixes, whatever the section says
     MIN_FRAMES = 3  # L_acc needs mu_{T-1} and mu_{T-2} inside the input window
 
-    def _check(self) -> None:
-        """What the settings' own bounds (MogafSettings) cannot say: relations between settings."""
-        structured_settings(self.settings)  # relations between settings; a bad structured part in either mode
+    @classmethod
+    def load_settings(cls, params: Any) -> MogafRun:
+        return load_run(cls.NAME, cls.DEFAULTS, params, cls.FIXED)
+
+    @classmethod
+    def for_settings(cls, settings: MogafRun) -> type[Forecaster]:
+        """forecast.mogaf.mode picks the forecaster, here only: 'structured'
+        (mogaf.forecast.structured) or 'paper' (this class)."""
+        return StructuredMoGaF if settings.net.mode == "structured" else cls
 
     def mask_ratio(self, it: int) -> float:
         """Masked fraction of the input window at iteration `it` (linear anneal)."""
-        return mask_ratio(self.settings, it)
+        return mask_ratio(self.settings.net, it)
 
     def _fit(self, obs: np.ndarray) -> None:
-        self._check()
-        if self.settings.mode == "structured":
-            # The backtest's length depends on the forecast horizon: fitted in _rollout
-            # (the settings are checked above).
-            return
-        self._fit_paper(obs)
-
-    def _rollout(self, n_steps: int) -> np.ndarray:
-        if self.settings.mode == "structured":
-            start = time.perf_counter()
-            fitted, info = fit_structured(self._obs, self.settings, self.seed, self.rigid_hint, n_steps, self.device)
-            self.info.update(info)
-            self.info["train_time_s"] = self.info.get("train_time_s", 0.0) + time.perf_counter() - start
-            return fitted.rollout(n_steps)
-        return self._rollout_paper(n_steps)
-
-    def _fit_paper(self, obs: np.ndarray) -> None:
         import torch
 
-        p = self.settings
+        p = self.settings.net
         g, t, _ = obs.shape
         window = t - 1
         self.window = window
@@ -170,7 +159,7 @@ class MoGaFForecaster(Forecaster):
         """One step: (G, T-1, 7) float64 poses -> (G, 7) next pose (unit quaternion)."""
         import torch
 
-        p = self.settings
+        p = self.settings.net
         xn, mean, std = instance_norm(window, p.norm_eps)
         out = np.empty((window.shape[0], 7))
         chunk = p.rollout_chunk
@@ -183,8 +172,8 @@ class MoGaFForecaster(Forecaster):
         out[:, 3:] = quat.align_to(q, window[:, -1, 3:])
         return out
 
-    def _rollout_paper(self, n_steps: int) -> np.ndarray:
-        p = self.settings
+    def _rollout(self, n_steps: int) -> np.ndarray:
+        p = self.settings.net
         win = self._obs[:, -self.window :].copy()
         out = np.empty((win.shape[0], n_steps, 7))
         with torch_determinism(self.seed, p.num_threads or None, self.device):
@@ -197,12 +186,8 @@ class MoGaFForecaster(Forecaster):
 
 class MoGaFPaperForecaster(MoGaFForecaster):
     """The paper's forecaster beside the default one: MoGaF's settings with
-    `mode: paper` ("MoGaF (paper)" in tables)."""
+    `mode: paper`, whatever forecast.mogaf.mode says ("MoGaF (paper)" in tables)."""
 
     NAME = "mogaf_paper"
-    DEFAULTS = {**DEFAULTS, "mode": "paper"}
-
-    def __init__(self, params=None, seed: int = 0, device: str = "cpu"):
-        super().__init__(params, seed, device)
-        self.params["mode"] = "paper"  # whatever forecast.mogaf.mode says
-        self.settings = dataclasses.replace(self.settings, mode="paper")
+    DEFAULTS = {**MOGAF_DEFAULTS, "mode": "paper"}
+    FIXED = {"mode": "paper"}

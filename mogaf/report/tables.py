@@ -21,8 +21,8 @@ from pathlib import Path
 from typing import Any
 
 from ..artefact import atomic_path
-from ..forecast import METHODS, defaults
-from ..forecast.params import METHOD_LABELS, METHOD_ORDER, METHOD_TABLE
+from ..forecast.params import METHOD_LABELS, METHOD_ORDER, METHOD_TABLE, METHODS
+from ..forecast.registry import defaults
 from .metrics_files import load_metrics
 from .table_format import MISSING, Table
 
