@@ -317,3 +317,14 @@ def test_rigid_init_recovers_toy_motion(scene_far):
     # Only rigid groups are solved.
     g.rigid[:] = [0, 1]
     assert list(rigid_init(sc.model, g)["group_ids"]) == [1]
+
+
+def test_ari_is_left_out_with_one_ground_truth_object_and_kept_with_two():
+    from mogaf.grouping.metrics import ari_section
+
+    gt = np.array([1, 1, 1, 0, 0])  # one object; two background pixels the groups cover
+    pred = np.array([1, 1, 2, 1, 2])
+    one = ari_section(gt, pred, 1)
+    assert "ari" not in one and one["ari_left_out"].startswith("1 object in the ground-truth masks")
+    two = ari_section(np.array([1, 1, 2, 2]), np.array([5, 5, 7, 7]), 2)
+    assert two == {"ari": 1.0}

@@ -83,6 +83,16 @@ def adjusted_rand_index(gt: np.ndarray, pred: np.ndarray) -> float:
     return float(adjusted_rand_score(gt, pred))
 
 
+def ari_section(gt: np.ndarray, pred: np.ndarray, num_objects: int) -> dict[str, Any]:
+    """{"ari": ...} where the ground truth has two or more objects; with one,
+    {"ari_left_out": why}: the index then only scores object against the
+    background pixels the groups cover (values like -0.05 that mean nothing),
+    and the object's IoU is the measure."""
+    if num_objects < 2:
+        return {"ari_left_out": f"{num_objects} object in the ground-truth masks; the per-object IoU measures it"}
+    return {"ari": adjusted_rand_index(gt, pred)}
+
+
 def grouping_quality(
     model, groups: Groups, frames, *, alpha: float = 0.5, pixels: str = "foreground", backend: str = "auto"
 ) -> dict[str, Any]:
@@ -135,7 +145,7 @@ def grouping_quality(
     gt_flat = np.concatenate(gt_all)
     pr_flat = np.concatenate(pr_all)
     return {
-        "ari": adjusted_rand_index(gt_flat, pr_flat),
+        **ari_section(gt_flat, pr_flat, int(present.sum())),
         "mean_iou": float(iou[present].mean()) if present.any() else 0.0,
         "object_ids": [int(i) for i in object_ids[present]],
         "object_names": [names[i] for i in np.flatnonzero(present)],
