@@ -25,11 +25,13 @@ report: demo
 test: setup lint-check
 	$(BIN)/python -m pytest -q -n $(CORES) --dist loadfile --no-loadscope-reorder
 
-# ruff (lint + format) and snakefmt, as `make test` runs them; `make format` applies them.
+# ruff (lint + format), snakefmt and Snakemake's own linter, as `make test` runs
+# them; `make format` applies the formatters.
 lint-check: setup
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/snakefmt --check Snakefile workflow/rules
+	$(BIN)/snakemake --lint
 
 format: setup
 	$(BIN)/ruff check --fix .

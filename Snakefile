@@ -2,6 +2,8 @@
 # Target grammar: results/{dataset}/{scene}/ratio{r}/<artefact>
 #   e.g. snakemake -c2 results/synthetic/default/ratio0.6/metrics.json
 # See docs/pipeline.md for the stages and config/README.md for every setting.
+from pathlib import Path
+
 from snakemake.utils import min_version
 
 min_version("9.0")
@@ -13,21 +15,15 @@ configfile: "config/config.yaml"
 report: "workflow/report/workflow.rst"
 
 
+# common.smk first (config, wildcards, input functions), then every rule file:
+# a new stage's rule file is picked up without a line here.
 include: "workflow/rules/common.smk"
-include: "workflow/rules/synthesize.smk"
-include: "workflow/rules/ingest.smk"
-include: "workflow/rules/split.smk"
-include: "workflow/rules/priors.smk"
-include: "workflow/rules/recon.smk"
-include: "workflow/rules/group.smk"
-include: "workflow/rules/rigid_init.smk"
-include: "workflow/rules/refine.smk"
-include: "workflow/rules/forecast.smk"
-include: "workflow/rules/grouping_quality.smk"
-include: "workflow/rules/reconstruction_quality.smk"
-include: "workflow/rules/evaluate.smk"
-include: "workflow/rules/report.smk"
-include: "workflow/rules/export.smk"
+
+
+for _rules in sorted(Path(workflow.basedir, "workflow", "rules").glob("*.smk")):
+    if _rules.name != "common.smk":
+
+        include: f"workflow/rules/{_rules.name}"
 
 
 localrules:

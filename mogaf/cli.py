@@ -29,21 +29,13 @@ from .paths import use_cache_dir
 from .report.tables import main_table_paths
 from .schema import config_error, load_config_schema
 
-# subcommand -> (function, {cli option: function argument}, config section or
-# None), for the stages whose subcommand takes path options only; from the registry.
-STAGES: dict[str, tuple[Callable[..., Any], dict[str, str], str | None]] = {
-    spec.cli: (
-        getattr(stages, spec.function),
-        {**{i.option: i.argument for i in spec.inputs}, "out": spec.output_argument},
-        spec.settings,
-    )
-    for spec in registry.STAGES
-    if spec.cli
-}
-OPTIONAL_PATHS = {i.option for spec in registry.STAGES if spec.cli for i in spec.inputs if not i.required}
+# The stage subcommands come from the registry: a spec's inputs become path
+# options, its output --out, its wildcards options (--ratio, --method, ...);
+# its settings section, seed and device are read from the config.
 SEEDED = {spec.cli for spec in registry.STAGES if spec.cli and spec.seeded}
-DEVICE = {spec.cli for spec in registry.STAGES if spec.cli and spec.device}
+DEVICE = {spec.cli for spec in registry.STAGES if spec.cli and spec.uses_device}
 CHECKPOINT = {spec.cli for spec in registry.STAGES if spec.cli and spec.checkpoint}
+COMMON = ("dataset", "scene")  # wildcards that are the common options --dataset / --scene
 SCHEMA_NAME = "schema.yaml"  # config/schema.yaml, the file the workflow validates against
 
 
@@ -111,33 +103,43 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=None, help="torch threads")
 
 
+def stage_options(spec: registry.StageSpec) -> dict[str, str]:
+    """CLI option -> the stage's argument, for its paths (inputs, --out, further outputs)."""
+    options = {i.cli_option: i.argument for i in spec.inputs}
+    options["out"] = spec.output_argument
+    options.update({o.role: o.argument for o in spec.outputs})
+    return options
+
+
+def _add_stage(sub: Any, spec: registry.StageSpec) -> None:
+    assert spec.cli is not None
+    p = sub.add_parser(spec.cli, help=f"run the {spec.rule} stage")
+    for i in spec.inputs:
+        if i.many:
+            p.add_argument(f"--{i.cli_option}", nargs="*", default=[], help=f"{i.argument} (several paths)")
+        else:
+            p.add_argument(f"--{i.cli_option}", required=i.required)
+    p.add_argument("--out", required=True)
+    for o in spec.outputs:
+        p.add_argument(f"--{o.role}", help=f"default: {o.sibling} beside --out")
+    for w in spec.wildcards:
+        if w not in COMMON:
+            p.add_argument(f"--{w}", required=True, help=WILDCARD_HELP.get(w))
+    if spec.name == "ingest":
+        p.add_argument("--layout", choices=["iphone", "dnerf", "synthetic"], required=True)
+    if spec.checkpoint:
+        p.add_argument("--checkpoint", help="resumable training state (resumed when it matches, removed after success)")
+    _add_common(p)
+
+
+WILDCARD_HELP = {"group": "group id, or 'all'", "ratio": "observation ratio in (0, 1)"}
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m mogaf", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    for name, (_, paths, _section) in STAGES.items():
-        p = sub.add_parser(name, help=f"run the {name} stage")
-        for option in paths:
-            p.add_argument(f"--{option}", required=option not in OPTIONAL_PATHS)
-        if name == "split":
-            p.add_argument("--ratio", required=True)
-        if name == "ingest":
-            p.add_argument("--layout", choices=["iphone", "dnerf", "synthetic"], required=True)
-        if name == "forecast-group":
-            p.add_argument("--method", required=True)
-            p.add_argument("--group", required=True, help="group id, or 'all'")
-        if name in CHECKPOINT:
-            p.add_argument(
-                "--checkpoint", help="resumable training state (resumed when it matches, removed after success)"
-            )
-        _add_common(p)
-    p = sub.add_parser(
-        "forecast",
-        help="merge a method's group jobs into forecast/{method}.h5 (constant_velocity / frozen: computed here)",
-    )
-    for option in ("model-h5", "groups-h5", "split-h5", "out", "method"):
-        p.add_argument(f"--{option}", required=True)
-    p.add_argument("--parts", nargs="*", default=[], help="forecast/{method}/group{k}.h5 files")
-    _add_common(p)
+    for spec in registry.commands().values():
+        _add_stage(sub, spec)
     p = sub.add_parser("evaluate", help="render forecasts at the evaluation views, write metrics.json")
     for option in (
         "scene-h5",
@@ -164,45 +166,60 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def stage_arguments(spec: registry.StageSpec, args: argparse.Namespace, cfg: dict[str, Any]) -> dict[str, Any]:
+    """The stage's arguments: paths from the options, the rest from the config."""
+    kwargs: dict[str, Any] = {
+        dest: getattr(args, option.replace("-", "_")) for option, dest in stage_options(spec).items()
+    }
+    kwargs.update({w: getattr(args, w) for w in spec.wildcards})
+    if spec.settings is not None:
+        kwargs["params"] = cfg[spec.settings]
+    if spec.seeded:
+        kwargs["seed"] = int(cfg["seed"])
+    if spec.uses_device:
+        kwargs["device"] = cfg["device"]
+    if spec.checkpoint:
+        kwargs["checkpoint"] = args.checkpoint
+    if spec.name in SPECIAL:
+        SPECIAL[spec.name](args, cfg, kwargs)
+    return kwargs
+
+
+def _synthesize(args: argparse.Namespace, cfg: dict[str, Any], kwargs: dict[str, Any]) -> None:
+    """synthesize: its settings are the config's `synthetic` entry of --scene."""
+    scenes = cfg.get("synthetic") or {}
+    if args.scene not in scenes:
+        raise MogafError(
+            f"{args.configfile}: synthesize --scene must be a key of its `synthetic` section "
+            f"({', '.join(scenes) or 'none'}), got {args.scene!r}"
+        )
+    kwargs["params"] = scenes[args.scene]
+
+
+def _ingest(args: argparse.Namespace, cfg: dict[str, Any], kwargs: dict[str, Any]) -> None:
+    """ingest: --layout, and the dataset's reading options from the config."""
+    if not (args.dataset and args.scene):
+        raise MogafError("ingest needs --dataset and --scene")
+    kwargs.update(layout=args.layout, options=mcfg.ingest_options(cfg, args.dataset, args.scene))
+
+
+# the two stages whose settings are not one config section (dedicated wrappers in mogaf.stages)
+SPECIAL: dict[str, Callable[[argparse.Namespace, dict[str, Any], dict[str, Any]], None]] = {
+    "synthesize": _synthesize,
+    "ingest": _ingest,
+}
+
+
 def _run(args: argparse.Namespace) -> int:
     if args.command == "lpips-convert":
         convert_lpips_sdist(args.sdist, args.out)
         return 0
-    if args.command in ("forecast", "evaluate", "tables"):
+    if args.command in ("evaluate", "tables"):
         return _run_extra(args)
-    fn, paths, section = STAGES[args.command]
-    kwargs: dict[str, Any] = {dest: getattr(args, option.replace("-", "_")) for option, dest in paths.items()}
+    spec = registry.by_command(args.command)
     cfg = _config_for(args)
-    if section is not None:
-        kwargs["params"] = cfg[section] if section != "forecast" else cfg["forecast"]
-    if args.command in SEEDED:
-        kwargs["seed"] = int(cfg["seed"])
-    if args.command in DEVICE:
-        kwargs["device"] = cfg["device"]
-    if args.command in CHECKPOINT:
-        kwargs["checkpoint"] = args.checkpoint
-    if args.command == "split":
-        kwargs["ratio"] = args.ratio
-    if args.command == "synthesize":
-        scenes = cfg.get("synthetic") or {}
-        if args.scene not in scenes:
-            raise MogafError(
-                f"{args.configfile}: synthesize --scene must be a key of its `synthetic` section "
-                f"({', '.join(scenes) or 'none'}), got {args.scene!r}"
-            )
-        kwargs["params"] = scenes[args.scene]
-    if args.command == "ingest":
-        if not (args.dataset and args.scene):
-            raise MogafError("ingest needs --dataset and --scene")
-        kwargs.update(
-            layout=args.layout,
-            options=mcfg.ingest_options(cfg, args.dataset, args.scene),
-            dataset=args.dataset,
-            scene=args.scene,
-        )
-    if args.command == "forecast-group":
-        kwargs.update(method=args.method, group=args.group)
-    stages.run_stage(fn, None, threads=args.threads, **kwargs)
+    kwargs = stage_arguments(spec, args, cfg)
+    stages.run_stage(stages.entry(spec.name), None, threads=args.threads, **kwargs)
     return 0
 
 
@@ -218,21 +235,7 @@ def _pairs(items: list[str], what: str) -> dict[str, str]:
 
 def _run_extra(args: argparse.Namespace) -> int:
     cfg = _config_for(args)
-    if args.command == "forecast":
-        stages.run_stage(
-            stages.forecast_merge,
-            None,
-            threads=args.threads,
-            model=args.model_h5,
-            groups=args.groups_h5,
-            split=args.split_h5,
-            parts=list(args.parts),
-            out=args.out,
-            params=cfg["forecast"],
-            method=args.method,
-            seed=int(cfg["seed"]),
-        )
-    elif args.command == "evaluate":
+    if args.command == "evaluate":
         ids = {"dataset": args.dataset or "", "scene": args.scene or "", "ratio": args.ratio}
         stages.run_stage(
             stages.evaluate,

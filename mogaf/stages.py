@@ -1,16 +1,35 @@
 """Stage entry points: explicit paths in, artefact out.
 
-The Snakemake scripts in workflow/scripts/ and the CLI (`python -m mogaf`)
-call these and nothing else. Each writes its artefact atomically; a bad input
-raises MogafError, which `run_stage` turns into one line and exit status 1.
-Each declares the artefacts it reads (`mogaf.artefact.stage_inputs`): they
-must share one lineage, and what it writes records them. Each refuses, before
-it opens anything for writing, an output that would overwrite or delete one
-of its inputs or write into a dataset folder (`mogaf.paths.check_outputs`).
+Every stage is described once, by its StageSpec in mogaf.registry. The
+generic runner `run(name, **arguments)` runs any stage from its spec:
+
+1. it refuses, before it opens anything for writing, an output that would
+   overwrite or delete one of its inputs or write into a dataset folder
+   (`mogaf.paths.check_outputs`);
+2. it runs the spec's guards (`before_inputs` first);
+3. it declares the artefacts the stage reads (`mogaf.artefact.stage_inputs`):
+   they must share one lineage, and what it writes records them;
+4. it calls the spec's library function, imported only now (torch loads
+   only when a stage that needs it runs).
+
+`mogaf.stages.<stage>(...)` is that runner with the stage's arguments
+(inputs in the spec's order, the output, params, then the rest);
+`run_rule(snakemake)` is the one Snakemake script's entry
+(workflow/scripts/run_stage.py) and the CLI (`python -m mogaf`) calls the
+same entries. A bad input raises MogafError, which `run_stage` turns into
+one line and exit status 1.
+
+Stages whose shape the generic runner does not fit keep a dedicated wrapper
+here (the spec's `wrapper`): synthesize (replaces a whole folder, settings
+per scene name), ingest (reads a dataset folder, not an artefact),
+forecast_group and forecast_merge (call mogaf.forecast.stage, refactored on
+its own), evaluate (a dynamic set of forecasts and benchmarks) and the
+report entries (scene_report, tables, runtime_report).
 """
 
 from __future__ import annotations
 
+import inspect
 import logging
 import numbers
 import os
@@ -21,6 +40,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+from . import registry
 from .artefact import check_made_from, config_digest, open_artefact, stage_inputs, write_error
 from .errors import MogafError, input_error
 from .paths import check_outputs
@@ -121,18 +141,6 @@ def _rows(path: str | os.PathLike, key: str) -> int | None:
         return int(fh[key].shape[0]) if key in fh and fh[key].shape else None
 
 
-def _check_groups_cover(model: str, groups: str) -> None:
-    """groups.h5 must give a group to every Gaussian of the model it is read
-    with (a groups.h5 of another model would index past it, or leave some out)."""
-    assigned, gaussians = _rows(groups, "group_id"), _rows(model, "fg/means")
-    if assigned is not None and gaussians is not None and assigned != gaussians:
-        raise input_error(
-            groups,
-            f"assigns groups to {assigned} Gaussians, but the model {model} has {gaussians}; "
-            "rerun the grouping for this model",
-        )
-
-
 def _check_synthetic_target(out_dir: str) -> None:
     """synthesize replaces its folder whole: only a synthetic scene or an empty
     folder may be replaced, never a folder of other files."""
@@ -147,7 +155,192 @@ def _check_synthetic_target(out_dir: str) -> None:
         )
 
 
-# ------------------------------------------------------------------ stages
+# ------------------------------------------------------------------ the generic runner
+def run(name: str, /, **arguments: Any) -> Any:
+    """Run stage `name` (mogaf.registry) on explicit paths: `arguments` are
+    its inputs by argument name, its output(s), `params` (with `settings`),
+    its wildcards, `seed` / `device` / `checkpoint` as the spec takes them."""
+    spec = registry.spec(name)
+    if not spec.generic:
+        raise TypeError(f"stage {spec.name} has a dedicated entry point: mogaf.stages.{spec.wrapper}")
+    arguments = dict(arguments)
+    paths = _input_paths(spec, arguments)
+    outputs = _output_paths(spec, arguments)
+    check_outputs(outputs, paths, directories=[o.role for o in spec.outputs if o.directory])
+    _guards(spec, arguments, before_inputs=True)
+    with stage_inputs(*paths):
+        _guards(spec, arguments, before_inputs=False)
+        return _call(spec, arguments)
+
+
+def _input_paths(spec: registry.StageSpec, arguments: dict[str, Any]) -> list[str | None]:
+    paths: list[str | None] = []
+    for i in spec.inputs:
+        value = arguments.get(i.argument)
+        if value is None and i.required:
+            raise MogafError(f"stage {spec.name}: no {i.argument} given (--{i.cli_option})")
+        paths += list(value or []) if i.many else [value]
+    return paths
+
+
+def _output_paths(spec: registry.StageSpec, arguments: dict[str, Any]) -> dict[str, Any]:
+    """role -> path; a further output left out goes beside the artefact."""
+    out = arguments.get(spec.output_argument)
+    if out is None:
+        raise MogafError(f"stage {spec.name}: no output path given")
+    outputs: dict[str, Any] = {"out": out}
+    if spec.checkpoint:
+        outputs["checkpoint"] = arguments.get("checkpoint")
+    for o in spec.outputs:
+        if arguments.get(o.argument) is None:
+            arguments[o.argument] = registry.sibling(os.fspath(out), o.sibling)
+        outputs[o.role] = arguments[o.argument]
+    return outputs
+
+
+def _guards(spec: registry.StageSpec, arguments: Mapping[str, Any], *, before_inputs: bool) -> None:
+    for guard in spec.guards:
+        if guard.before_inputs == before_inputs:
+            registry.load(guard.check)(*(arguments.get(a) for a in guard.arguments))
+
+
+def _call(spec: registry.StageSpec, arguments: Mapping[str, Any]) -> Any:
+    """function(*inputs, out, params, **keywords): the spec's calling convention."""
+    positional: list[Any] = [arguments.get(i.argument) for i in spec.inputs]
+    positional.append(arguments[spec.output_argument])
+    keywords: dict[str, Any] = {w: arguments[w] for w in spec.wildcards}
+    params: dict[str, Any] | None = dict(arguments["params"] or {}) if spec.settings else None
+    for key, where in (("seed", spec.seed), ("device", spec.device)):
+        if where == "params" and params is not None:
+            params[key] = arguments[key]
+        elif where is not None:
+            keywords[key] = arguments[key]
+    if params is not None:
+        positional.append(params)
+    if spec.checkpoint:
+        keywords["checkpoint"] = arguments.get("checkpoint")
+    keywords.update({o.argument: arguments[o.argument] for o in spec.outputs})
+    keywords.update(dict(spec.fixed))
+    return registry.load(spec.function)(*positional, **keywords)
+
+
+def signature(spec: registry.StageSpec) -> inspect.Signature:
+    """The arguments of `mogaf.stages.<stage>`: the inputs in the spec's order,
+    the output, params, wildcards, seed, device, checkpoint, further outputs."""
+    P = inspect.Parameter
+    names = [i.argument for i in spec.inputs] + [spec.output_argument]
+    names += ["params"] if spec.settings else []
+    names += list(spec.wildcards) + (["seed"] if spec.seeded else [])
+    params = [P(n, P.POSITIONAL_OR_KEYWORD) for n in names]
+    if spec.uses_device:
+        params.append(P("device", P.POSITIONAL_OR_KEYWORD, default="auto"))
+    if spec.checkpoint:
+        params.append(P("checkpoint", P.POSITIONAL_OR_KEYWORD, default=None))
+    params += [P(o.argument, P.POSITIONAL_OR_KEYWORD, default=None) for o in spec.outputs]
+    return inspect.Signature(params)
+
+
+_ENTRIES: dict[str, Callable[..., Any]] = {}
+
+
+def entry(name: str) -> Callable[..., Any]:
+    """The callable that runs stage `name`: its wrapper here, or the generic
+    runner with the stage's signature (one object per rule: the specs of one
+    rule, reconstruction_quality's, run alike)."""
+    spec = registry.spec(registry.spec(name).rule)
+    if spec.wrapper is not None:
+        return globals()[spec.wrapper]
+    if spec.name not in _ENTRIES or _ENTRIES[spec.name].__mogaf_spec__ is not spec:  # type: ignore[attr-defined]
+        sig = signature(spec)
+
+        def stage(*args: Any, **kwargs: Any) -> Any:
+            bound = sig.bind(*args, **kwargs)
+            bound.apply_defaults()
+            return run(spec.name, **bound.arguments)
+
+        stage.__signature__ = sig  # type: ignore[attr-defined]
+        stage.__name__ = stage.__qualname__ = spec.rule
+        stage.__doc__ = f"Stage {spec.name} ({spec.function}) through the generic runner (mogaf.registry)."
+        stage.__mogaf_spec__ = spec  # type: ignore[attr-defined]
+        _ENTRIES[spec.name] = stage
+    return _ENTRIES[spec.name]
+
+
+def __getattr__(name: str) -> Callable[..., Any]:
+    """`mogaf.stages.<stage>` for every generic stage of the registry."""
+    try:
+        spec = registry.spec(name)
+    except KeyError:
+        raise AttributeError(f"module 'mogaf.stages' has no attribute {name!r}") from None
+    if not spec.generic:
+        raise AttributeError(name)
+    return entry(name)
+
+
+def rule_arguments(spec: registry.StageSpec, smk: Any) -> dict[str, Any]:
+    """A stage's arguments from a Snakemake job (the `snakemake` object of a script)."""
+    kwargs: dict[str, Any] = {}
+    for i in spec.inputs:
+        value = smk.input.get(i.argument)
+        kwargs[i.argument] = list(value or []) if i.many else value
+    kwargs[spec.output_argument] = smk.output[0]
+    for o in spec.outputs:
+        kwargs[o.argument] = smk.output.get(o.role)
+    if spec.settings:
+        kwargs["params"] = smk.params.get(spec.settings)
+    for key in ("seed", "device", "checkpoint"):
+        if getattr(spec, key):
+            kwargs[key] = smk.params.get(key)
+    kwargs.update({w: smk.wildcards.get(w) for w in spec.wildcards})
+    return kwargs
+
+
+def run_rule(smk: Any) -> Any:
+    """workflow/scripts/run_stage.py: the job's stage, found by its rule's name."""
+    spec = registry.spec(smk.rule)
+    return run_stage(
+        entry(spec.name),
+        smk.log[0],
+        threads=smk.threads if spec.torch_threads else None,
+        **rule_arguments(spec, smk),
+    )
+
+
+# ------------------------------------------------------------------ guards
+def check_groups_cover(model: str, groups: str) -> None:
+    """groups.h5 must give a group to every Gaussian of the model it is read
+    with (a groups.h5 of another model would index past it, or leave some out)."""
+    assigned, gaussians = _rows(groups, "group_id"), _rows(model, "fg/means")
+    if assigned is not None and gaussians is not None and assigned != gaussians:
+        raise input_error(
+            groups,
+            f"assigns groups to {assigned} Gaussians, but the model {model} has {gaussians}; "
+            "rerun the grouping for this model",
+        )
+
+
+def check_ratio_text(ratio: str | float) -> float:
+    """The {ratio} of a target path (ratio<r>): a number in (0, 1)."""
+    from .split import check_ratio  # local: a stage's package (and torch) loads only when it runs
+
+    try:
+        r = float(ratio)
+    except ValueError:
+        raise MogafError(
+            f"observation ratio '{ratio}' is not a number (target folder ratio<r> needs r in (0, 1))"
+        ) from None
+    return check_ratio(r)
+
+
+# ------------------------------------------------------------------ library functions of generic stages
+def split_stage(scene: str, out: str, ratio: str | float) -> Path:
+    """The split stage's function (mogaf.split has no single entry)."""
+    from .split import split_scene, write_split  # local: a stage's package (and torch) loads only when it runs
+
+    return write_split(out, split_scene(scene, float(ratio)))
+
+
+# ------------------------------------------------------------------ dedicated wrappers
 def synthesize(out_dir: str, params: Mapping[str, Any]) -> Path:
     from .synth.generate import generate_scene  # local: a stage's package (and torch) loads only when it runs
 
@@ -167,102 +360,6 @@ def ingest(folder: str, out: str, layout: str, options: Mapping[str, Any], datas
     )
 
 
-def split(scene: str, out: str, ratio: str | float) -> Path:
-    from .split import (  # local: a stage's package (and torch) loads only when it runs
-        check_ratio,
-        split_scene,
-        write_split,
-    )
-
-    check_outputs({"out": out}, [scene])
-    try:
-        r = float(ratio)
-    except ValueError:
-        raise MogafError(
-            f"observation ratio '{ratio}' is not a number (target folder ratio<r> needs r in (0, 1))"
-        ) from None
-    check_ratio(r)
-    with stage_inputs(scene):
-        return write_split(out, split_scene(scene, r))
-
-
-def priors(scene: str, split: str, out: str, params: Mapping[str, Any], seed: int) -> Path:
-    from .priors.stage import run_priors_stage  # local: a stage's package (and torch) loads only when it runs
-
-    check_outputs({"out": out}, [scene, split])
-    with stage_inputs(scene, split):
-        return run_priors_stage(scene, split, out, {**params, "seed": seed})
-
-
-def recon(
-    scene: str,
-    split: str,
-    priors: str,
-    out: str,
-    params: Mapping[str, Any],
-    seed: int,
-    device: str = "auto",
-    checkpoint: str | None = None,
-) -> Path:
-    from .recon.stage import run_recon_stage  # local: a stage's package (and torch) loads only when it runs
-
-    check_outputs({"out": out, "checkpoint": checkpoint}, [scene, split, priors])
-    with stage_inputs(scene, split, priors):
-        return run_recon_stage(
-            scene, split, priors, out, {**params, "device": device}, seed=seed, checkpoint=checkpoint, progress=False
-        )
-
-
-def group(model: str, priors: str, scene: str, out: str, params: Mapping[str, Any], seed: int = 0) -> Path:
-    from .grouping.stage import run_group_stage  # local: a stage's package (and torch) loads only when it runs
-
-    check_outputs({"out": out}, [model, priors, scene])
-    with stage_inputs(model, priors, scene):
-        return run_group_stage(model, priors, scene, out, {**params, "seed": seed})
-
-
-def rigid_init(model: str, groups: str, out: str, params: Mapping[str, Any]) -> Path:
-    from .grouping.stage import run_rigid_init_stage  # local: a stage's package (and torch) loads only when it runs
-
-    check_outputs({"out": out}, [model, groups])
-    with stage_inputs(model, groups):
-        _check_groups_cover(model, groups)
-        return run_rigid_init_stage(model, groups, out, dict(params))
-
-
-def refine(
-    model: str,
-    groups: str,
-    rigid: str | None,
-    priors: str,
-    scene: str,
-    split: str,
-    out: str,
-    params: Mapping[str, Any],
-    seed: int,
-    device: str = "auto",
-    checkpoint: str | None = None,
-) -> Path:
-    from .refine.stage import run_refine_stage  # local: a stage's package (and torch) loads only when it runs
-
-    check_outputs({"out": out, "checkpoint": checkpoint}, [model, groups, rigid, priors, scene, split])
-    with stage_inputs(model, groups, rigid, priors, scene, split):
-        _check_groups_cover(model, groups)
-        return run_refine_stage(
-            model,
-            groups,
-            rigid,
-            priors,
-            scene,
-            split,
-            out,
-            {**params, "device": device},
-            seed=seed,
-            checkpoint=checkpoint,
-            progress=False,
-        )
-
-
 def forecast_group(
     model: str,
     groups: str,
@@ -278,7 +375,7 @@ def forecast_group(
 
     check_outputs({"out": out}, [model, groups, split])
     with stage_inputs(model, groups, split):
-        _check_groups_cover(model, groups)
+        check_groups_cover(model, groups)
         return run_forecast_group(
             model, groups, split, out, dict(params), method=method, job=group, seed=seed, device=device
         )
@@ -298,30 +395,8 @@ def forecast_merge(
 
     check_outputs({"out": out}, [model, groups, split, *parts])
     with stage_inputs(model, groups, split, *parts):
-        _check_groups_cover(model, groups)
+        check_groups_cover(model, groups)
         return run_forecast_merge(model, groups, split, parts, out, dict(params), method=method, seed=seed)
-
-
-def grouping_quality(
-    grouped_model: str, groups: str, scene: str, split: str, out: str, params: Mapping[str, Any]
-) -> Path:
-    from .grouping.quality import (
-        run_grouping_quality_stage,  # local: a stage's package (and torch) loads only when it runs
-    )
-
-    check_outputs({"out": out}, [grouped_model, groups, scene, split])
-    with stage_inputs(grouped_model, groups, scene, split):
-        _check_groups_cover(grouped_model, groups)
-        return run_grouping_quality_stage(grouped_model, groups, scene, split, out, dict(params))
-
-
-def reconstruction_quality(model: str, scene: str, split: str, out: str, params: Mapping[str, Any]) -> Path:
-    # local: a stage's package (and torch) loads only when it runs
-    from .reconstruction_quality.stage import run_reconstruction_quality_stage
-
-    check_outputs({"out": out}, [model, scene, split])
-    with stage_inputs(model, scene, split):
-        return run_reconstruction_quality_stage(model, scene, split, out, dict(params))
 
 
 def evaluate(
@@ -357,7 +432,7 @@ def evaluate(
     check_outputs({"metrics": out_metrics, "renders": out_renders}, inputs, directories=("renders",))
     with stage_inputs(scene, split, model, groups, reconstruction_quality, grouping_quality, *forecasts.values()):
         check_made_from(reconstruction_quality, model)  # of this very model (refined.h5 vs recon.h5)
-        _check_groups_cover(model, groups)
+        check_groups_cover(model, groups)
         return run_evaluate_stage(
             scene=scene,
             split=split,
@@ -372,26 +447,6 @@ def evaluate(
             variant=variant,
             ids=dict(ids),
         )
-
-
-def export(
-    model: str,
-    forecast: str,
-    scene: str,
-    split: str,
-    out: str,
-    params: Mapping[str, Any],
-    ply_dir: str | None = None,
-) -> Path:
-    """index.json at `out` and the PLY files it lists in `ply_dir` (default: ply/ beside it)."""
-    from .export import ply_folder  # local: a stage's package (and torch) loads only when it runs
-    from .export.stage import run_export_stage
-
-    plys = ply_dir if ply_dir is not None else ply_folder(out)
-    check_outputs({"out": out, "ply": plys}, [model, forecast, scene, split], directories=("ply",))
-    with stage_inputs(model, forecast, scene, split):
-        check_made_from(forecast, model)  # poses of this very model's Gaussians (refined.h5 vs recon.h5)
-        return run_export_stage(model, forecast, scene, split, out, dict(params), ply_dir=plys)
 
 
 def scene_report(

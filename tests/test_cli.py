@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from mogaf import cli
+from mogaf import cli, registry
 from support.paths import REPO
 
 
@@ -33,9 +33,16 @@ def _one_line_error(capsys, *argv: str) -> str:
     return err
 
 
+WILDCARD_VALUES = {"ratio": "0.6", "method": "gcn", "group": "1"}
+
+
 def _stage_args(tmp_path, command: str, configfile: str) -> list[str]:
-    paths = {option: str(tmp_path / f"{option}.h5") for option in cli.STAGES[command][1]}
-    return [command, *[x for option, path in paths.items() for x in (f"--{option}", path)], "--configfile", configfile]
+    """Every path option of the stage's subcommand, and its wildcards (mogaf.registry)."""
+    spec = registry.by_command(command)
+    paths = {option: str(tmp_path / f"{option}.h5") for option in cli.stage_options(spec)}
+    wildcards = [x for w in spec.wildcards if w not in cli.COMMON for x in (f"--{w}", WILDCARD_VALUES[w])]
+    options = [x for option, path in paths.items() for x in (f"--{option}", path)]
+    return [command, *options, *wildcards, "--configfile", configfile]
 
 
 def test_config_the_schema_refuses_fails_with_one_line(in_repo, tmp_path, capsys):
@@ -71,9 +78,8 @@ def test_tables_refuse_a_missing_metrics_file(in_repo, tmp_path, capsys):
 def test_seeded_stages_get_the_config_seed(in_repo, tmp_path, monkeypatch, command):
     seen = {}
     monkeypatch.setattr(cli.stages, "run_stage", lambda fn, log, threads=None, **kw: seen.update(kw))
-    extra = ["--method", "mogaf", "--group", "1"] if command == "forecast-group" else []
     configfile = _config(tmp_path, lambda c: c.update(seed=7))
-    assert cli.main(_stage_args(tmp_path, command, configfile) + extra) == 0
+    assert cli.main(_stage_args(tmp_path, command, configfile)) == 0
     assert seen["seed"] == 7
 
 
@@ -81,9 +87,8 @@ def test_seeded_stages_get_the_config_seed(in_repo, tmp_path, monkeypatch, comma
 def test_device_stages_get_the_config_device(in_repo, tmp_path, monkeypatch, command):
     seen = {}
     monkeypatch.setattr(cli.stages, "run_stage", lambda fn, log, threads=None, **kw: seen.update(kw))
-    extra = ["--method", "gcn", "--group", "1"] if command == "forecast-group" else []
     configfile = _config(tmp_path, lambda c: c.update(device="cpu"))
-    assert cli.main(_stage_args(tmp_path, command, configfile) + extra) == 0
+    assert cli.main(_stage_args(tmp_path, command, configfile)) == 0
     assert seen["device"] == "cpu"
     # only the training stages resume from a checkpoint
     assert ("checkpoint" in seen) == (command in cli.CHECKPOINT)
@@ -95,7 +100,37 @@ def test_every_stage_using_the_gpu_takes_the_device():
 
 def test_every_stage_using_randomness_is_seeded():
     # priors (track sampling), recon, group (PCA, priority order), refine and the forecasters draw random numbers
-    assert {"priors", "recon", "group", "refine", "forecast-group"} <= cli.SEEDED
+    assert {"priors", "recon", "group", "refine", "forecast-group", "forecast"} <= cli.SEEDED
+
+
+@pytest.mark.parametrize("command", sorted(c for c, s in registry.commands().items() if s.name not in cli.SPECIAL))
+def test_every_stage_subcommand_calls_its_entry(in_repo, tmp_path, monkeypatch, command):
+    """Each subcommand is derived from its spec: the stage's entry gets its
+    paths, wildcards and config section (synthesize and ingest, whose settings
+    are not one section: the tests above and tests/test_bad_inputs.py)."""
+    spec = registry.by_command(command)
+    seen = {}
+    monkeypatch.setattr(cli.stages, "run_stage", lambda fn, log, threads=None, **kw: seen.update(kw, fn=fn))
+    configfile = _config(tmp_path, lambda c: None)
+    assert cli.main(_stage_args(tmp_path, command, configfile)) == 0
+    assert seen.pop("fn") is cli.stages.entry(spec.name)
+    for option, argument in cli.stage_options(spec).items():
+        if argument in (i.argument for i in spec.inputs if i.many):
+            continue
+        assert seen.pop(argument) == str(tmp_path / f"{option}.h5")
+    for w in spec.wildcards:
+        assert seen.pop(w) == WILDCARD_VALUES[w]
+    if spec.settings:
+        assert isinstance(seen.pop("params"), dict)
+
+
+def test_forecast_merge_subcommand(in_repo, tmp_path, monkeypatch):
+    seen = {}
+    monkeypatch.setattr(cli.stages, "run_stage", lambda fn, log, threads=None, **kw: seen.update(kw, fn=fn))
+    args = ["forecast", "--model-h5", "m.h5", "--groups-h5", "g.h5", "--split-h5", "s.h5", "--out", "f.h5"]
+    assert cli.main([*args, "--method", "gcn", "--parts", "a.h5", "b.h5"]) == 0
+    assert seen["fn"] is cli.stages.forecast_merge and seen["parts"] == ["a.h5", "b.h5"] and seen["method"] == "gcn"
+    assert seen["params"]["methods"] and "device" not in seen
 
 
 def test_grouping_quality_gets_its_config_section(in_repo, tmp_path, monkeypatch):

@@ -2,6 +2,7 @@
 
 import functools
 import os
+import string
 from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
@@ -190,27 +191,6 @@ def stage_prefix(stage, wildcards):
     return mcfg.artefact_prefix(stage, base_cfg(wildcards), scene_cfg(wildcards), variant)
 
 
-def ratio_path(wildcards, name):
-    return f"{mcfg.ratio_dir(wildcards.dataset, wildcards.scene, wildcards.ratio)}/{name}"
-
-
-def stage_path(stage, wildcards):
-    return ratio_path(wildcards, f"{stage_prefix(stage, wildcards)}{mcfg.ARTEFACT_FILES[stage]}")
-
-
-def artefact(stage):
-    """The path pattern of a stage's artefact (mogaf.registry), for its rule's output."""
-    return mreg.rule_output(stage)
-
-
-def scene_h5(wildcards):
-    return mreg.rule_output("ingest").format(dataset=wildcards.dataset, scene=wildcards.scene)
-
-
-def split_h5(wildcards):
-    return ratio_path(wildcards, mreg.spec("split").output)
-
-
 def params_for(section):
     """Rule params: one config section for this scene/variant."""
     return lambda wildcards: scene_cfg(wildcards)[section]
@@ -224,12 +204,99 @@ def device(wildcards):
     return scene_cfg(wildcards)["device"]
 
 
-def benchmark_tsv(stage):
-    return f"results/{{dataset}}/{{scene}}/ratio{{ratio}}/{{prefix}}benchmarks/{stage}.tsv"
+# ------------------------------------------------------------------ paths (patterns: mogaf.registry)
+def artefact(stage, role=None):
+    """The path pattern of a stage's artefact (or further output `role`), for its rule's output."""
+    return mreg.rule_output(stage, role)
 
 
-def log_file(stage):
-    return f"results/{{dataset}}/{{scene}}/ratio{{ratio}}/{{prefix}}logs/{stage}.log"
+def log_file(name, scope=None):
+    """The log of a rule's job: results/.../{prefix}logs/<job>.log (mogaf.registry.job_path)."""
+    return mreg.job_path("log", name, scope)
+
+
+def benchmark_tsv(name):
+    return mreg.job_path("benchmark", name)
+
+
+def _fill(pattern, wildcards, prefix, **extra):
+    return pattern.format(**{**dict(wildcards.items()), "prefix": prefix, **extra})
+
+
+def _variant_prefix(stage, wildcards, **extra):
+    """'' or ablation/<variant>/: where this variant's artefact of `stage` lives."""
+    spec = mreg.spec(stage)
+    if spec.scope != "variant":
+        return ""
+    key = (spec.variant_key or spec.name).format(**{**dict(wildcards.items()), **extra})
+    return stage_prefix(key, wildcards)
+
+
+def artefact_path(stage, wildcards, **extra):
+    """This variant's artefact of `stage` (a spec name), for these wildcards."""
+    return _fill(mreg.rule_output(stage), wildcards, _variant_prefix(stage, wildcards, **extra), **extra)
+
+
+def job_file(kind, stage, wildcards, **extra):
+    """This variant's log, benchmark or checkpoint of a job of `stage`."""
+    return _fill(mreg.job_path(kind, stage), wildcards, _variant_prefix(stage, wildcards, **extra), **extra)
+
+
+def checkpoint_output(stage, wildcards):
+    """This variant's artefact of checkpoint rule `stage`, once it has run."""
+    values = {**dict(wildcards.items()), "prefix": _variant_prefix(stage, wildcards)}
+    names = [name for _, name, _, _ in string.Formatter().parse(mreg.rule_output(stage)) if name]
+    return getattr(checkpoints, mreg.spec(stage).rule).get(**{name: values[name] for name in names}).output[0]
+
+
+def _source(item, wildcards):
+    """The stage whose artefact the input `item` (mogaf.registry.Input) is."""
+    return item.source if isinstance(item.source, str) else item.source(scene_cfg(wildcards), wildcards)
+
+
+def resolved_inputs(stage, wildcards):
+    """argument -> (source stage, path) of the inputs the registry gives `stage`
+    (its rule file gives those without a source)."""
+    out = {}
+    for item in mreg.spec(stage).inputs:
+        if item.source is None:
+            continue
+        source = _source(item, wildcards)
+        path = checkpoint_output(source, wildcards) if item.checkpoint else artefact_path(source, wildcards)
+        if item.only_if is not None:
+            predicate, argument = item.only_if
+            if not mreg.load(predicate)(out[argument][1]):
+                continue
+        out[item.argument] = (source, path)
+    return out
+
+
+def stage_inputs(stage):
+    """The input function of a stage's rule: `input: unpack(stage_inputs("refine"))`."""
+
+    @_workflow_error
+    def inputs(wildcards):
+        return {argument: path for argument, (_, path) in resolved_inputs(stage, wildcards).items()}
+
+    inputs.__name__ = f"{mreg.spec(stage).rule}_inputs"
+    return inputs
+
+
+def stage_params(stage):
+    """The params of a stage's rule, `params: **stage_params("refine")` (its config
+    section, seed, device and training checkpoint, as its spec takes them)."""
+    spec = mreg.spec(stage)
+    out = {}
+    if spec.settings is not None:
+        out[spec.settings] = params_for(spec.settings)
+    if spec.seeded:
+        out["seed"] = seed
+    if spec.uses_device:
+        out["device"] = device
+    if spec.checkpoint:
+        # survives a killed job so that a rerun resumes instead of starting over
+        out["checkpoint"] = mreg.job_path("checkpoint", stage)
+    return out
 
 
 # ------------------------------------------------------------------ datasets
@@ -304,45 +371,7 @@ def demo_targets():
     return out
 
 
-# ------------------------------------------------------------------ groups (checkpoint)
-def groups_h5(wildcards):
-    """groups.h5 of this variant, after the checkpoint has run."""
-    prefix = stage_prefix("group", wildcards)
-    return checkpoints.group.get(
-        dataset=wildcards.dataset, scene=wildcards.scene, ratio=wildcards.ratio, prefix=prefix
-    ).output[0]
-
-
-def refine_inputs(wildcards):
-    inputs = {
-        "model": stage_path("recon", wildcards),
-        "groups": groups_h5(wildcards),
-        "priors": stage_path("priors", wildcards),
-        "scene": scene_h5(wildcards),
-        "split": split_h5(wildcards),
-    }
-    from mogaf.grouping.stage import has_rigid_groups
-
-    if has_rigid_groups(inputs["groups"]):
-        inputs["rigid"] = stage_path("rigid_init", wildcards)
-    return inputs
-
-
 # ------------------------------------------------------------------ forecasts
-def forecast_prefix(wildcards):
-    return stage_prefix(f"forecast:{wildcards.method}", wildcards)
-
-
-def forecast_model(wildcards):
-    """refined.h5, or recon.h5 for the ablation without group-wise optimisation."""
-    return stage_path(mcfg.forecast_input_stage(scene_cfg(wildcards)), wildcards)
-
-
-def quality_model(wildcards):
-    """recon.h5 or refined.h5, by the {model} wildcard of reconstruction_quality."""
-    return stage_path({"recon": "recon", "refined": "refine"}[wildcards.model], wildcards)
-
-
 def forecast_params(wildcards):
     """Only what one method's forecast depends on (other methods' settings
     must not trigger a rerun)."""
@@ -355,58 +384,56 @@ def forecast_params(wildcards):
     return out
 
 
-def forecast_part_files(wildcards):
+def _forecast_jobs(wildcards, method):
     from mogaf.forecast.stage import forecast_jobs, method_jobs
 
-    cfg = scene_cfg(wildcards)
-    jobs = method_jobs(wildcards.method, forecast_jobs(groups_h5(wildcards), groupwise=cfg["forecast"]["groupwise"]))
-    base = ratio_path(wildcards, forecast_prefix(wildcards))
-    return [f"{base}forecast/{wildcards.method}/group{job}.h5" for job in jobs]
+    groupwise = scene_cfg(wildcards)["forecast"]["groupwise"]
+    return method_jobs(method, forecast_jobs(checkpoint_output("group", wildcards), groupwise=groupwise))
+
+
+def forecast_part_files(wildcards):
+    return [
+        artefact_path("forecast_group", wildcards, group=job) for job in _forecast_jobs(wildcards, wildcards.method)
+    ]
 
 
 # ------------------------------------------------------------------ evaluation and reports
-def forecast_h5(wildcards, method):
-    prefix = stage_prefix(f"forecast:{method}", wildcards)
-    return ratio_path(wildcards, f"{prefix}forecast/{method}.h5")
+def _lineage(stage, wildcards, seen):
+    """The stages `stage`'s inputs come from, transitively, as the rules resolve them."""
+    for source, _ in resolved_inputs(stage, wildcards).values():
+        if source not in seen:
+            seen.append(source)
+            _lineage(source, wildcards, seen)
+    return seen
 
 
 def _benchmarks_of(wildcards):
-    """Benchmark TSVs of every stage in this result's lineage."""
-    cfg = scene_cfg(wildcards)
-    out = {"bench_ingest": f"results/{wildcards.dataset}/{wildcards.scene}/benchmarks/ingest.tsv"}
-    stages = ["priors", "recon", "group"]
-    model_stage = mcfg.forecast_input_stage(cfg)
-    if model_stage == "refine":
-        stages.append("refine")
-        from mogaf.grouping.stage import has_rigid_groups
-
-        if has_rigid_groups(groups_h5(wildcards)):
-            stages.append("rigid_init")
-    for stage in stages:
-        out[f"bench_{stage}"] = ratio_path(wildcards, f"{stage_prefix(stage, wildcards)}benchmarks/{stage}.tsv")
-    from mogaf.forecast.stage import forecast_jobs, method_jobs
-
-    jobs = forecast_jobs(groups_h5(wildcards), groupwise=cfg["forecast"]["groupwise"])
-    for method in cfg["forecast"]["methods"]:
-        base = ratio_path(wildcards, stage_prefix(f"forecast:{method}", wildcards))
-        out[f"bench_forecast_{method}"] = f"{base}benchmarks/forecast_{method}.tsv"
-        for job in method_jobs(method, jobs):
-            out[f"bench_forecast_{method}_group{job}"] = f"{base}benchmarks/forecast_{method}_group{job}.tsv"
+    """Benchmark TSVs of every stage in this result's lineage (the stages whose
+    spec counts its run time) and of every method's forecast jobs."""
+    out = {}
+    for stage in _lineage("forecast_group", wildcards, []):
+        if mreg.spec(stage).runtime:
+            out[f"bench_{mreg.job_name(stage)}"] = job_file("benchmark", stage, wildcards)
+    for method in scene_cfg(wildcards)["forecast"]["methods"]:
+        out[f"bench_forecast_{method}"] = job_file("benchmark", "forecast", wildcards, method=method)
+        for job in _forecast_jobs(wildcards, method):
+            path = job_file("benchmark", "forecast_group", wildcards, method=method, group=job)
+            out[f"bench_forecast_{method}_group{job}"] = path
     return out
 
 
 def evaluate_inputs(wildcards):
     cfg = scene_cfg(wildcards)
     inputs = {
-        "scene": scene_h5(wildcards),
-        "split": split_h5(wildcards),
-        "model": forecast_model(wildcards),
-        "groups": groups_h5(wildcards),  # its lineage only (mogaf.stages.evaluate)
-        "reconstruction_quality": stage_path(mcfg.reconstruction_quality_stage(cfg), wildcards),
-        "grouping_quality": stage_path("grouping_quality", wildcards),
+        "scene": artefact_path("ingest", wildcards),
+        "split": artefact_path("split", wildcards),
+        "model": artefact_path(mcfg.forecast_input_stage(cfg), wildcards),
+        "groups": checkpoint_output("group", wildcards),  # its lineage only (mogaf.stages.evaluate)
+        "reconstruction_quality": artefact_path(mcfg.reconstruction_quality_stage(cfg), wildcards),
+        "grouping_quality": artefact_path("grouping_quality", wildcards),
     }
     for method in cfg["forecast"]["methods"]:
-        inputs[f"forecast_{method}"] = forecast_h5(wildcards, method)
+        inputs[f"forecast_{method}"] = artefact_path("forecast", wildcards, method=method)
     inputs.update(_benchmarks_of(wildcards))
     return inputs
 
@@ -414,10 +441,11 @@ def evaluate_inputs(wildcards):
 def scene_report_inputs(wildcards):
     cfg = scene_cfg(wildcards)
     return {
-        "metrics": ratio_path(wildcards, f"{wildcards.prefix}metrics.json"),
-        "renders": ratio_path(wildcards, f"{wildcards.prefix}renders"),
-        "grouping_quality": stage_path("grouping_quality", wildcards),
-        "reconstruction_quality": stage_path(mcfg.reconstruction_quality_stage(cfg), wildcards),
+        # this result's own (the target's prefix), not a shared one
+        "metrics": _fill(mreg.rule_output("evaluate"), wildcards, wildcards.prefix),
+        "renders": _fill(mreg.rule_output("evaluate", "renders"), wildcards, wildcards.prefix),
+        "grouping_quality": artefact_path("grouping_quality", wildcards),
+        "reconstruction_quality": artefact_path(mcfg.reconstruction_quality_stage(cfg), wildcards),
     }
 
 

@@ -8,7 +8,7 @@ rule evaluate:
     output:
         metrics=artefact("evaluate"),
         # in the report through the scene_report rule's page (the report plays HTML inline)
-        renders=directory("results/{dataset}/{scene}/ratio{ratio}/{prefix}renders"),
+        renders=directory(artefact("evaluate", "renders")),
     log:
         log_file("evaluate"),
     benchmark:

@@ -5,27 +5,22 @@
 # reads it; not part of `make demo`), e.g.
 #   snakemake -c2 results/synthetic/default/ratio0.6/export/mogaf/index.json
 
-from mogaf.export.params import ply_folder
-
 
 rule export:
     input:
-        model=forecast_model,
-        forecast=lambda wildcards: forecast_h5(wildcards, wildcards.method),
-        scene=scene_h5,
-        split=split_h5,
+        unpack(stage_inputs("export")),
     output:
         index=artefact("export"),
-        ply=directory(ply_folder(artefact("export"))),
+        ply=directory(artefact("export", "ply")),
     log:
-        log_file("export_{method}"),
+        log_file("export"),
     benchmark:
-        benchmark_tsv("export_{method}")
+        benchmark_tsv("export")
     conda:
         "../../envs/mogaf.yaml"
     # one core: it converts and writes; nothing is rendered
     threads: 1
     params:
-        export=params_for("export"),
+        **stage_params("export"),
     script:
-        "../scripts/export.py"
+        "../scripts/run_stage.py"

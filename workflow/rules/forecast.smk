@@ -1,20 +1,20 @@
 # Group-wise motion forecasting (paper Sec. 4.3): one job per dynamic group and
 # trained method (one job "all" when forecast.groupwise is off), merged into
 # forecast/{method}.h5. Static groups keep their last pose; constant velocity
-# and frozen train nothing and are computed in the merge job.
+# and frozen train nothing and are computed in the merge job. Their params are
+# only what one method's forecast depends on (forecast_params), not the whole
+# forecast section.
 
 
 rule forecast_group:
     input:
-        model=forecast_model,
-        groups=groups_h5,
-        split=split_h5,
+        unpack(stage_inputs("forecast_group")),
     output:
-        "results/{dataset}/{scene}/ratio{ratio}/{prefix}forecast/{method}/group{group}.h5",
+        artefact("forecast_group"),
     log:
-        "results/{dataset}/{scene}/ratio{ratio}/{prefix}logs/forecast_{method}_group{group}.log",
+        log_file("forecast_group"),
     benchmark:
-        "results/{dataset}/{scene}/ratio{ratio}/{prefix}benchmarks/forecast_{method}_group{group}.tsv"
+        benchmark_tsv("forecast_group")
     conda:
         "../../envs/mogaf.yaml"
     threads: 1
@@ -27,25 +27,23 @@ rule forecast_group:
         seed=seed,
         device=device,
     script:
-        "../scripts/forecast_group.py"
+        "../scripts/run_stage.py"
 
 
 rule forecast:
     input:
-        model=forecast_model,
-        groups=groups_h5,
-        split=split_h5,
+        unpack(stage_inputs("forecast")),
         parts=forecast_part_files,
     output:
-        "results/{dataset}/{scene}/ratio{ratio}/{prefix}forecast/{method}.h5",
+        artefact("forecast"),
     log:
-        "results/{dataset}/{scene}/ratio{ratio}/{prefix}logs/forecast_{method}.log",
+        log_file("forecast"),
     benchmark:
-        "results/{dataset}/{scene}/ratio{ratio}/{prefix}benchmarks/forecast_{method}.tsv"
+        benchmark_tsv("forecast")
     conda:
         "../../envs/mogaf.yaml"
     params:
         forecast=forecast_params,
         seed=seed,
     script:
-        "../scripts/forecast_merge.py"
+        "../scripts/run_stage.py"

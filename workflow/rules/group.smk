@@ -4,9 +4,7 @@
 
 checkpoint group:
     input:
-        model=lambda wildcards: stage_path("recon", wildcards),
-        priors=lambda wildcards: stage_path("priors", wildcards),
-        scene=scene_h5,
+        unpack(stage_inputs("group")),
     output:
         artefact("group"),
     log:
@@ -19,7 +17,6 @@ checkpoint group:
     # run beside a reconstruction instead of waiting for both cores.
     threads: 1
     params:
-        grouping=params_for("grouping"),
-        seed=seed,
+        **stage_params("group"),
     script:
-        "../scripts/group.py"
+        "../scripts/run_stage.py"

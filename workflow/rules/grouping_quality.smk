@@ -5,10 +5,7 @@
 
 rule grouping_quality:
     input:
-        grouped_model=lambda wildcards: stage_path("recon", wildcards),
-        groups=lambda wildcards: stage_path("group", wildcards),
-        scene=scene_h5,
-        split=split_h5,
+        unpack(stage_inputs("grouping_quality")),
     output:
         artefact("grouping_quality"),
     log:
@@ -21,6 +18,6 @@ rule grouping_quality:
     # run beside a reconstruction instead of waiting for both cores.
     threads: 1
     params:
-        grouping_quality=params_for("grouping_quality"),
+        **stage_params("grouping_quality"),
     script:
-        "../scripts/grouping_quality.py"
+        "../scripts/run_stage.py"

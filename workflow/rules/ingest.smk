@@ -7,9 +7,9 @@ rule ingest:
     output:
         artefact("ingest"),
     log:
-        "results/{dataset}/{scene}/logs/ingest.log",
+        log_file("ingest"),
     benchmark:
-        "results/{dataset}/{scene}/benchmarks/ingest.tsv"
+        benchmark_tsv("ingest")
     conda:
         "../../envs/mogaf.yaml"
     params:

@@ -3,8 +3,7 @@
 
 rule priors:
     input:
-        scene=scene_h5,
-        split=split_h5,
+        unpack(stage_inputs("priors")),
     output:
         artefact("priors"),
     log:
@@ -14,7 +13,6 @@ rule priors:
     conda:
         "../../envs/mogaf.yaml"
     params:
-        priors=params_for("priors"),
-        seed=seed,
+        **stage_params("priors"),
     script:
-        "../scripts/priors.py"
+        "../scripts/run_stage.py"

@@ -1,11 +1,10 @@
 # 4D Gaussian reconstruction (Shape-of-Motion representation) on observed frames.
+# Its training checkpoint (params.checkpoint) survives a killed job, so a rerun resumes.
 
 
 rule recon:
     input:
-        scene=scene_h5,
-        split=split_h5,
-        priors=lambda wildcards: stage_path("priors", wildcards),
+        unpack(stage_inputs("recon")),
     output:
         artefact("recon"),
     log:
@@ -22,10 +21,6 @@ rule recon:
         runtime=240,
         gpu=lambda wildcards: 1 if device(wildcards) == "cuda" else 0,
     params:
-        recon=params_for("recon"),
-        seed=seed,
-        device=device,
-        # Survives a killed job so a rerun resumes instead of starting over.
-        checkpoint="results/{dataset}/{scene}/ratio{ratio}/{prefix}checkpoints/recon.pt",
+        **stage_params("recon"),
     script:
-        "../scripts/recon.py"
+        "../scripts/run_stage.py"

@@ -6,21 +6,19 @@
 
 rule reconstruction_quality:
     input:
-        model=quality_model,
-        scene=scene_h5,
-        split=split_h5,
+        unpack(stage_inputs("reconstruction_quality")),
     output:
-        "results/{dataset}/{scene}/ratio{ratio}/{prefix}reconstruction_quality/{model}.h5",
+        artefact("reconstruction_quality"),
     log:
-        log_file("reconstruction_quality_{model}"),
+        log_file("reconstruction_quality"),
     benchmark:
-        benchmark_tsv("reconstruction_quality_{model}")
+        benchmark_tsv("reconstruction_quality")
     conda:
         "../../envs/mogaf.yaml"
     # One core: the same artefact as with two (measured), no slower, and it can
     # run beside a reconstruction instead of waiting for both cores.
     threads: 1
     params:
-        reconstruction_quality=params_for("reconstruction_quality"),
+        **stage_params("reconstruction_quality"),
     script:
-        "../scripts/reconstruction_quality.py"
+        "../scripts/run_stage.py"

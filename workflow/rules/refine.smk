@@ -3,7 +3,7 @@
 
 rule refine:
     input:
-        unpack(refine_inputs),
+        unpack(stage_inputs("refine")),
     output:
         artefact("refine"),
     log:
@@ -20,9 +20,6 @@ rule refine:
         runtime=120,
         gpu=lambda wildcards: 1 if device(wildcards) == "cuda" else 0,
     params:
-        refine=params_for("refine"),
-        seed=seed,
-        device=device,
-        checkpoint="results/{dataset}/{scene}/ratio{ratio}/{prefix}checkpoints/refine.pt",
+        **stage_params("refine"),
     script:
-        "../scripts/refine.py"
+        "../scripts/run_stage.py"

@@ -49,7 +49,7 @@ rule tables:
             "masking.csv",
         ),
     log:
-        "results/tables/logs/tables.log",
+        log_file("tables", scope="tables"),
     conda:
         "../../envs/mogaf.yaml"
     params:
@@ -68,7 +68,7 @@ rule runtime_report:
         md="results/tables/error_vs_runtime.md",
         png=report("results/tables/error_vs_runtime.png", caption="../report/runtime.rst", category="Error vs run time"),
     log:
-        "results/tables/logs/runtime_report.log",
+        log_file("runtime_report", scope="tables"),
     conda:
         "../../envs/mogaf.yaml"
     params:

@@ -1,12 +1,11 @@
 # Rigid initialisation: per rigid group and observed time, Procrustes (uniform
 # weights as in the paper, or opacity-weighted: rigid_init.weights).
-# Never runs for a scene without rigid groups (see refine's input function).
+# Never runs for a scene without rigid groups (refine's rigid input: mogaf.registry).
 
 
 rule rigid_init:
     input:
-        model=lambda wildcards: stage_path("recon", wildcards),
-        groups=lambda wildcards: stage_path("group", wildcards),
+        unpack(stage_inputs("rigid_init")),
     output:
         artefact("rigid_init"),
     log:
@@ -16,6 +15,6 @@ rule rigid_init:
     conda:
         "../../envs/mogaf.yaml"
     params:
-        rigid_init=params_for("rigid_init"),
+        **stage_params("rigid_init"),
     script:
-        "../scripts/rigid_init.py"
+        "../scripts/run_stage.py"

@@ -4,12 +4,12 @@
 
 rule split:
     input:
-        scene=scene_h5,
+        unpack(stage_inputs("split")),
     output:
         artefact("split"),
     log:
-        "results/{dataset}/{scene}/ratio{ratio}/logs/split.log",
+        log_file("split"),
     conda:
         "../../envs/mogaf.yaml"
     script:
-        "../scripts/split.py"
+        "../scripts/run_stage.py"

@@ -6,7 +6,7 @@ rule synthesize:
     output:
         directory(artefact("synthesize")),
     log:
-        "results/{dataset}/{scene}/logs/synthesize.log",
+        log_file("synthesize"),
     wildcard_constraints:
         dataset="|".join(synthetic_datasets()),
     conda:
