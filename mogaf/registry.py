@@ -131,6 +131,8 @@ class StageSpec:
     output_argument: str = "out"  # the function's argument holding the output path
     outputs: tuple[Output, ...] = ()  # further outputs
     settings: str | None = None  # config section passed as `params`
+    # its settings dataclass ("module:Class"): mogaf.settings.SECTIONS and the config schema list it from here
+    settings_class: str | None = None
     seed: str | None = None  # the config's `seed`: "params" (merged into params), "kwarg" or None
     device: str | None = None  # the config's `device`, likewise
     checkpoint: bool = False  # takes a resumable training checkpoint (`checkpoint`)
@@ -215,6 +217,7 @@ STAGES: tuple[StageSpec, ...] = (
         output="priors.h5",
         inputs=(SCENE, SPLIT),
         settings="priors",
+        settings_class="mogaf.priors.params:PriorsSettings",
         seed="params",
         torch_threads=False,
         digest_sections=("seed", "priors"),
@@ -227,6 +230,7 @@ STAGES: tuple[StageSpec, ...] = (
         output="recon.h5",
         inputs=(SCENE, SPLIT, PRIORS),
         settings="recon",
+        settings_class="mogaf.recon.params:ReconSettings",
         seed="kwarg",
         device="params",
         checkpoint=True,
@@ -242,6 +246,7 @@ STAGES: tuple[StageSpec, ...] = (
         output="groups.h5",
         inputs=(_in("model", "recon"), PRIORS, SCENE),
         settings="grouping",
+        settings_class="mogaf.grouping.params:GroupingSettings",
         seed="params",
         digest_sections=("grouping",),
         upstream=("recon", "priors"),
@@ -254,6 +259,7 @@ STAGES: tuple[StageSpec, ...] = (
         output="rigid.h5",
         inputs=(_in("model", "recon"), _in("groups", "group")),
         settings="rigid_init",
+        settings_class="mogaf.grouping.params:RigidInitSettings",
         guards=(Guard(GROUPS_COVER, ("model", "groups")),),
         torch_threads=False,
         digest_sections=("rigid_init",),
@@ -275,6 +281,7 @@ STAGES: tuple[StageSpec, ...] = (
             SPLIT,
         ),
         settings="refine",
+        settings_class="mogaf.refine.params:RefineSettings",
         seed="kwarg",
         device="params",
         checkpoint=True,
@@ -291,6 +298,7 @@ STAGES: tuple[StageSpec, ...] = (
         output="grouping_quality.h5",
         inputs=(_in("grouped_model", "recon"), _in("groups", "group"), SCENE, SPLIT),
         settings="grouping_quality",
+        settings_class="mogaf.grouping.params:GroupingQualitySettings",
         guards=(Guard(GROUPS_COVER, ("grouped_model", "groups")),),
         digest_sections=("grouping_quality",),
         upstream=("group", "recon"),
@@ -307,6 +315,7 @@ STAGES: tuple[StageSpec, ...] = (
             job="reconstruction_quality_{model}",
             inputs=(_in("model", measured_model), SCENE, SPLIT),
             settings="reconstruction_quality",
+            settings_class="mogaf.reconstruction_quality.params:ReconstructionQualitySettings",
             digest_sections=("reconstruction_quality",),
             upstream=(stage,),
             cli="reconstruction-quality" if stage == "recon" else None,
@@ -355,6 +364,7 @@ STAGES: tuple[StageSpec, ...] = (
         output_argument="out_metrics",
         outputs=(Output("renders", "out_renders", "renders", directory=True),),
         settings="evaluate",
+        settings_class="mogaf.evaluate.params:EvaluateSettings",
         digest_sections=("evaluate", "forecast.methods"),
     ),
     # opt-in, no stage reads it: one method's forecast as 3DGS PLY files
@@ -366,6 +376,7 @@ STAGES: tuple[StageSpec, ...] = (
         outputs=(Output("ply", "ply_dir", "ply", directory=True),),
         inputs=(_in("model", forecast_input), _in("forecast", "forecast"), SCENE, SPLIT),
         settings="export",
+        settings_class="mogaf.export.params:ExportSettings",
         # poses of this very model's Gaussians (refined.h5 vs recon.h5)
         guards=(Guard(MADE_FROM, ("forecast", "model")),),
         job="export_{method}",

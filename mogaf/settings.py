@@ -235,23 +235,25 @@ def describe(cls: type) -> list[tuple[str, Any, str]]:
 
 # ------------------------------------------------------------------ the config's stage sections
 # config path -> (settings class, the schema definition config/schema.yaml refers to)
+def _stage_sections() -> dict[str, tuple[str, str]]:
+    """The stages' own config sections, from their specs (mogaf.registry)."""
+    from .registry import STAGES
+
+    out: dict[str, tuple[str, str]] = {}
+    for spec in STAGES:
+        if spec.settings and spec.settings_class:
+            out.setdefault(spec.settings, (spec.settings_class, spec.settings))
+    return out
+
+
+# config section -> (its settings dataclass, its definition in the config schema)
 SECTIONS: dict[str, tuple[str, str]] = {
-    "priors": ("mogaf.priors.params:PriorsSettings", "priors"),
-    "recon": ("mogaf.recon.params:ReconSettings", "recon"),
-    "grouping": ("mogaf.grouping.params:GroupingSettings", "grouping"),
-    "rigid_init": ("mogaf.grouping.params:RigidInitSettings", "rigid_init"),
-    "refine": ("mogaf.refine.params:RefineSettings", "refine"),
+    **_stage_sections(),
+    # the forecasters' sections inside `forecast` (mogaf.forecast.params: the method table)
     "forecast.mogaf": ("mogaf.forecast.params:MogafSettings", "forecast_mogaf"),
     "forecast.mogaf.structured": ("mogaf.forecast.params:StructuredSettings", ""),  # nested in forecast_mogaf
     "forecast.gcn": ("mogaf.forecast.baseline_params:GCNSettings", "forecast_gcn"),
     "forecast.ode": ("mogaf.forecast.baseline_params:ODESettings", "forecast_ode"),
-    "evaluate": ("mogaf.evaluate.params:EvaluateSettings", "evaluate"),
-    "export": ("mogaf.export.params:ExportSettings", "export"),
-    "grouping_quality": ("mogaf.grouping.params:GroupingQualitySettings", "grouping_quality"),
-    "reconstruction_quality": (
-        "mogaf.reconstruction_quality.params:ReconstructionQualitySettings",
-        "reconstruction_quality",
-    ),
     # one entry per scene name, over its preset: no defaults of its own in the config tree
     "synthetic.<scene>": ("mogaf.synth.params:SyntheticSettings", "synthetic_scene"),
 }
@@ -290,6 +292,8 @@ def workflow_schema(schema: Mapping[str, Any]) -> dict[str, Any]:
         **dict(schema.get("definitions") or {}),
         **{name: section_schema(section_class(path)) for path, (_, name) in SECTIONS.items() if name},
     }
+    if "forecast" in (schema.get("properties") or {}):  # the pipeline config's schema, not the ablations'
+        out["properties"] = _config_properties(schema["properties"])
     # a synthetic scene names its preset besides the generator settings
     scene = out["definitions"]["synthetic_scene"]
     scene["properties"] = {
@@ -297,6 +301,30 @@ def workflow_schema(schema: Mapping[str, Any]) -> dict[str, Any]:
         **scene["properties"],
     }
     return out
+
+
+def _config_properties(given: Mapping[str, Any]) -> dict[str, Any]:
+    """The config schema's top level plus what its tables give: each stage's
+    section (from its spec), and the forecast method names and sections (the
+    method table), so that neither is written in config/schema.yaml."""
+    from .forecast.params import METHOD_TABLE
+
+    properties = dict(given)
+    for path, (_, name) in SECTIONS.items():
+        if name and "." not in path:
+            properties.setdefault(path, {"$ref": f"#/definitions/{name}"})
+    forecast = dict(properties["forecast"])
+    fields = dict(forecast["properties"])
+    fields["methods"] = {**fields["methods"], "items": {"type": "string", "enum": [m.name for m in METHOD_TABLE]}}
+    for m in METHOD_TABLE:  # each method's section (none of its own for one reading another's)
+        if not m.section:
+            definition = SECTIONS[f"forecast.{m.name}"][1] if m.settings is not None else "no_params"
+            fields[m.name] = {"$ref": f"#/definitions/{definition}"}
+    forecast["properties"] = fields
+    with_params = [m.name for m in METHOD_TABLE if m.settings is not None]
+    forecast["then"] = {"properties": {"methods": {"items": {"enum": with_params}}}}
+    properties["forecast"] = forecast
+    return properties
 
 
 def markdown() -> str:

@@ -186,3 +186,22 @@ def test_path_patterns():
         reg.rule_output("no_such_stage")
     with pytest.raises(KeyError):
         reg.rule_output("recon", "ply")
+
+
+def test_stage_sections_and_method_names_reach_the_schema_from_their_tables():
+    """A stage's config section needs no line of its own in config/schema.yaml
+    or mogaf.settings.SECTIONS, and the method names none in the schema."""
+    from mogaf.forecast.params import METHOD_TABLE
+    from mogaf.schema import load_config_schema
+    from mogaf.settings import SECTIONS
+
+    schema = load_config_schema(REPO / "config" / "schema.yaml")
+    for spec in reg.STAGES:
+        if spec.settings_class:
+            assert SECTIONS[spec.settings] == (spec.settings_class, spec.settings)
+            assert schema["properties"][spec.settings] == {"$ref": f"#/definitions/{spec.settings}"}
+    raw = (REPO / "config" / "schema.yaml").read_text()
+    assert "recon:" not in raw and "mogaf_paper" not in raw
+    forecast = schema["properties"]["forecast"]
+    assert forecast["properties"]["methods"]["items"]["enum"] == [m.name for m in METHOD_TABLE]
+    assert set(forecast["properties"]) >= {m.name for m in METHOD_TABLE if not m.section}

@@ -31,21 +31,5 @@ Modules: params (METHODS, the config section of each method), registry
 pipeline stage), base (Forecaster), one module per forecaster (classical,
 gcn, ode, transformer: the paper mode, structured: the default mode), and the
 structured mode's parts: mogaf_settings (MogafRun), trajectory, group_motion,
-channel_net, candidates. Import a name from the module defining it; the
-names below remain here only for callers outside mogaf.forecast not yet moved.
+channel_net, candidates. Import a name from the module defining it.
 """
-
-from mogaf.forecast.base import Forecaster, ForecastResult
-from mogaf.forecast.params import METHODS, param_section, section_params
-from mogaf.forecast.registry import defaults, fit_and_rollout, make_forecaster
-
-__all__ = [
-    "METHODS",
-    "ForecastResult",
-    "Forecaster",
-    "defaults",
-    "fit_and_rollout",
-    "make_forecaster",
-    "param_section",
-    "section_params",
-]

@@ -375,7 +375,7 @@ def demo_targets():
 def forecast_params(wildcards):
     """Only what one method's forecast depends on (other methods' settings
     must not trigger a rerun)."""
-    from mogaf.forecast import param_section, section_params
+    from mogaf.forecast.params import param_section, section_params
 
     fc = scene_cfg(wildcards)["forecast"]
     section = param_section(wildcards.method)
