@@ -113,13 +113,6 @@ def accel_loss(x: torch.Tensor, dim: int = 1) -> torch.Tensor:
     return a.norm(dim=-1).mean()
 
 
-def scale_variance(log_scales: torch.Tensor) -> torch.Tensor:
-    """Mean over Gaussians of the unbiased variance of their (N, D) log-scales,
-    torch.var(dim=-1).mean() written out: about 4x faster forward + backward on CPU."""
-    centred = log_scales - log_scales.mean(dim=-1, keepdim=True)
-    return (centred * centred).sum(dim=-1).mean() / (log_scales.shape[-1] - 1)
-
-
 def basis_smoothness(rot6d: torch.Tensor, transl: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
     """SoM: accel(rot) + 2 accel(translation) of the bases over time (translation / scene scale)."""
     return accel_loss(rot6d) + 2.0 * accel_loss(transl / scale)

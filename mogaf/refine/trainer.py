@@ -16,7 +16,7 @@ from ..grouping.core import Groups
 from ..grouping.stage import rigid_init
 from ..recon.data import TrainData
 from ..recon.init_common import InitResult
-from ..recon.trainer import Trainer, adam
+from ..recon.trainer import Trainer
 from ..representation import Model4D, matrix_to_rot6d, rot6d_to_matrix
 from ..rigid import apply_rigid
 
@@ -102,7 +102,7 @@ class RefineTrainer(Trainer):
                     ("rigid.transl", self.rigid_transl, p.lr_transls * self.scale * p.lr_boost),
                 ):
                     self.base_lr[name] = lr
-                    self.optimizers[name] = adam(prm, lr)
+                    self.optimizers[name] = torch.optim.Adam([prm], lr=lr, eps=1e-15)
                     if state is not None and name in state["optimizers"]:
                         self.optimizers[name].load_state_dict(state["optimizers"][name])
             else:
