@@ -125,15 +125,6 @@ def blend_bases(
     return rot6d_to_matrix(r), t
 
 
-def deform(
-    means: torch.Tensor, quats: torch.Tensor, R: torch.Tensor, t: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Apply per-Gaussian rigid transforms (N,3,3),(N,3) to canonical poses."""
-    means_t = torch.einsum("nij,nj->ni", R, means) + t
-    quats_t = matrix_to_quat(R @ quat_to_matrix(quats))
-    return means_t, quats_t
-
-
 # ------------------------------------------------------------------ containers
 @dataclass
 class GaussianSet:

@@ -11,8 +11,9 @@ import pytest
 
 from mogaf.camera import GL_TO_CV, camera_centers, project
 from mogaf.datasets import describe_missing, read_scene, scene_present
-from mogaf.datasets.common import read_ply_points, time_grid
+from mogaf.datasets.common import time_grid
 from mogaf.datasets.images import composite_downscale, downscale_labels
+from mogaf.datasets.ply import read_ply_points
 from mogaf.errors import MogafError
 from mogaf.scene import SPLIT_CODES, load_scene, save_scene
 from support.fake_datasets import MARKER, fake_dnerf, write_json, write_ply

@@ -10,11 +10,27 @@ import pytest
 from mogaf.forecast import quat
 from mogaf.forecast.params import METHODS
 from mogaf.forecast.registry import fit_and_rollout, make_forecaster
-from mogaf.forecast.synthetic import STRESS_SETS, rigid_box
+from mogaf.forecast.synthetic import (
+    add_noise,
+    bounce_stop,
+    high_freq_oscillation,
+    rigid_box,
+    spin_near_pi,
+    static_cloud,
+)
 from support.forecast_params import FAST as FAST_FIT
 
 # Tiny budgets (support.forecast_params.FAST): stability must not depend on training well.
 FAST = {**FAST_FIT, "mogaf": {"iterations": 30, "batch_size": 32}, "mogaf_paper": {"iterations": 30, "batch_size": 32}}
+
+# trajectories that stress the forecasters numerically
+STRESS_SETS = {
+    "spin_near_pi": spin_near_pi,
+    "high_freq_oscillation": high_freq_oscillation,
+    "bounce_stop": bounce_stop,
+    "static": lambda n_gaussians=64, n_frames=24: static_cloud(n_gaussians, n_frames),
+    "noisy_box": lambda n_gaussians=64, n_frames=24: add_noise(rigid_box(n_gaussians, n_frames)),
+}
 
 
 def _assert_sane(poses: np.ndarray, observed: np.ndarray, n_steps: int, bound_factor: float = 10.0) -> None:

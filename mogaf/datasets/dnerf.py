@@ -58,13 +58,13 @@ from .common import (
     option_background,
     option_bool,
     option_int,
-    read_ply_points,
     rigidity_of,
     rigidity_rules,
     time_grid,
     warn_dataset,
 )
 from .images import composite_downscale, downscale_area, downscale_labels, png_size, read_image, read_label_image
+from .ply import read_ply_points
 
 SPLITS = ("train", "val", "test")
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")

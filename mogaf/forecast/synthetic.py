@@ -162,12 +162,3 @@ def add_noise(traj: np.ndarray, pos_sigma: float = 0.01, rot_sigma: float = 0.02
     out[..., :3] += rng.normal(scale=pos_sigma, size=out[..., :3].shape)
     out[..., 3:] = quat.normalize(out[..., 3:] + rng.normal(scale=rot_sigma, size=out[..., 3:].shape))
     return out
-
-
-STRESS_SETS: dict[str, Callable[..., np.ndarray]] = {
-    "spin_near_pi": spin_near_pi,
-    "high_freq_oscillation": high_freq_oscillation,
-    "bounce_stop": bounce_stop,
-    "static": lambda n_gaussians=64, n_frames=24: static_cloud(n_gaussians, n_frames),
-    "noisy_box": lambda n_gaussians=64, n_frames=24: add_noise(rigid_box(n_gaussians, n_frames)),
-}

@@ -58,3 +58,28 @@ def load_checkpoint(path: str | os.PathLike, digest: str) -> dict[str, Any] | No
     if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION or state.get("digest") != digest:
         return None
     return state
+
+
+def run_resumable(
+    trainer: Any,  # a recon.trainer.Trainer
+    log,
+    *,
+    stage: str,
+    resumed: bool,
+    checkpoint: str | os.PathLike | None,
+    digest: str,
+    progress: bool,
+    stop_at: int | None,
+) -> Path | None:
+    """Train to the end, or to `stop_at` leaving a checkpoint (its path is returned then; None at the end)."""
+    if resumed:
+        log.info(
+            "%s: resumed from %s at iteration %d of %d", stage, checkpoint, trainer.iteration, trainer.p.iterations
+        )
+    trainer.run(progress=progress, checkpoint=checkpoint, digest=digest, stop_at=stop_at, stage=stage)
+    if stop_at is not None and trainer.iteration < trainer.p.iterations:
+        if checkpoint is None:
+            raise ValueError("stop_at needs a checkpoint path")
+        save_checkpoint(checkpoint, trainer.checkpoint_state(digest))
+        return Path(checkpoint)
+    return None

@@ -16,11 +16,12 @@ from ..artefact import config_digest
 from ..errors import MogafError, input_error
 from ..representation import save_model
 from ..split import read_split
+from .checkpoint import run_resumable
 from .data import TrainData, coarser, extend_masks_to_content, input_digests, load_train_data
 from .init import initialise
 from .init_common import _use_bg
 from .params import load_settings, resolve_params
-from .trainer import Trainer, load_checkpoint, run_resumable
+from .trainer import Trainer, load_checkpoint
 
 log = logging.getLogger(__name__)
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 import math
 import os
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -494,28 +493,3 @@ class Trainer(TrainerSchedule, FrameLosses):
         parts["losses_and_other"] = steps - known
         parts["steps_total"] = steps
         return {k: round(max(v, 0.0), 3) for k, v in parts.items()}
-
-
-def run_resumable(
-    trainer: Trainer,
-    log,
-    *,
-    stage: str,
-    resumed: bool,
-    checkpoint: str | os.PathLike | None,
-    digest: str,
-    progress: bool,
-    stop_at: int | None,
-) -> Path | None:
-    """Train to the end, or to `stop_at` leaving a checkpoint (its path is returned then; None at the end)."""
-    if resumed:
-        log.info(
-            "%s: resumed from %s at iteration %d of %d", stage, checkpoint, trainer.iteration, trainer.p.iterations
-        )
-    trainer.run(progress=progress, checkpoint=checkpoint, digest=digest, stop_at=stop_at, stage=stage)
-    if stop_at is not None and trainer.iteration < trainer.p.iterations:
-        if checkpoint is None:
-            raise ValueError("stop_at needs a checkpoint path")
-        save_checkpoint(checkpoint, trainer.checkpoint_state(digest))
-        return Path(checkpoint)
-    return None

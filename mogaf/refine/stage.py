@@ -16,11 +16,12 @@ from ..artefact import config_digest
 from ..errors import MogafError, input_error
 from ..grouping.core import Groups
 from ..grouping.stage import load_groups, read_rigid_init
+from ..recon.checkpoint import run_resumable
 from ..recon.data import TrainData, input_digests, load_train_data
 from ..recon.init_common import InitResult
 from ..recon.params import load_settings as load_recon_settings
 from ..recon.stage import prepare_data
-from ..recon.trainer import load_checkpoint, run_resumable
+from ..recon.trainer import load_checkpoint
 from ..representation import Model4D, load_model, save_model
 from ..split import read_split
 from .params import RefineSettings, resolve_params
