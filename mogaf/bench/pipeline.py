@@ -31,8 +31,12 @@ from pathlib import Path
 from typing import Any
 
 from mogaf.errors import MogafError
+from mogaf.forecast.params import METHOD_TABLE
 
 DEMO_RESULTS = Path("results/synthetic/default/ratio0.6")
+# MoGaF's jobs: the methods reading forecast.mogaf (the method table); the baselines: the others
+MOGAF_METHODS = tuple(m.name for m in METHOD_TABLE if "mogaf" in (m.name, m.section))
+BASELINE_METHODS = tuple(m.name for m in METHOD_TABLE if m.name not in MOGAF_METHODS)
 SNAKEMAKE_BUDGET_S = 180.0
 
 # (row, job-name pattern, budget in s, how jobs combine: "each" = every job within, "sum" = their total)
@@ -45,8 +49,8 @@ BUDGETS: list[tuple[str, str, float, str]] = [
         10.0,
         "sum",
     ),
-    ("MoGaF forecast job", r"forecast_mogaf(_paper)?(_group\w+)?", 10.0, "each"),
-    ("baseline forecast job", r"forecast_(gcn|ode|constant_velocity|frozen)(_group\w+)?", 15.0, "each"),
+    ("MoGaF forecast job", rf"forecast_({'|'.join(MOGAF_METHODS)})(_group\w+)?", 10.0, "each"),
+    ("baseline forecast job", rf"forecast_({'|'.join(BASELINE_METHODS)})(_group\w+)?", 15.0, "each"),
     ("evaluate", r"evaluate", 20.0, "each"),
 ]
 
