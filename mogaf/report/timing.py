@@ -43,11 +43,10 @@ def timing_line(path: str | os.PathLike) -> str:
     """One Markdown paragraph: the demo's wall time and its stages' times against their budgets."""
     data = read_pipeline_rows(path)
     rows = [r for r in data["budgets"] if not str(r.get("row", "")).startswith("Snakemake run")]
-    stages = "; ".join(f"{r['row']} {float(r['wall_s']):.0f} s (budget {float(r['budget_s']):.0f} s)" for r in rows)
+    stages = ", ".join(f"{r['row']} {float(r['wall_s']):.0f} s ({float(r['budget_s']):.0f})" for r in rows)
     where = str(data.get("results", "")).strip()
     return (
         f"Measured: the demo's Snakemake run took {_minutes(float(data['snakemake_s']))} "
-        f"({where}); per kind of job (the slowest one, or the sum where the budget is a sum): {stages}. "
-        f"From `{Path(path).as_posix()}` (`python -m mogaf.bench pipeline --run --json ...`); "
-        "every job in [docs/results.md](docs/results.md).\n"
+        f"({where}); the slowest job of each kind against its budget: {stages}. "
+        f"From `{Path(path).as_posix()}`; every job in [docs/results.md](docs/results.md).\n"
     )
