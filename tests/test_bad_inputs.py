@@ -42,20 +42,8 @@ SCHEMA = load_config_schema(REPO / "config" / "schema.yaml")
 
 
 @pytest.fixture(autouse=True)
-def _root_log_handlers():
-    """run_stage replaces the root logger's handlers: put pytest's back."""
-    import logging
-
-    root = logging.getLogger()
-    handlers, level = list(root.handlers), root.level
-    yield
-    for handler in list(root.handlers):
-        root.removeHandler(handler)
-        if handler not in handlers:
-            handler.close()
-    for handler in handlers:
-        root.addHandler(handler)
-    root.setLevel(level)
+def _root_log_handlers(restore_root_logging):
+    """Every test here may run a stage through run_stage (tests/conftest.py)."""
 
 
 @pytest.fixture

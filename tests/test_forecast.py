@@ -365,20 +365,9 @@ def test_cuda_forecast_agrees_with_the_cpu_one(method):
 
 
 def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    q = quat.normalize(q)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    m = np.stack(
-        [
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - w * z),
-            2 * (x * z + w * y),
-            2 * (x * y + w * z),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - w * x),
-            2 * (x * z - w * y),
-            2 * (y * z + w * x),
-            1 - 2 * (x * x + y * y),
-        ],
-        axis=-1,
-    )
-    return m.reshape(q.shape[:-1] + (3, 3))
+    """The rotation matrices of wxyz quaternions, by the model's (torch) conversion in float64."""
+    import torch
+
+    from mogaf.representation import quat_to_matrix
+
+    return quat_to_matrix(torch.from_numpy(np.asarray(q, dtype=np.float64))).numpy()

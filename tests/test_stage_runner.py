@@ -18,20 +18,8 @@ from support.paths import REPO
 
 
 @pytest.fixture(autouse=True)
-def _root_log_handlers():
-    """run_stage (the CLI's) replaces the root logger's handlers: put pytest's back."""
-    import logging
-
-    root = logging.getLogger()
-    handlers, level = list(root.handlers), root.level
-    yield
-    for handler in list(root.handlers):
-        root.removeHandler(handler)
-        if handler not in handlers:
-            handler.close()
-    for handler in handlers:
-        root.addHandler(handler)
-    root.setLevel(level)
+def _root_log_handlers(restore_root_logging):
+    """Every test here may run a stage through run_stage (tests/conftest.py)."""
 
 
 @pytest.fixture
