@@ -232,7 +232,8 @@ def test_cached_reference_features_give_the_same_distance_to_the_bit(weights, rn
     compared with every method): a cache hit gives the value a cold cache gives,
     to the bit, within float32 rounding of the batch-of-two forward pass, and a
     repeated image is a cache hit."""
-    from mogaf.metrics.lpips import FEATURES, _run, _threads, _to_batch, get_lpips_model
+    from mogaf.devices import torch_threads
+    from mogaf.metrics.lpips import FEATURES, _run, _to_batch, get_lpips_model
 
     model = get_lpips_model(weights)
     gt = rng.random((45, 52, 3))
@@ -244,7 +245,7 @@ def test_cached_reference_features_give_the_same_distance_to_the_bit(weights, rn
         cold, _ = _run(pred, gt, spatial, weights, "cpu")
         assert np.array_equal(cached, cold)
         x0, x1 = (_to_batch(x, "x")[0] for x in (pred, gt))
-        with torch.inference_mode(), _threads(1):
+        with torch.inference_mode(), torch_threads(1):
             reference = model(x0, x1, spatial=spatial).numpy()[:, 0]
         np.testing.assert_allclose(cached, reference, rtol=1e-5, atol=1e-7)
     assert len(FEATURES.entries) == 1  # the reference (second argument) once; renders are not kept

@@ -27,7 +27,6 @@ mLPIPS (DyCheck ``get_compute_lpips``, Shape-of-Motion ``mLPIPS``)
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import hashlib
 import os
@@ -35,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mogaf.devices import torch_threads
 from mogaf.errors import MogafError
 from mogaf.metrics.image import _as_numpy, _mask
 from mogaf.metrics.lpips_weights import (
@@ -233,20 +233,6 @@ class FeatureCache:
 FEATURES = FeatureCache()
 
 
-@contextlib.contextmanager
-def _threads(n: int | None):
-    """Torch's intra-op thread count set to n inside (None: left alone)."""
-    import torch
-
-    before = torch.get_num_threads()
-    if n is not None:
-        torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
 def _run(img0, img1, spatial: bool, weights_path, device: str):
     import torch
 
@@ -258,7 +244,7 @@ def _run(img0, img1, spatial: bool, weights_path, device: str):
     dtype = next(model.parameters()).dtype
     x0, x1 = x0.to(device, dtype), x1.to(device, dtype)
     on_cpu = str(device).split(":")[0] == "cpu"
-    with torch.inference_mode(), _threads(1 if on_cpu else None):
+    with torch.inference_mode(), torch_threads(1 if on_cpu else None):
         if single0 and single1 and on_cpu:
             u0, u1 = model.unit_features(x0), FEATURES.features(model, x1)
             d = model.distance(u0, u1, x0.shape[2:], spatial)

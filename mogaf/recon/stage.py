@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from ..artefact import config_digest
+from ..devices import torch_threads
 from ..errors import MogafError, input_error
 from ..representation import save_model
 from ..split import read_split
@@ -100,14 +101,9 @@ def run_recon_stage(
     returns the checkpoint path then.
     """
     p = resolve_params(params)
-    previous_threads = torch.get_num_threads()
     threads = load_settings(p).threads
-    if threads > 0:
-        torch.set_num_threads(threads)
-    try:
+    with torch_threads(threads if threads > 0 else None):
         return _run(scene_h5, split_h5, priors_h5, out_h5, p, seed, checkpoint, progress, keep_checkpoint, stop_at)
-    finally:
-        torch.set_num_threads(previous_threads)
 
 
 def _run(

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from ..artefact import config_digest
+from ..devices import torch_threads
 from ..errors import MogafError, input_error
 from ..grouping.core import Groups
 from ..grouping.stage import load_groups, read_rigid_init
@@ -133,10 +134,7 @@ def run_refine_stage(
         )
         return save_model(out_h5, STAGE, model, config_digest=digest, attrs=attrs)
 
-    threads_before = torch.get_num_threads()
-    if rs.threads > 0:
-        torch.set_num_threads(rs.threads)
-    try:
+    with torch_threads(rs.threads if rs.threads > 0 else None):
         torch.manual_seed(int(seed))
         split = read_split(split_h5)
         data = load_train_data(scene_h5, split, priors_h5, downscale=rs.downscale)
@@ -173,8 +171,6 @@ def run_refine_stage(
             return paused
         train_psnr = trainer.psnr_all()
         refined = trainer.model.to_model4d(model.timesteps, data.background, trainer.curve.as_arrays())
-    finally:
-        torch.set_num_threads(threads_before)
     if len(refined.fg) != N:
         raise MogafError(f"refine: the Gaussian count changed ({N} -> {len(refined.fg)}); group ids would not match")
     refined.groups = _group_arrays(groups)
