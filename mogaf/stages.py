@@ -477,6 +477,19 @@ def tables(
     return write_tables(metrics_files, out_files, dict(params), dict(ablations))
 
 
+def scenes_table(metrics_files: list[str], out_md: str) -> Path:
+    """The per-scene table of a grid's metrics.json files (mogaf.report.scenes), written atomically."""
+    from .report.scenes import scenes  # local: a stage's package loads only when it runs
+
+    check_outputs({"md": out_md}, metrics_files)
+    out = Path(out_md)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(scenes(metrics_files))
+    tmp.replace(out)
+    return out
+
+
 def runtime_report(
     metrics_files: list[str], out_csv: str, out_md: str, out_png: str, params: Mapping[str, Any]
 ) -> list[Path]:

@@ -725,3 +725,32 @@ def test_scene_videos_page_plays_every_video_under_its_label(tmp_path, metrics_f
     empty.mkdir()
     with pytest.raises(MogafError, match="holds no video"):
         videos_page(empty, metrics_files[0], tmp_path / "report2")
+
+
+def test_scenes_table_gives_mogafs_margin_over_the_better_of_frozen_and_constant_velocity(tmp_path):
+    from mogaf.report.scenes import scenes_table
+
+    def scene(name: str, mogaf: float, frozen: float, cv: float) -> Path:
+        return write_metrics(
+            tmp_path / f"synthetic/{name}/metrics.json",
+            dataset="synthetic",
+            scene=name,
+            ratio=0.6,
+            protocol="dnerf",
+            methods={
+                "mogaf": method_section({"psnr": mogaf, "lpips": 0.2}, method="mogaf", wall=10.0),
+                "frozen": method_section({"psnr": frozen, "lpips": 0.2}, method="frozen", wall=1.0),
+                "constant_velocity": method_section({"psnr": cv, "lpips": 0.2}, method="constant_velocity", wall=1.0),
+            },
+        )
+
+    # a: ahead of both; b: 0.2 dB behind frozen (within the bound); c: 0.5 dB behind constant velocity
+    files = [scene("a", 18.0, 17.5, 17.0), scene("b", 17.0, 17.2, 16.0), scene("c", 16.0, 15.0, 16.5)]
+    text = scenes_table(load_metrics(files))
+    rows = md_rows(text)
+    col = rows[0].index("MoGaF − best of frozen, const. velocity (dB)")
+    assert [r[col] for r in rows[1:4]] == ["+0.50", "-0.20", "-0.50"]
+    assert (
+        "MoGaF is more than 0.3 dB PSNR below the better of frozen and constant velocity on 1 of 3 scenes "
+        "(worst margin -0.50 dB, c)." in text
+    )

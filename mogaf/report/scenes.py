@@ -66,6 +66,34 @@ def cell_metrics(results: list[dict[str, Any]], methods: list[str]) -> tuple[str
     return CELL_METRICS + (("epe_3d",) if tracked else ())
 
 
+# "Never worse than doing nothing": MoGaF's PSNR against the better of the two
+# forecasts that learn nothing, per scene; a margin below -HARM_DB is harm.
+NOTHING = ("frozen", "constant_velocity")
+HARM_DB = 0.3
+
+
+def psnr_margin(result: dict[str, Any]) -> float | None:
+    """MoGaF's PSNR minus the better of frozen and constant velocity (dB), or None without them."""
+    values = [_metric(result, m, "psnr") for m in ("mogaf", *NOTHING)]
+    if any(v is None for v in values):
+        return None
+    return float(values[0]) - max(float(v) for v in values[1:])
+
+
+def harm_note(results: list[dict[str, Any]]) -> str:
+    """One line: on how many scenes MoGaF's margin is below -HARM_DB, and the worst."""
+    margins = [(psnr_margin(r), r["scene"]) for r in results]
+    margins = [(m, s) for m, s in margins if m is not None]
+    if not margins:
+        return ""
+    worst, scene = min(margins)
+    harmed = sum(m < -HARM_DB for m, _ in margins)
+    return (
+        f"MoGaF is more than {HARM_DB} dB PSNR below the better of frozen and constant velocity on "
+        f"{harmed} of {len(margins)} scenes (worst margin {worst:+.2f} dB, {scene})"
+    )
+
+
 def ratio_table(results: list[dict[str, Any]]) -> str:
     """The table of results of one ratio under its caption (Markdown lines)."""
     methods = [m for m in _methods(results[0]) if all(m in r["methods"] for r in results)]
@@ -75,8 +103,10 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
     rows = [{m: tuple(_metric(r, m, k) for k in metrics) for m in methods} for r in results]
     means = {m: tuple(_mean([row[m][i] for row in rows]) for i in range(len(metrics))) for m in methods}
     mogaf = "mogaf" in methods
+    margin = mogaf and all(m in methods for m in NOTHING)
     starred = {m: any(budget_differences(r, m) for r in results) for m in methods}
     header = ["scene"] + [method_label(results[0], m) + ("*" if starred[m] else "") for m in methods]
+    header += ["MoGaF − best of frozen, const. velocity (dB)"] if margin else []
     header += ["MoGaF's choice per group (weight)", "MoGaF coherence: rigid / still (m, still count)"] if mogaf else []
     datasets = ", ".join(sorted({r["dataset"] for r in results}))
     caption = f"Ratio {float(results[0]['ratio']):g} ({datasets}; {' / '.join(CELL_NAMES[k] for k in metrics)}):"
@@ -86,11 +116,15 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
         cells = [r["scene"] + ("" if variant == "default" else f" ({variant})")] + [
             _cell(row[m], best, metrics) for m in methods
         ]
+        cells += [f"{psnr_margin(r):+.2f}"] if margin else []
         cells += [_choices(r), _coherence(r)] if mogaf else []
         lines.append("| " + " | ".join(cells) + " |")
     (best,) = _best([means], metrics)
-    cells = ["**mean**"] + [_cell(means[m], best, metrics) for m in methods] + (["", ""] if mogaf else [])
+    cells = ["**mean**"] + [_cell(means[m], best, metrics) for m in methods]
+    cells += [""] * ((2 if mogaf else 0) + (1 if margin else 0))
     lines.append("| " + " | ".join(cells) + " |")
+    if margin:
+        lines += ["", harm_note(results) + "."]
     if any(starred.values()):
         lines += ["", "\\* ran off its paper's settings; `metrics.json` records what each ran with."]
     note = steps_note(results, methods)

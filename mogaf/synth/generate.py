@@ -9,12 +9,12 @@ Layout of `out_dir` (scale 1x only; frame name "<camera>_<time:05d>"):
     depth/1x/<name>.npy         float32 (H, W, 1) camera-space z at pixel centres, every
                                 frame of every camera (always valid: rays end on the
                                 static ground / wall)
-    covisible/1x/val/<name>.png uint8 0/255 for cameras 1, 2: 255 where the surface seen
+    covisible/1x/val/<name>.png uint8 0/255 for the held-out cameras (1, 2 by default): 255 where the surface seen
                                 at the pixel centre is also visible from the train
                                 camera at the same time (inside its image, first hit)
     points.npy                  (N, 3) float32 static background points (train view, t=0)
     splits/train.json           camera 0, every time
-    splits/val.json             cameras 1 and 2, every time
+    splits/val.json             the held-out cameras (test_camera_yaw_deg: 1 to 3), every time
     dataset.json, metadata.json, scene.json (identity normalisation: centre 0,
     scale 1, near/far in metres), extra.json (bbox, factor 1, fps, lookat, up)
     flow3d_preprocessed/track_anything/1x/<name>.png
@@ -32,8 +32,8 @@ Layout of `out_dir` (scale 1x only; frame name "<camera>_<time:05d>"):
     mogaf_gt/visible.npy        (P, T) bool: inside the train image and the first
                                 surface on the ray (ray-cast depth test, tolerance
                                 1e-4 m (1 + z)) and of the point's own instance
-    mogaf_gt/tracks2d_all.npy   (3, P, T, 2) and visible_all.npy (3, P, T): same for
-                                cameras 0, 1, 2
+    mogaf_gt/tracks2d_all.npy   (C, P, T, 2) and visible_all.npy (C, P, T): same for
+                                every camera (0 = train, then the held-out ones)
     mogaf_gt/object_poses.npy   (K, T, 4, 4) float64 object-to-world poses of the rigid
                                 objects (rows follow instances.json pose_index)
     mogaf_gt/object_pose_ids.npy (K,) int32 instance id of each row
@@ -63,7 +63,6 @@ from .world import LOOK_AT, UP, World, build_world
 
 FORMAT = "mogaf-synthetic-iphone"
 FORMAT_VERSION = 1
-NUM_CAMERAS = 3
 VIS_TOL = 1e-4  # metres per metre of (1 + depth) for ray-cast visibility
 
 
@@ -128,13 +127,13 @@ def _render_all(world: World, root: Path, points3d: np.ndarray, points_inst: np.
     T = len(world.taus)
     H, W = world.height, world.width
     P = len(points3d)
-    tracks = np.zeros((NUM_CAMERAS, P, T, 2))
-    visible = np.zeros((NUM_CAMERAS, P, T), dtype=bool)
+    tracks = np.zeros((world.num_cameras, P, T, 2))
+    visible = np.zeros((world.num_cameras, P, T), dtype=bool)
     dmin, dmax = np.inf, 0.0
     bg_points = None
     for ti in range(T):
         train_w2c = world.camera_w2c(0, ti)
-        for cam in range(NUM_CAMERAS):
+        for cam in range(world.num_cameras):
             name = frame_name(cam, ti)
             view = renderer.render(cam, ti)
             _write_png(root / "rgb" / "1x" / f"{name}.png", view.rgb)
@@ -194,28 +193,39 @@ def _write_layout(root: Path, p: dict[str, Any]) -> None:
     points3d, points_inst = _track_points(world, rng)
     out = _render_all(world, root, points3d, points_inst)
 
-    names = {cam: [frame_name(cam, ti) for ti in range(T)] for cam in range(NUM_CAMERAS)}
-    for cam in range(NUM_CAMERAS):
+    names = {cam: [frame_name(cam, ti) for ti in range(T)] for cam in range(world.num_cameras)}
+    for cam in range(world.num_cameras):
         for ti in range(T):
             _write_json(root / "camera" / f"{names[cam][ti]}.json", camera_json(world, world.camera_w2c(cam, ti)))
     train_ids = names[0]
-    val_ids = names[1] + names[2]
+    val_cams = range(1, world.num_cameras)
+    val_ids = [name for cam in val_cams for name in names[cam]]
     _write_json(
         root / "splits" / "train.json", {"frame_names": train_ids, "camera_ids": [0] * T, "time_ids": list(range(T))}
     )
     _write_json(
         root / "splits" / "val.json",
-        {"frame_names": val_ids, "camera_ids": [1] * T + [2] * T, "time_ids": list(range(T)) * 2},
+        {
+            "frame_names": val_ids,
+            "camera_ids": [c for c in val_cams for _ in range(T)],
+            "time_ids": list(range(T)) * len(val_cams),
+        },
     )
     _write_json(
         root / "dataset.json",
-        {"count": 3 * T, "ids": train_ids + val_ids, "num_exemplars": T, "train_ids": train_ids, "val_ids": val_ids},
+        {
+            "count": world.num_cameras * T,
+            "ids": train_ids + val_ids,
+            "num_exemplars": T,
+            "train_ids": train_ids,
+            "val_ids": val_ids,
+        },
     )
     _write_json(
         root / "metadata.json",
         {
             names[cam][ti]: {"appearance_id": ti, "camera_id": cam, "warp_id": ti}
-            for cam in range(NUM_CAMERAS)
+            for cam in range(world.num_cameras)
             for ti in range(T)
         },
     )
@@ -226,7 +236,7 @@ def _write_layout(root: Path, p: dict[str, Any]) -> None:
     )
     bg = out["bg_points"]
     _write_npy(root / "points.npy", bg)
-    centres = np.array([camera_origin(world.camera_w2c(c, ti)) for c in range(NUM_CAMERAS) for ti in range(T)])
+    centres = np.array([camera_origin(world.camera_w2c(c, ti)) for c in range(world.num_cameras) for ti in range(T)])
     allp = np.concatenate([bg, centres])
     _write_json(
         root / "extra.json",

@@ -37,6 +37,12 @@ class SyntheticSettings:
     supersample: int = setting(2, "ss x ss rays per pixel for the RGB image", minimum=1, maximum=8)
     # motion
     speed: float = setting(1.0, "multiplies all object motion (motion time tau = speed * t)", exclusive_minimum=0)
+    motion_stop: float = setting(
+        1.0,
+        "share of the sequence after which every object holds its pose (1 = moves to the end)",
+        exclusive_minimum=0,
+        maximum=1,
+    )
     spin: float = setting(1.0, "extra multiplier on rotation rates", minimum=0)
     max_travel: float = setting(0.9, "metres: clamp on the total travel of translating objects")
     box_velocity: list = setting([0.3, -0.06, -0.05], "m/s of motion time")
@@ -65,7 +71,9 @@ class SyntheticSettings:
     # cameras
     camera_sweep: float = setting(0.7, "metres the handheld train camera walks sideways")
     camera_jitter: float = setting(0.012, "metres of handheld shake")
-    test_camera_yaw_deg: list = setting([-24.0, 20.0], "held-out cameras 1, 2 around the look-at point")
+    test_camera_yaw_deg: list = setting(
+        [-24.0, 20.0], "yaw of each held-out camera (1 to 3 of them) around the look-at point"
+    )
 
 
 DEFAULT_PARAMS: dict[str, Any] = defaults(SyntheticSettings)
@@ -98,6 +106,11 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+# held-out cameras: each has its own distance, height and roll (world.TEST_CAMERA_PLACES)
+MAX_TEST_CAMERAS = 3
+VARIABLE_LENGTH = ("test_camera_yaw_deg",)
+
+
 def _as_float_list(key: str, value: Any, n: int) -> list[float]:
     try:
         out = [float(v) for v in value]
@@ -124,6 +137,10 @@ def resolve_params(params: Mapping[str, Any] | None = None) -> dict[str, Any]:
     # the preset's values are checked (and converted) like explicit ones
     out = check(SyntheticSettings, "synthetic", {**PRESETS[preset], **params})
     for key, value in DEFAULT_PARAMS.items():
-        if isinstance(value, list):
+        if isinstance(value, list) and key not in VARIABLE_LENGTH:
             out[key] = _as_float_list(key, out[key], len(value))
+    yaws = out["test_camera_yaw_deg"]
+    if not isinstance(yaws, (list, tuple)) or not 1 <= len(yaws) <= MAX_TEST_CAMERAS:
+        raise MogafError(f"synthetic param 'test_camera_yaw_deg' must be a list of 1 to {MAX_TEST_CAMERAS} numbers")
+    out["test_camera_yaw_deg"] = _as_float_list("test_camera_yaw_deg", yaws, len(yaws))
     return out

@@ -48,9 +48,10 @@ def contact_sheet(
         times = [0, int(0.6 * (T - 1)), T - 1]
     tracks = np.load(root / "mogaf_gt" / "tracks2d.npy")
     visible = np.load(root / "mogaf_gt" / "visible.npy")
+    num_cameras = 1 + len({int(c) for c in json.loads((root / "splits" / "val.json").read_text())["camera_ids"]})
     rows = []
     for ti in times:
-        cols = [_read_rgb(root / "rgb" / "1x" / f"{frame_name(c, ti)}.png") for c in range(3)]
+        cols = [_read_rgb(root / "rgb" / "1x" / f"{frame_name(c, ti)}.png") for c in range(num_cameras)]
         inst = _read_rgb(root / "mogaf_gt" / "instance" / "1x" / f"{frame_name(0, ti)}.png")
         ic = PALETTE[np.minimum(inst, len(PALETTE) - 1)].copy()
         for u, v in tracks[visible[:, ti], ti]:

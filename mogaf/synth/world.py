@@ -43,6 +43,9 @@ def look_at(centre, target, roll: float = 0.0) -> np.ndarray:
     return T
 
 
+# (distance factor, height offset, roll) of held-out cameras 1, 2, 3
+TEST_CAMERA_PLACES = ((1.0, -0.12, 0.015), (1.05, 0.2, -0.02), (0.95, 0.04, 0.0))
+
 # Lanes for extra objects: nominal centre (they drift from there), chosen in order.
 EXTRA_LANES = [
     (0.0, 2.2, 1.45),
@@ -62,9 +65,14 @@ class World:
     taus: np.ndarray  # (T,) motion time of every frame
     times: np.ndarray  # (T,) seconds
     train_w2c: np.ndarray  # (T, 4, 4)
-    test_w2c: np.ndarray  # (2, 4, 4)
+    test_w2c: np.ndarray  # (C, 4, 4), C = 1..3 held-out cameras
     K: np.ndarray  # (3, 3)
     info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def num_cameras(self) -> int:
+        """The training camera (0) and the held-out cameras (1..)."""
+        return 1 + len(self.test_w2c)
 
     @property
     def width(self) -> int:
@@ -100,8 +108,10 @@ def build_world(params: dict[str, Any] | SyntheticSettings) -> World:
     rng = np.random.default_rng([int(p.seed), 20240611])
     T = p.num_frames
     times = np.arange(T) / p.fps
-    taus = p.speed * times
-    tau_max = float(taus[-1])
+    # Velocities are sized for the whole sequence (tau_max); with motion_stop < 1
+    # every object follows the same path and holds its pose from the stop on.
+    tau_max = float(p.speed * times[-1])
+    taus = p.speed * np.minimum(times, p.motion_stop * times[-1])
     tau_mid = 0.5 * tau_max
     spin = p.spin
 
@@ -208,7 +218,7 @@ def build_world(params: dict[str, Any] | SyntheticSettings) -> World:
     rolls = 0.01 * np.sin(2 * np.pi * 0.6 * times + rng.uniform(0, 2 * np.pi))
     train_w2c = np.stack([look_at(c, tg, r) for c, tg, r in zip(centres, targets, rolls)])
     test = []
-    for yaw_deg, dist, dz, roll in zip(p.test_camera_yaw_deg, (1.0, 1.05), (-0.12, 0.2), (0.015, -0.02)):
+    for yaw_deg, (dist, dz, roll) in zip(p.test_camera_yaw_deg, TEST_CAMERA_PLACES, strict=False):
         off = rotation(UP, np.deg2rad(yaw_deg)) @ (TRAIN_OFFSET * np.array([dist, dist, 1.0]))
         test.append(look_at(LOOK_AT + off + np.array([0, 0, dz]), LOOK_AT + np.array([0.0, 0.0, -0.03]), roll))
     test_w2c = np.stack(test)
@@ -216,7 +226,7 @@ def build_world(params: dict[str, Any] | SyntheticSettings) -> World:
     world = World(
         params=p, objects=objects, static=static, taus=taus, times=times, train_w2c=train_w2c, test_w2c=test_w2c, K=K
     )
-    world.info["sphere_bounce_times"] = [float(b / p.speed) for b in ballistic.bounces if b <= tau_max]
+    world.info["sphere_bounce_times"] = [float(b / p.speed) for b in ballistic.bounces if b <= taus[-1]]
     problem = check_world(world)
     if problem:
         raise MogafError(f"synthetic scene: {problem}; lower speed/max_travel or num_frames")
@@ -262,7 +272,7 @@ def _view_problem(world: World, o: Object, pts: np.ndarray, ti: int, margin_px: 
         return f"{o.name} goes below the ground at frame {ti}"
     if pts[:, 1].max() > WALL_Y - 0.02:
         return f"{o.name} reaches the back wall at frame {ti}"
-    for cam in (0, 1, 2):
+    for cam in range(world.num_cameras):
         w2c = world.camera_w2c(cam, ti)
         cam_pts = pts @ w2c[:3, :3].T + w2c[:3, 3]
         if cam_pts[:, 2].min() < 0.3:

@@ -113,3 +113,19 @@ for _sweep in ABLATIONS.get("sweeps", {}):
         input:
             sweep_targets(_sweep),
         localrule: True
+
+
+# `snakemake -c2 scenes`: one table per ratio, a row per scene of the config's
+# grid (config/family.yaml: the scene family), every method's PSNR / LPIPS and
+# tracking EPE, and MoGaF's margin over the better of frozen and constant velocity.
+rule scenes:
+    input:
+        grid_targets(),
+    output:
+        "results/tables/scenes.md",
+    log:
+        log_file("scenes", scope="tables"),
+    conda:
+        "../../envs/mogaf.yaml"
+    script:
+        "../scripts/scenes_table.py"

@@ -1,0 +1,195 @@
+"""A seeded family of synthetic scenes: the benchmark forecasting changes are judged on.
+
+`family_scenes(count, seed)` draws `count` generator parameter sets, cycling
+through the motion kinds of KINDS so every kind appears, each with its own
+scene seed (textures, camera shake, extra objects) and draws of its motion's
+strength, the sequence length and the number of held-out cameras. The first
+pass over the kinds ships instance masks, the second does not, and so on, so
+every kind is seen with and without masks once count >= 2 * len(KINDS).
+Each drawn scene is built (mogaf.synth.world.build_world) and redrawn while
+it fails the generator's own checks (objects in view, apart), so the family
+contains only scenes the pipeline can ingest.
+
+`family_config(count, seed)` is the config layered over config/config.yaml
+and config/demo.yaml that runs the family (config/family.yaml is generated
+from it: `python -m mogaf.synth family --write config/family.yaml`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..errors import MogafError
+from .params import resolve_params
+
+# Motion kinds: (name, what it shows, drawn parameters (rng -> dict)).
+KINDS: tuple[tuple[str, str, Any], ...] = (
+    (
+        "stop",
+        "every object stops moving between the two split points (ratios 0.6 and 0.8)",
+        lambda r: {"motion_stop": round(float(r.uniform(0.66, 0.78)), 3)},
+    ),
+    (
+        "bounce",
+        "the thrown sphere lands and bounces after the split",
+        lambda r: {"sphere_launch_vz": round(float(r.uniform(1.15, 1.3)), 3)},
+    ),
+    (
+        "spin",
+        "the box spins in place, the sphere is thrown straight up",
+        lambda r: {
+            "box_velocity": [0.0, 0.0, 0.0],
+            "box_spin": round(float(r.uniform(1.5, 2.8)), 3),
+            "sphere_velocity": [0.0, 0.0],
+        },
+    ),
+    (
+        "hinge",
+        "a still chest whose lid swings about a hinge, nothing else",
+        lambda r: {
+            "rigid_objects": False,
+            "nonrigid": "articulated",
+            "lid_swing": round(float(r.uniform(0.3, 0.55)), 3),
+            "lid_rate": round(float(r.uniform(1.2, 2.2)), 3),
+        },
+    ),
+    (
+        "cloth",
+        "a waving flag beside the rigid objects",
+        lambda r: {
+            "nonrigid": "cloth",
+            "cloth_amplitude": round(float(r.uniform(0.07, 0.12)), 3),
+            "cloth_frequency": round(float(r.uniform(0.5, 1.1)), 3),
+        },
+    ),
+    (
+        "arm",
+        "a bending two-link arm beside the rigid objects",
+        lambda r: {"nonrigid": "arm"},
+    ),
+    (
+        "fast",
+        "every motion 1.5-2x faster, rotations faster still",
+        lambda r: {"speed": round(float(r.uniform(1.5, 2.0)), 3), "spin": round(float(r.uniform(1.2, 1.8)), 3)},
+    ),
+    (
+        "crowd",
+        "two to four extra small objects drifting through the scene",
+        lambda r: {
+            "num_extra_objects": int(r.integers(2, 5)),
+            "extra_speed": round(float(r.uniform(0.15, 0.35)), 3),
+        },
+    ),
+)
+
+KIND_NAMES = tuple(k[0] for k in KINDS)
+FRAME_COUNTS = (48, 60, 72)
+# held-out camera yaws for 1, 2 and 3 cameras
+CAMERA_YAWS = ((20.0,), (-24.0, 20.0), (-24.0, 20.0, -6.0))
+MAX_DRAWS = 20
+
+
+def _draw(kind: int, rng: np.random.Generator, masks: bool) -> dict[str, Any]:
+    name, _, draw = KINDS[kind]
+    params = dict(draw(rng))
+    params["num_frames"] = int(rng.choice(FRAME_COUNTS))
+    params["test_camera_yaw_deg"] = list(CAMERA_YAWS[int(rng.integers(0, len(CAMERA_YAWS)))])
+    params["ship_instance_masks"] = masks
+    return params
+
+
+def family_scenes(count: int, seed: int = 0) -> dict[str, dict[str, Any]]:
+    """{scene name: generator params} of `count` scenes, deterministic in (count, seed).
+    Names are `f{index:02d}_{kind}`; each scene's own `seed` is seed * 1000 + index."""
+    from .world import build_world
+
+    if count < 1:
+        raise MogafError(f"scene family: count must be at least 1, got {count}")
+    scenes: dict[str, dict[str, Any]] = {}
+    for i in range(count):
+        kind = i % len(KINDS)
+        masks = (i // len(KINDS)) % 2 == 0
+        rng = np.random.default_rng([int(seed), i, 4242])
+        for _ in range(MAX_DRAWS):
+            params = {**_draw(kind, rng, masks), "seed": int(seed) * 1000 + i}
+            try:
+                build_world(resolve_params(params))
+            except MogafError:
+                continue
+            break
+        else:
+            raise MogafError(f"scene family: no valid {KIND_NAMES[kind]} scene in {MAX_DRAWS} draws (index {i})")
+        scenes[f"f{i:02d}_{KIND_NAMES[kind]}"] = params
+    return scenes
+
+
+def family_config(count: int, seed: int = 0, ratios: tuple[float, ...] = (0.6, 0.8)) -> dict[str, Any]:
+    """The config that runs the family through the pipeline (over config.yaml and demo.yaml)."""
+    scenes = family_scenes(count, seed)
+    return {
+        "datasets": {"synthetic": {"scenes": list(scenes)}},
+        "synthetic": scenes,
+        "grid": [{"dataset": "synthetic", "scenes": list(scenes), "ratios": list(ratios)}],
+        "forecast": {"methods": ["mogaf", "mogaf_paper", "constant_velocity", "frozen"]},
+    }
+
+
+HEADER = """\
+# The scene family (mogaf.synth.family): {count} synthetic scenes drawn with seed {seed},
+# {kinds} kinds of motion ({names}), each with and without instance masks,
+# 48-72 frames, 1-3 held-out cameras. Generated, do not edit:
+#   python -m mogaf.synth.family --count {count} --seed {seed} --write config/family.yaml
+# Run at ratios 0.6 and 0.8 with the demo's budgets, then the per-scene table:
+#   snakemake -c2 scenes --configfile config/config.yaml config/demo.yaml config/family.yaml
+# (results/tables/scenes.md; every scene and ratio is one run of the whole pipeline,
+# several minutes on 2 CPU cores). Judge a forecasting change on the whole family,
+# never tune a setting to one of its scenes.
+"""
+
+
+def family_yaml(count: int, seed: int = 0) -> str:
+    """config/family.yaml's text: HEADER, then family_config as YAML (one scene a line)."""
+    import yaml
+
+    config = family_config(count, seed)
+    config["datasets"]["synthetic"]["scenes"] = ["default", *config["datasets"]["synthetic"]["scenes"]]
+    body = yaml.safe_dump(config, sort_keys=False, default_flow_style=None, width=200)
+    names = ", ".join(KIND_NAMES)
+    return HEADER.format(count=count, seed=seed, kinds=len(KINDS), names=names) + body
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+    import sys
+    from pathlib import Path
+
+    ap = argparse.ArgumentParser(prog="python -m mogaf.synth.family", description=__doc__.splitlines()[0])
+    ap.add_argument("--count", type=int, default=24, help="scenes in the family (default 24)")
+    ap.add_argument("--seed", type=int, default=0, help="the family's seed (default 0)")
+    out = ap.add_mutually_exclusive_group()
+    out.add_argument("--write", metavar="FILE", help="write the config to FILE")
+    out.add_argument("--check", metavar="FILE", help="exit 1 if FILE differs from the config drawn now")
+    args = ap.parse_args(argv)
+    try:
+        text = family_yaml(args.count, args.seed)
+    except MogafError as exc:
+        print(f"mogaf.synth.family: error: {exc}", file=sys.stderr)
+        return 1
+    if args.write:
+        tmp = Path(args.write + ".tmp")
+        tmp.write_text(text)
+        tmp.replace(args.write)
+        print(f"wrote {args.write}")
+    elif args.check:
+        if Path(args.check).read_text() != text:
+            print(f"{args.check}: differs from the family drawn now; rewrite it with --write", file=sys.stderr)
+            return 1
+    else:
+        print(text, end="")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,98 @@
+"""The scene family (mogaf.synth.family) and the generator knobs it draws on:
+motions that stop, and one to three held-out cameras."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from mogaf.errors import MogafError
+from mogaf.synth.family import KIND_NAMES, family_yaml, main
+from mogaf.synth.params import resolve_params
+from mogaf.synth.world import build_world
+
+ROOT = Path(__file__).resolve().parents[1]
+FAMILY = ROOT / "config" / "family.yaml"
+
+
+@pytest.fixture(scope="module")
+def family() -> dict:
+    return yaml.safe_load(FAMILY.read_text())
+
+
+def test_the_committed_family_is_the_generators_output(capsys):
+    # a hand edit of config/family.yaml, or a generator change, shows here
+    assert main(["--count", "24", "--seed", "0", "--check", str(FAMILY)]) == 0
+    assert FAMILY.read_text() == family_yaml(24, 0)
+
+
+def test_the_family_covers_every_kind_with_and_without_masks(family):
+    scenes = family["synthetic"]
+    assert len(scenes) >= 20
+    kinds = Counter((name.split("_", 1)[1], params["ship_instance_masks"]) for name, params in scenes.items())
+    assert {k for k, _ in kinds} == set(KIND_NAMES)
+    assert all(kinds[(k, True)] and kinds[(k, False)] for k in KIND_NAMES)
+    assert {len(p["test_camera_yaw_deg"]) for p in scenes.values()} == {1, 2, 3}
+    assert len({p["num_frames"] for p in scenes.values()}) > 1
+    assert len({p["seed"] for p in scenes.values()}) == len(scenes)
+    # the family runs at both ratios, with the forecasts the acceptance compares, and keeps the demo scene
+    assert family["grid"] == [{"dataset": "synthetic", "scenes": list(scenes), "ratios": [0.6, 0.8]}]
+    assert family["forecast"]["methods"] == ["mogaf", "mogaf_paper", "constant_velocity", "frozen"]
+    assert family["datasets"]["synthetic"]["scenes"] == ["default", *scenes]
+
+
+def test_every_family_scene_builds(family):
+    for name, params in family["synthetic"].items():
+        world = build_world(resolve_params(params))
+        assert world.num_cameras == 1 + len(params["test_camera_yaw_deg"]), name
+
+
+def test_motion_stop_freezes_every_object_from_the_stop_on_and_changes_nothing_before():
+    moving = build_world({"motion_stop": 1.0})
+    stopped = build_world({"motion_stop": 0.7})
+    default = build_world({})
+    np.testing.assert_array_equal(moving.taus, default.taus)  # 1.0 is the generator as before
+    stop = int(np.searchsorted(default.times, 0.7 * default.times[-1], side="right"))
+    assert 0 < stop < len(default.times)
+    np.testing.assert_array_equal(stopped.taus[:stop], default.taus[:stop])
+    assert np.all(stopped.taus[stop:] == stopped.taus[stop]) and stopped.taus[stop] > stopped.taus[stop - 1]
+
+    def centres(world, ti):
+        return np.array([np.mean(p.extent_points(world.taus[ti]), axis=0) for p in world.objects])
+
+    # objects keep their pose after the stop and follow the unstopped path before it
+    last = len(stopped.taus) - 1
+    np.testing.assert_allclose(centres(stopped, last), centres(stopped, stop), atol=1e-12)
+    np.testing.assert_allclose(centres(stopped, stop - 1), centres(default, stop - 1), atol=1e-12)
+
+
+@pytest.mark.parametrize("yaws", [[20.0], [-24.0, 20.0, -6.0]])
+def test_one_to_three_held_out_cameras_reach_the_scene_files(tmp_path, yaws):
+    from mogaf.synth.generate import generate_scene
+
+    root = generate_scene(
+        tmp_path / "scene",
+        {
+            "width": 32,
+            "height": 24,
+            "num_frames": 6,
+            "num_track_points": 8,
+            "supersample": 1,
+            "test_camera_yaw_deg": yaws,
+        },
+    )
+    val = json.loads((Path(root) / "splits" / "val.json").read_text())
+    assert sorted(set(val["camera_ids"])) == list(range(1, 1 + len(yaws)))
+    assert len(val["frame_names"]) == 6 * len(yaws)
+    assert np.load(Path(root) / "mogaf_gt" / "tracks2d_all.npy").shape[0] == 1 + len(yaws)
+
+
+@pytest.mark.parametrize("yaws", [[], [1.0, 2.0, 3.0, 4.0], "20"])
+def test_a_held_out_camera_list_of_the_wrong_length_is_one_clear_error(yaws):
+    with pytest.raises(MogafError, match="'test_camera_yaw_deg' must be a list"):
+        resolve_params({"test_camera_yaw_deg": yaws})
