@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 from pathlib import Path
 from typing import Any
 
@@ -746,10 +747,17 @@ def test_scenes_table_gives_mogafs_margin_over_the_better_of_frozen_and_constant
 
     # a: ahead of both; b: 0.2 dB behind frozen (within the bound); c: 0.5 dB behind constant velocity
     files = [scene("a", 18.0, 17.5, 17.0), scene("b", 17.0, 17.2, 16.0), scene("c", 16.0, 15.0, 16.5)]
+    # the grouping's IoU per ground-truth object, where the scene has it
+    data = json.loads(files[0].read_text())
+    data["grouping"] = {"object_names": ["box", "flag"], "per_object_iou": [0.912, 0.4]}
+    files[0].write_text(json.dumps(data))
     text = scenes_table(load_metrics(files))
     rows = md_rows(text)
     col = rows[0].index("MoGaF − best of frozen, const. velocity (dB)")
     assert [r[col] for r in rows[1:4]] == ["+0.50", "-0.20", "-0.50"]
+    iou = rows[0].index("grouping IoU per object")
+    assert [r[iou] for r in rows[1:4]] == ["box 0.91, flag 0.40", "–", "–"]
+    assert len({len(r) for r in rows}) == 1  # the mean row has every column
     assert (
         "MoGaF is more than 0.3 dB PSNR below the better of frozen and constant velocity on 1 of 3 scenes "
         "(worst margin -0.50 dB, c)." in text

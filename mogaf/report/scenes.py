@@ -50,6 +50,13 @@ CELL_METRICS = ("psnr", "lpips")
 CELL_NAMES = {"psnr": "PSNR", "lpips": "LPIPS", "epe_3d": "tracking EPE (m)"}
 
 
+def _object_ious(result: dict[str, Any]) -> str:
+    """The grouping's IoU with every ground-truth object (grouping_quality), or "–"."""
+    grouping = result.get("grouping") or {}
+    names, ious = grouping.get("object_names") or [], grouping.get("per_object_iou") or []
+    return ", ".join(f"{n} {float(v):.2f}" for n, v in zip(names, ious, strict=False)) or "–"
+
+
 def _cell(value: tuple[float | None, ...], best: tuple[str | None, ...], metrics: tuple[str, ...]) -> str:
     texts = [fmt(v, m) for v, m in zip(value, metrics, strict=True)]
     return " / ".join(f"**{t}**" if t == b else t for t, b in zip(texts, best, strict=True))
@@ -104,9 +111,11 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
     means = {m: tuple(_mean([row[m][i] for row in rows]) for i in range(len(metrics))) for m in methods}
     mogaf = "mogaf" in methods
     margin = mogaf and all(m in methods for m in NOTHING)
+    ious = any((r.get("grouping") or {}).get("per_object_iou") for r in results)
     starred = {m: any(budget_differences(r, m) for r in results) for m in methods}
     header = ["scene"] + [method_label(results[0], m) + ("*" if starred[m] else "") for m in methods]
     header += ["MoGaF − best of frozen, const. velocity (dB)"] if margin else []
+    header += ["grouping IoU per object"] if ious else []
     header += ["MoGaF's choice per group (weight)", "MoGaF coherence: rigid / still (m, still count)"] if mogaf else []
     datasets = ", ".join(sorted({r["dataset"] for r in results}))
     caption = f"Ratio {float(results[0]['ratio']):g} ({datasets}; {' / '.join(CELL_NAMES[k] for k in metrics)}):"
@@ -117,11 +126,12 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
             _cell(row[m], best, metrics) for m in methods
         ]
         cells += [f"{psnr_margin(r):+.2f}"] if margin else []
+        cells += [_object_ious(r)] if ious else []
         cells += [_choices(r), _coherence(r)] if mogaf else []
         lines.append("| " + " | ".join(cells) + " |")
     (best,) = _best([means], metrics)
     cells = ["**mean**"] + [_cell(means[m], best, metrics) for m in methods]
-    cells += [""] * ((2 if mogaf else 0) + (1 if margin else 0))
+    cells += [""] * ((2 if mogaf else 0) + (1 if margin else 0) + (1 if ious else 0))
     lines.append("| " + " | ".join(cells) + " |")
     if margin:
         lines += ["", harm_note(results) + "."]
