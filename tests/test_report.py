@@ -616,7 +616,7 @@ def test_scenes_table_compares_the_methods_every_scene_ran(metrics_files):
     # ratio 0.6: frozen ran on scene a only, so only MoGaF is compared; the mean is over a and b
     assert first.startswith("0.6 (iphone; PSNR / LPIPS)")
     rows = md_rows(first)
-    assert rows[0][:2] == ["scene", METHOD_LABELS["mogaf"]] and len(rows[0]) == 4
+    assert rows[0][:2] == ["scene", METHOD_LABELS["mogaf"]] and len(rows[0]) == 5
     assert [r[:2] for r in rows[1:]] == [
         ["a", "**16.50** / **0.4000**"],
         ["b", "**17.50** / **0.3500**"],
@@ -751,12 +751,18 @@ def test_scenes_table_gives_mogafs_margin_over_the_better_of_frozen_and_constant
     data = json.loads(files[0].read_text())
     data["grouping"] = {"object_names": ["box", "flag"], "per_object_iou": [0.912, 0.4]}
     files[0].write_text(json.dumps(data))
+    for f, psnr in zip(files, (None, 21.0, 23.0), strict=True):  # the reconstruction's held-out PSNR
+        data = json.loads(f.read_text())
+        data["reconstruction"] = {"heldout_observed": {"psnr": psnr}} if psnr else {}
+        f.write_text(json.dumps(data))
     text = scenes_table(load_metrics(files))
     rows = md_rows(text)
     col = rows[0].index("MoGaF − best of frozen, const. velocity (dB)")
     assert [r[col] for r in rows[1:4]] == ["+0.50", "-0.20", "-0.50"]
     iou = rows[0].index("grouping IoU per object")
     assert [r[iou] for r in rows[1:4]] == ["box 0.91, flag 0.40", "–", "–"]
+    recon = rows[0].index("reconstruction PSNR, held-out views of observed times")
+    assert [r[recon] for r in rows[1:5]] == ["–", "21.00", "23.00", "22.00"]  # the mean over the scenes that have it
     assert len({len(r) for r in rows}) == 1  # the mean row has every column
     assert (
         "MoGaF is more than 0.3 dB PSNR below the better of frozen and constant velocity on 1 of 3 scenes "

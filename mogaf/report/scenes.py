@@ -57,6 +57,12 @@ def _object_ious(result: dict[str, Any]) -> str:
     return ", ".join(f"{n} {float(v):.2f}" for n, v in zip(names, ious, strict=False)) or "–"
 
 
+def recon_psnr(result: dict[str, Any]) -> float | None:
+    """The reconstruction's PSNR at the held-out views of observed times (reconstruction_quality), or None."""
+    value = ((result.get("reconstruction") or {}).get("heldout_observed") or {}).get("psnr")
+    return None if value is None else float(value)
+
+
 def _cell(value: tuple[float | None, ...], best: tuple[str | None, ...], metrics: tuple[str, ...]) -> str:
     texts = [fmt(v, m) for v, m in zip(value, metrics, strict=True)]
     return " / ".join(f"**{t}**" if t == b else t for t, b in zip(texts, best, strict=True))
@@ -112,10 +118,12 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
     mogaf = "mogaf" in methods
     margin = mogaf and all(m in methods for m in NOTHING)
     ious = any((r.get("grouping") or {}).get("per_object_iou") for r in results)
+    recon = any(recon_psnr(r) is not None for r in results)
     starred = {m: any(budget_differences(r, m) for r in results) for m in methods}
     header = ["scene"] + [method_label(results[0], m) + ("*" if starred[m] else "") for m in methods]
     header += ["MoGaF − best of frozen, const. velocity (dB)"] if margin else []
     header += ["grouping IoU per object"] if ious else []
+    header += ["reconstruction PSNR, held-out views of observed times"] if recon else []
     header += ["MoGaF's choice per group (weight)", "MoGaF coherence: rigid / still (m, still count)"] if mogaf else []
     datasets = ", ".join(sorted({r["dataset"] for r in results}))
     caption = f"Ratio {float(results[0]['ratio']):g} ({datasets}; {' / '.join(CELL_NAMES[k] for k in metrics)}):"
@@ -127,11 +135,14 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
         ]
         cells += [f"{psnr_margin(r):+.2f}"] if margin else []
         cells += [_object_ious(r)] if ious else []
+        cells += [fmt(recon_psnr(r), "psnr")] if recon else []
         cells += [_choices(r), _coherence(r)] if mogaf else []
         lines.append("| " + " | ".join(cells) + " |")
     (best,) = _best([means], metrics)
     cells = ["**mean**"] + [_cell(means[m], best, metrics) for m in methods]
-    cells += [""] * ((2 if mogaf else 0) + (1 if margin else 0) + (1 if ious else 0))
+    cells += [""] * (margin + ious)
+    cells += [fmt(_mean([recon_psnr(r) for r in results]), "psnr")] if recon else []
+    cells += ["", ""] if mogaf else []
     lines.append("| " + " | ".join(cells) + " |")
     if margin:
         lines += ["", harm_note(results) + "."]
