@@ -156,7 +156,7 @@ def test_scripts_are_the_generic_one_and_the_wrappers():
     """One script for every stage that the generic runner fits (and forecast's
     wrappers, which take its arguments); the other wrappers have their own."""
     expected = {"run_stage.py", "ingest.py", "synthesize.py", "evaluate.py"}
-    expected |= {"tables.py", "runtime_report.py", "scene_report.py"}
+    expected |= {"tables.py", "runtime_report.py", "scene_report.py", "scenes_table.py"}
     assert {p.name for p in SCRIPTS.glob("*.py")} == expected
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from support.paths import REPO
 
@@ -192,3 +193,14 @@ def test_rigid_init_runs_only_with_rigid_groups(tmp_path, rigid, expect):
     assert counts.get("refine") == 1
     assert ("rigid_init" in counts) is expect
     assert "recon" not in counts and "group" not in counts  # existing artefacts are reused
+
+
+def test_the_scene_family_runs_every_scene_at_both_ratios_into_one_table(tmp_path):
+    family = str(REPO / "config" / "family.yaml")
+    res = snakemake(["-n", "scenes"], tmp_path, configfiles=(CONFIG, str(REPO / "config" / "demo.yaml"), family))
+    assert res.returncode == 0, res.stderr
+    counts = job_counts(res.stdout)
+    scenes = len(yaml.safe_load(Path(family).read_text())["synthetic"])
+    assert counts["synthesize"] == scenes and counts["split"] == 2 * scenes and counts["recon"] == 2 * scenes
+    assert counts["evaluate"] == 2 * scenes and counts["scenes"] == 1
+    assert "results/tables/scenes.md" in job_blocks(res.stdout, "scenes")[0]
