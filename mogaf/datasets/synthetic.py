@@ -15,7 +15,7 @@ iPhone reader's Scene this reader sets:
   ground_truth   points3d (P, T, 3), points_instance (P,), tracks2d (P, T, 2)
                  and visible (P, T) in the train camera, object_poses
                  (K, T, 4, 4) with object_pose_ids (K,), and per held-out
-                 camera c in {1, 2}: camera<c>/{tracks2d, visible}
+                 camera c (1 to 3 of them): camera<c>/{tracks2d, visible}
   meta           synthetic generator parameters (mogaf_gt/params.json)
 
 The generator's world is metric with identity DyCheck normalisation
