@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from . import registry
-from .artefact import check_made_from, config_digest, open_artefact, stage_inputs, write_error
+from .artefact import atomic_path, check_made_from, config_digest, open_artefact, stage_inputs, write_error
 from .errors import MogafError, input_error
 from .paths import check_outputs
 
@@ -482,12 +482,10 @@ def scenes_table(metrics_files: list[str], out_md: str) -> Path:
     from .report.scenes import scenes  # local: a stage's package loads only when it runs
 
     check_outputs({"md": out_md}, metrics_files)
-    out = Path(out_md)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(scenes(metrics_files))
-    tmp.replace(out)
-    return out
+    text = scenes(metrics_files)
+    with atomic_path(out_md) as tmp:
+        Path(tmp).write_text(text)
+    return Path(out_md)
 
 
 def runtime_report(

@@ -12,7 +12,7 @@ contains only scenes the pipeline can ingest.
 
 `family_config(count, seed)` is the config layered over config/config.yaml
 and config/demo.yaml that runs the family (config/family.yaml is generated
-from it: `python -m mogaf.synth family --write config/family.yaml`).
+from it: `python -m mogaf.synth.family --write config/family.yaml`).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from ..artefact import atomic_path
 from ..errors import MogafError
 from .params import resolve_params
 
@@ -126,10 +127,11 @@ def family_scenes(count: int, seed: int = 0) -> dict[str, dict[str, Any]]:
 
 
 def family_config(count: int, seed: int = 0, ratios: tuple[float, ...] = (0.6, 0.8)) -> dict[str, Any]:
-    """The config that runs the family through the pipeline (over config.yaml and demo.yaml)."""
+    """The config that runs the family through the pipeline (over config.yaml and
+    demo.yaml, whose demo scene `default` stays a scene of the dataset)."""
     scenes = family_scenes(count, seed)
     return {
-        "datasets": {"synthetic": {"scenes": list(scenes)}},
+        "datasets": {"synthetic": {"scenes": ["default", *scenes]}},
         "synthetic": scenes,
         "grid": [{"dataset": "synthetic", "scenes": list(scenes), "ratios": list(ratios)}],
         "forecast": {"methods": ["mogaf", "mogaf_paper", "constant_velocity", "frozen"]},
@@ -153,9 +155,7 @@ def family_yaml(count: int, seed: int = 0) -> str:
     """config/family.yaml's text: HEADER, then family_config as YAML (one scene a line)."""
     import yaml
 
-    config = family_config(count, seed)
-    config["datasets"]["synthetic"]["scenes"] = ["default", *config["datasets"]["synthetic"]["scenes"]]
-    body = yaml.safe_dump(config, sort_keys=False, default_flow_style=None, width=200)
+    body = yaml.safe_dump(family_config(count, seed), sort_keys=False, default_flow_style=None, width=200)
     names = ", ".join(KIND_NAMES)
     return HEADER.format(count=count, seed=seed, kinds=len(KINDS), names=names) + body
 
@@ -178,9 +178,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mogaf.synth.family: error: {exc}", file=sys.stderr)
         return 1
     if args.write:
-        tmp = Path(args.write + ".tmp")
-        tmp.write_text(text)
-        tmp.replace(args.write)
+        with atomic_path(args.write) as tmp:
+            Path(tmp).write_text(text)
         print(f"wrote {args.write}")
     elif args.check:
         if Path(args.check).read_text() != text:

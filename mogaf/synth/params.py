@@ -106,9 +106,9 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
-# held-out cameras: each has its own distance, height and roll (world.TEST_CAMERA_PLACES)
-MAX_TEST_CAMERAS = 3
-VARIABLE_LENGTH = ("test_camera_yaw_deg",)
+# (distance factor, height offset, roll) of held-out cameras 1, 2, 3: a yaw list
+# of test_camera_yaw_deg places that many (mogaf.synth.world.build_world)
+TEST_CAMERA_PLACES = ((1.0, -0.12, 0.015), (1.05, 0.2, -0.02), (0.95, 0.04, 0.0))
 
 
 def _as_float_list(key: str, value: Any, n: int) -> list[float]:
@@ -137,10 +137,12 @@ def resolve_params(params: Mapping[str, Any] | None = None) -> dict[str, Any]:
     # the preset's values are checked (and converted) like explicit ones
     out = check(SyntheticSettings, "synthetic", {**PRESETS[preset], **params})
     for key, value in DEFAULT_PARAMS.items():
-        if isinstance(value, list) and key not in VARIABLE_LENGTH:
+        if isinstance(value, list) and key != "test_camera_yaw_deg":
             out[key] = _as_float_list(key, out[key], len(value))
     yaws = out["test_camera_yaw_deg"]
-    if not isinstance(yaws, (list, tuple)) or not 1 <= len(yaws) <= MAX_TEST_CAMERAS:
-        raise MogafError(f"synthetic param 'test_camera_yaw_deg' must be a list of 1 to {MAX_TEST_CAMERAS} numbers")
+    if not isinstance(yaws, (list, tuple)) or not 1 <= len(yaws) <= len(TEST_CAMERA_PLACES):
+        raise MogafError(
+            f"synthetic param 'test_camera_yaw_deg' must be a list of 1 to {len(TEST_CAMERA_PLACES)} numbers"
+        )
     out["test_camera_yaw_deg"] = _as_float_list("test_camera_yaw_deg", yaws, len(yaws))
     return out

@@ -16,7 +16,7 @@ import numpy as np
 from ..errors import MogafError
 from .motion import Ballistic, _clamped_velocity, _linear, rotation
 from .objects import Arm, Articulated, Cloth, Object, RigidBox, RigidSphere
-from .params import SyntheticSettings, load_settings
+from .params import TEST_CAMERA_PLACES, SyntheticSettings, load_settings
 from .primitives import Box, Plane
 from .textures import BoxTexture, ClothTexture, PlaneTexture, SphereTexture
 
@@ -42,9 +42,6 @@ def look_at(centre, target, roll: float = 0.0) -> np.ndarray:
     T[:3, 3] = -R @ centre
     return T
 
-
-# (distance factor, height offset, roll) of held-out cameras 1, 2, 3
-TEST_CAMERA_PLACES = ((1.0, -0.12, 0.015), (1.05, 0.2, -0.02), (0.95, 0.04, 0.0))
 
 # Lanes for extra objects: nominal centre (they drift from there), chosen in order.
 EXTRA_LANES = [
