@@ -96,3 +96,22 @@ def test_one_to_three_held_out_cameras_reach_the_scene_files(tmp_path, yaws):
 def test_a_held_out_camera_list_of_the_wrong_length_is_one_clear_error(yaws):
     with pytest.raises(MogafError, match="'test_camera_yaw_deg' must be a list"):
         resolve_params({"test_camera_yaw_deg": yaws})
+
+
+def test_the_family_command_says_bad_input_in_one_line_and_writes_nothing(tmp_path, capsys):
+    assert main(["--count", "0"]) == 1
+    assert capsys.readouterr().err.strip() == "mogaf.synth.family: error: scene family: count must be at least 1, got 0"
+    target = tmp_path / "dir"
+    target.mkdir()
+    assert main(["--count", "1", "--write", str(target)]) == 1
+    assert "is an existing directory" in capsys.readouterr().err and list(target.iterdir()) == []
+    assert main(["--count", "1", "--check", str(tmp_path / "absent.yaml")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "absent.yaml: cannot be read" in err
+    assert main(["--count", "1", "--check", str(FAMILY)]) == 1  # one scene is not the committed 24
+    assert "differs from the family drawn now" in capsys.readouterr().err
+    assert main(["--count", "1", "--write", str(tmp_path / "f.yaml")]) == 0
+    assert (tmp_path / "f.yaml").read_text() == family_yaml(1, 0) and sorted(p.name for p in tmp_path.iterdir()) == [
+        "dir",
+        "f.yaml",
+    ]

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from ..artefact import atomic_path
-from ..errors import MogafError
+from ..errors import MogafError, input_error
 from .params import resolve_params
 
 # Motion kinds: (name, what it shows, drawn parameters (rng -> dict)).
@@ -174,19 +174,22 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         text = family_yaml(args.count, args.seed)
+        if args.write:
+            with atomic_path(args.write) as tmp:
+                Path(tmp).write_text(text)
+            print(f"wrote {args.write}")
+        elif args.check:
+            try:
+                current = Path(args.check).read_text()
+            except OSError as exc:
+                raise input_error(args.check, f"cannot be read ({exc.strerror})") from None
+            if current != text:
+                raise MogafError(f"{args.check}: differs from the family drawn now; rewrite it with --write")
+        else:
+            print(text, end="")
     except MogafError as exc:
         print(f"mogaf.synth.family: error: {exc}", file=sys.stderr)
         return 1
-    if args.write:
-        with atomic_path(args.write) as tmp:
-            Path(tmp).write_text(text)
-        print(f"wrote {args.write}")
-    elif args.check:
-        if Path(args.check).read_text() != text:
-            print(f"{args.check}: differs from the family drawn now; rewrite it with --write", file=sys.stderr)
-            return 1
-    else:
-        print(text, end="")
     return 0
 
 
