@@ -53,6 +53,22 @@ class Instances:
 
 
 @dataclass
+class Segments:
+    """Ground-truth pieces that each move as one, for scoring a grouping only
+    (no stage that fits or groups reads them): label[f] is 0 on background and
+    s in 1..S on segment s, a part of instance[s - 1] called names[s - 1]."""
+
+    label: np.ndarray  # (F, H, W) uint16
+    instance: np.ndarray  # (S,) int64
+    names: list[str]
+
+    def __post_init__(self) -> None:
+        self.instance = np.asarray(self.instance, dtype=np.int64)
+        if len(self.instance) != len(self.names):
+            raise MogafError("segments: instance ids and names differ in length")
+
+
+@dataclass
 class Scene:
     dataset: str
     name: str
@@ -74,6 +90,7 @@ class Scene:
     point_cloud: np.ndarray | None = None  # (P, 6) float32: xyz, rgb in [0, 1]
     shipped: dict[str, Any] = field(default_factory=dict)
     ground_truth: dict[str, Any] = field(default_factory=dict)
+    segments: Segments | None = None
     # Scalars: background colour, scene scale, fps, monocular flag, ...
     meta: dict[str, Any] = field(default_factory=dict)
 
@@ -163,6 +180,12 @@ class Scene:
             arr = getattr(self, key)
             if arr is not None and arr.shape[:3] != (F, H, W):
                 return f"{key} has shape {arr.shape}, expected ({F}, {H}, {W})"
+        if self.segments is not None:
+            label = self.segments.label
+            if label.shape != (F, H, W):
+                return f"segment labels have shape {label.shape}, expected ({F}, {H}, {W})"
+            if label.size and int(label.max()) > len(self.segments.names):
+                return f"segment labels go up to {int(label.max())}, but {len(self.segments.names)} segments are named"
         if self.depth is not None:
             if not np.all(np.isfinite(self.depth)):
                 return "depth has NaN or infinite values"
@@ -190,6 +213,12 @@ def _scene_payload(scene: Scene) -> tuple[dict[str, Any], dict[str, Any]]:
         data["shipped"] = scene.shipped
     if scene.ground_truth:
         data["ground_truth"] = scene.ground_truth
+    if scene.segments is not None:
+        data["segments"] = {
+            "label": np.asarray(scene.segments.label, dtype=np.uint16),
+            "instance": scene.segments.instance,
+            "names": list(scene.segments.names),
+        }
     attrs = {
         "dataset": scene.dataset,
         "scene": scene.name,
@@ -300,3 +329,26 @@ def load_scene(
         **arrays,
         **optional,
     )
+
+
+def load_segments(path: str | os.PathLike, frames: np.ndarray) -> Segments | None:
+    """The ground-truth segments of the listed frames (None where scene.h5 has
+    none). For scoring only: the grouping quality stage, never a fitting one."""
+    p = Path(path)
+    with open_artefact(p, SCENE_STAGE) as fh:
+        total, _ = check_scene_file(fh, p)
+        if "segments" not in fh:
+            return None
+        for key in ("label", "instance", "names"):
+            if f"segments/{key}" not in fh:
+                raise input_error(p, f"has no entry 'segments/{key}' (rerun ingest)")
+        if fh["segments/label"].shape[0] != total:
+            raise input_error(
+                p, f"entry 'segments/label' has {fh['segments/label'].shape[0]} rows for {total} frames (rerun ingest)"
+            )
+        label = read_rows(fh, "segments/label", np.asarray(frames, dtype=np.int64))
+        instance = read_rows(fh, "segments/instance", np.arange(fh["segments/instance"].shape[0]))
+        names = [str(n) for n in fh["segments/names"].asstr()[()]]
+    if len(names) != len(instance) or (label.size and int(label.max()) > len(names)):
+        raise input_error(p, "entries 'segments/*' disagree: labels, instance ids and names (rerun ingest)")
+    return Segments(label=label, instance=instance, names=names)

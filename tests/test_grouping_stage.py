@@ -14,13 +14,26 @@ from sklearn.metrics import adjusted_rand_score
 from mogaf.artefact import read_artefact, write_artefact
 from mogaf.errors import MogafError
 from mogaf.grouping.core import Groups
-from mogaf.grouping.metrics import adjusted_rand_index, grouping_quality, per_object_iou
+from mogaf.grouping.metrics import (
+    adjusted_rand_index,
+    assigned_iou,
+    grouping_quality,
+    largest_overlap,
+    per_object_iou,
+)
 from mogaf.grouping.params import DEFAULT_PARAMS
 from mogaf.grouping.quality import read_grouping_quality, run_grouping_quality_stage
-from mogaf.grouping.stage import has_rigid_groups, load_groups, read_rigid_init, run_group_stage, run_rigid_init_stage
+from mogaf.grouping.stage import (
+    has_rigid_groups,
+    load_groups,
+    read_rigid_init,
+    run_group_stage,
+    run_rigid_init_stage,
+    write_groups,
+)
 from mogaf.reconstruction_quality.stage import read_reconstruction_quality, run_reconstruction_quality_stage
 from mogaf.representation import save_model
-from mogaf.scene import Instances, Scene, load_scene, save_scene
+from mogaf.scene import Instances, Scene, Segments, load_scene, load_segments, save_scene
 from mogaf.split import read_split, split_scene, write_split
 from support.toy_grouping import look_at, model_from_points, splat_instance_masks, two_object_scene
 
@@ -254,3 +267,102 @@ def test_quality_metric_parts(toy_files):
     swapped = Groups(**{**perfect.__dict__, "instance_id": np.array([2, 1])})
     q2 = grouping_quality(toy_files["model"], swapped, frames, backend="torch")
     assert max(q2["per_object_iou"]) < 0.2 and q2["ari"] == pytest.approx(q_fg["ari"])
+
+
+def test_assigned_iou_matches_per_pixel_reference():
+    """The overlap-matrix IoU equals counting pixels of the relabelled image."""
+    rng = np.random.default_rng(0)
+    gt = rng.integers(0, 4, size=(5, 9, 11))  # 3 GT labels + background
+    pred = rng.integers(0, 6, size=gt.shape)  # 5 groups + background
+    overlap = np.bincount((pred * 4 + gt).ravel(), minlength=6 * 4).reshape(6, 4)
+    assigned = largest_overlap(overlap)
+    assert assigned[0] == 0 and assigned.shape == (6,)
+    for mapping in (assigned, np.array([0, 1, 1, 3, 0, 2])):
+        inter, union = assigned_iou(overlap, mapping)
+        ref_inter, ref_union = per_object_iou(gt, mapping[pred], np.array([1, 2, 3]))
+        np.testing.assert_array_equal(inter, ref_inter)
+        np.testing.assert_array_equal(union, ref_union)
+
+
+def _segments_of(frames, parts_of_box: bool) -> Segments:
+    """GT segments from the toy masks: sphere one piece; the box one piece or
+    two (left and right of its pixels' median column in each frame)."""
+    label = np.asarray(frames.instance_mask, np.uint16).copy()
+    if not parts_of_box:
+        return Segments(label=label, instance=np.array([1, 2]), names=["sphere", "box"])
+    for f in range(len(label)):
+        rows, cols = np.nonzero(label[f] == 2)
+        right = cols > np.median(cols)
+        label[f][rows[right], cols[right]] = 3
+    return Segments(label=label, instance=np.array([1, 2, 2]), names=["sphere", "box/left", "box/right"])
+
+
+def test_quality_from_segments(toy_files):
+    labels = toy_files["labels"]
+    perfect = Groups(
+        group_id=labels - 1,
+        rigid=np.ones(2, np.int8),
+        static=np.zeros(2, np.int8),
+        instance_id=np.array([1, 2]),
+        names=["sphere", "box"],
+        rigid_source=["label"] * 2,
+        method="ours",
+        params=dict(DEFAULT_PARAMS),
+    )
+    frames = load_scene(toy_files["scene"], read_split(toy_files["split"]).frame_ids["evaluation_observed"][::4])
+    from_masks = grouping_quality(toy_files["model"], perfect, frames, backend="torch")
+    # segments equal to the masks score exactly as the masks do
+    with_segments = dataclasses.replace(frames, segments=_segments_of(frames, parts_of_box=False))
+    q = grouping_quality(toy_files["model"], perfect, with_segments, backend="torch")
+    assert q["object_matching"] == "mask identity" and "per_part_iou" not in q
+    for key in ("per_object_iou", "object_ids", "object_names", "ari", "num_pixels"):
+        assert q[key] == from_masks[key]
+    # a scene that ships no masks: groups carry no identity and are matched
+    # to the object they overlap most, so the perfect grouping scores the same
+    no_masks = dataclasses.replace(with_segments, instance_mask=None, instances=None)
+    anonymous = Groups(**{**perfect.__dict__, "instance_id": np.array([-1, -1])})
+    q_anon = grouping_quality(toy_files["model"], anonymous, no_masks, backend="torch")
+    assert q_anon["object_matching"] == "largest overlap"
+    assert q_anon["per_object_iou"] == from_masks["per_object_iou"] and q_anon["ari"] == from_masks["ari"]
+    # one group over a two-part box: it is given the part it overlaps most, the other part scores 0
+    parts = dataclasses.replace(no_masks, segments=_segments_of(frames, parts_of_box=True))
+    q_parts = grouping_quality(toy_files["model"], anonymous, parts, backend="torch")
+    assert q_parts["object_names"] == ["sphere", "box"]
+    assert q_parts["per_object_iou"] == from_masks["per_object_iou"]
+    assert q_parts["part_names"] == ["box/left", "box/right"]
+    assert sorted(v == 0.0 for v in q_parts["per_part_iou"]) == [False, True]
+    assert 0.2 < max(q_parts["per_part_iou"]) < 0.8
+
+
+def test_quality_stage_reads_segments_of_a_scene_without_masks(toy_files, tmp_path):
+    """scene.h5 with ground-truth segments and no instance masks (a synthetic
+    scene that ships none): the stage scores objects and parts from them."""
+    full = load_scene(toy_files["scene"])
+    segments = _segments_of(full, parts_of_box=True)
+    bare = dataclasses.replace(full, instance_mask=None, instances=None, segments=segments)
+    scene_h5 = save_scene(tmp_path / "scene.h5", bare, config_digest="test")
+    groups = Groups(
+        group_id=toy_files["labels"] - 1,
+        rigid=np.ones(2, np.int8),
+        static=np.zeros(2, np.int8),
+        instance_id=np.array([-1, -1]),
+        names=["group0", "group1"],
+        rigid_source=["estimated"] * 2,
+        method="ours",
+        params=dict(DEFAULT_PARAMS),
+    )
+    groups_h5 = write_groups(tmp_path / "groups.h5", groups)
+    out = run_grouping_quality_stage(
+        toy_files["recon"], groups_h5, scene_h5, toy_files["split"], tmp_path / "gq.h5", {"max_frames": 4}
+    )
+    q = read_grouping_quality(out)
+    assert q["object_matching"] == "largest overlap" and q["object_names"] == ["sphere", "box"]
+    assert min(q["per_object_iou"]) > 0.6 and q["part_names"] == ["box/left", "box/right"]
+    # the segments are evaluation data: loading the frames a stage fits on leaves them out
+    assert load_scene(scene_h5).segments is None
+    rows = read_split(toy_files["split"]).frame_ids["evaluation_observed"][:2]
+    np.testing.assert_array_equal(load_segments(scene_h5, rows).label, segments.label[rows])
+    with h5py.File(scene_h5, "r+") as fh:
+        del fh["segments/names"]
+    with pytest.raises(MogafError, match=r"scene\.h5: has no entry 'segments/names'"):
+        load_segments(scene_h5, rows)

@@ -751,6 +751,14 @@ def test_scenes_table_gives_mogafs_margin_over_the_better_of_frozen_and_constant
     data = json.loads(files[0].read_text())
     data["grouping"] = {"object_names": ["box", "flag"], "per_object_iou": [0.912, 0.4]}
     files[0].write_text(json.dumps(data))
+    data = json.loads(files[1].read_text())  # and per part of an object made of pieces
+    data["grouping"] = {
+        "object_names": ["chest"],
+        "per_object_iou": [0.85],
+        "part_names": ["chest/body", "chest/lid"],
+        "per_part_iou": [0.8, 0.123],
+    }
+    files[1].write_text(json.dumps(data))
     for f, psnr in zip(files, (None, 21.0, 23.0), strict=True):  # the reconstruction's held-out PSNR
         data = json.loads(f.read_text())
         data["reconstruction"] = {"heldout_observed": {"psnr": psnr}} if psnr else {}
@@ -760,7 +768,7 @@ def test_scenes_table_gives_mogafs_margin_over_the_better_of_frozen_and_constant
     col = rows[0].index("MoGaF − best of frozen, const. velocity (dB)")
     assert [r[col] for r in rows[1:4]] == ["+0.50", "-0.20", "-0.50"]
     iou = rows[0].index("grouping IoU per object")
-    assert [r[iou] for r in rows[1:4]] == ["box 0.91, flag 0.40", "–", "–"]
+    assert [r[iou] for r in rows[1:4]] == ["box 0.91, flag 0.40", "chest 0.85, chest/body 0.80, chest/lid 0.12", "–"]
     recon = rows[0].index("reconstruction PSNR, held-out views of observed times")
     assert [r[recon] for r in rows[1:5]] == ["–", "21.00", "23.00", "22.00"]  # the mean over the scenes that have it
     assert len({len(r) for r in rows}) == 1  # the mean row has every column

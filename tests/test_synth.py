@@ -111,6 +111,8 @@ def test_layout_files(default_dir):
     assert depth.shape == (120, 160, 1) and depth.dtype == np.float32
     inst = cv2.imread(str(default_dir / "mogaf_gt/instance/1x/2_00010.png"), cv2.IMREAD_UNCHANGED)
     assert inst.dtype == np.uint16 and inst.shape == (120, 160)
+    part = cv2.imread(str(default_dir / "mogaf_gt/part/1x/2_00010.png"), cv2.IMREAD_UNCHANGED)
+    assert part.dtype == np.uint8 and part.shape == (120, 160) and not part.any(), "every object is one piece"
     val = json.loads((default_dir / "splits/val.json").read_text())
     assert set(val["camera_ids"]) == {1, 2} and len(val["frame_names"]) == 2 * T
     assert not list(default_dir.parent.glob(".default.tmp-*")), "no temporary folder is left behind"
@@ -371,6 +373,22 @@ def test_articulated_scene_ships_no_instance_masks(tmp_path):
     assert list(scene.instances.names) == ["foreground"], "the reader keeps the foreground mask alone"
     assert set(np.unique(scene.instance_mask).tolist()) <= {0, 1}
     assert scene.ground_truth["points3d"].shape[1] == 8, "ground truth stays for scoring"
+    # ...and so do the pieces that move as one, per pixel and per GT point
+    assert scene.segments.names == ["chest/body", "chest/lid"] and len(set(scene.segments.instance.tolist())) == 1
+    label = scene.segments.label
+    assert set(np.unique(label).tolist()) == {0, 1, 2}
+    np.testing.assert_array_equal(label > 0, scene.instance_mask > 0)
+    part = np.load(root / "mogaf_gt/points_part.npy")
+    track = scene.ground_truth["points3d"]
+    reach = np.linalg.norm(track - track[:, :1], axis=-1).max(axis=1)
+    assert part.dtype == np.uint8 and reach[part == 0].max() < 1e-6 < reach[part == 1].min()
+    entry = json.loads((root / "mogaf_gt/instances.json").read_text())["instances"][0]
+    assert entry["parts"] == ["body", "lid"]
+    # a part index the instance does not list is one line naming the file
+    bad = root / "mogaf_gt/part/1x/0_00003.png"
+    cv2.imwrite(str(bad), np.full_like(cv2.imread(str(bad), cv2.IMREAD_UNCHANGED), 2))
+    with pytest.raises(MogafError, match=r"0_00003\.png: part indices of instance \d+ go past its 2 listed part"):
+        read_scene("synthetic", root, dataset="synthetic", scene="articulated", options={"scale": 1})
 
 
 def test_bounce_preset_bounces_after_either_split():

@@ -16,6 +16,9 @@ iPhone reader's Scene this reader sets:
                  and visible (P, T) in the train camera, object_poses
                  (K, T, 4, 4) with object_pose_ids (K,), and per held-out
                  camera c (1 to 3 of them): camera<c>/{tracks2d, visible}
+  segments       the pieces that each move as one, per pixel of every frame
+                 (mogaf_gt/instance/1x and part/1x, parts from instances.json),
+                 shipped or not: ground truth for scoring a grouping only
   meta           synthetic generator parameters (mogaf_gt/params.json)
 
 The generator's world is metric with identity DyCheck normalisation
@@ -33,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import MogafError, input_error
-from ..scene import Instances, Scene
+from ..scene import Instances, Scene, Segments
 from .common import as_int, as_list, as_str, load_json
 from .images import read_label_image
 from .iphone import read_iphone_layout
@@ -65,10 +68,10 @@ def _load_array(path: Path, *, dtype_kind: str, ndim: int, what: str) -> np.ndar
     return arr
 
 
-def _read_instances(path: Path) -> tuple[Instances, dict[int, int]]:
+def _read_instances(path: Path) -> tuple[Instances, dict[int, int], dict[int, list[str]]]:
     data = load_json(path, what="synthetic instances")
     items = as_list(data.get("instances"), path, "'instances'")
-    ids, names, rigid, pose_index = [], [], [], {}
+    ids, names, rigid, pose_index, parts = [], [], [], {}, {}
     for i, item in enumerate(items):
         if not isinstance(item, dict):
             raise input_error(path, f"instances[{i}] must be an object")
@@ -79,9 +82,14 @@ def _read_instances(path: Path) -> tuple[Instances, dict[int, int]]:
             raise input_error(path, f"instances[{i}].rigid must be true or false")
         rigid.append(1 if item["rigid"] else 0)
         pose_index[inst] = as_int(item.get("pose_index", -1), path, f"instances[{i}].pose_index", lo=-1)
+        # scenes written before parts were recorded: each object is one piece
+        piece_names = as_list(item.get("parts", ["whole"]), path, f"instances[{i}].parts")
+        parts[inst] = [as_str(n, path, f"instances[{i}].parts[{j}]") for j, n in enumerate(piece_names)]
+        if not 1 <= len(parts[inst]) <= 255:
+            raise input_error(path, f"instances[{i}].parts must list 1 to 255 names")
     if len(set(ids)) != len(ids):
         raise input_error(path, "instance ids are not unique")
-    return Instances(ids=np.array(ids), names=names, rigid=np.array(rigid)), pose_index
+    return Instances(ids=np.array(ids), names=names, rigid=np.array(rigid)), pose_index, parts
 
 
 def _instance_masks(out: Scene, gt: Path, known: set[int]) -> np.ndarray:
@@ -97,6 +105,35 @@ def _instance_masks(out: Scene, gt: Path, known: set[int]) -> np.ndarray:
             raise input_error(path, f"instance ids {sorted(bad)} are not listed in {GT}/instances.json")
         masks[f] = m
     return masks
+
+
+def _segments(out: Scene, gt: Path, instances: Instances, parts: dict[int, list[str]], masks: np.ndarray) -> Segments:
+    """Segment labels from the instance ids and, where the scene has them
+    (mogaf_gt/part/1x), the part indices; one segment per listed part."""
+    names, owner, first = [], [], {}
+    for inst, name in zip(instances.ids.tolist(), instances.names, strict=True):
+        first[inst] = len(names) + 1
+        pieces = parts[inst]
+        names += [name] if len(pieces) == 1 else [f"{name}/{piece}" for piece in pieces]
+        owner += [inst] * len(pieces)
+    label = np.zeros(masks.shape, np.uint16)
+    has_parts = (gt / "part" / "1x").is_dir()
+    for f, frame in enumerate(out.frame_names):
+        part = np.zeros(masks.shape[1:], np.int64)
+        if has_parts:
+            path = gt / "part" / "1x" / f"{frame}.png"
+            if not path.is_file():
+                raise input_error(path, f"missing part mask of frame {frame}")
+            part = read_label_image(path, expect_size=(out.width, out.height), what="part mask").astype(np.int64)
+        for inst, base in first.items():
+            on = masks[f] == inst
+            if np.any(part[on] >= len(parts[inst])):
+                raise input_error(
+                    gt / "part" / "1x" / f"{frame}.png",
+                    f"part indices of instance {inst} go past its {len(parts[inst])} listed part(s)",
+                )
+            label[f][on] = base + part[on]
+    return Segments(label=label, instance=np.array(owner, dtype=np.int64), names=names)
 
 
 def _ground_truth(gt: Path, T: int, known: set[int], pose_index: dict[int, int]) -> dict[str, Any]:
@@ -165,10 +202,12 @@ def read_synthetic_scene(
     ship_masks = generator.get("ship_instance_masks", True) if isinstance(generator, dict) else True
     if not isinstance(ship_masks, bool):
         raise input_error(gt / "params.json", f"params.ship_instance_masks must be true or false, got {ship_masks!r}")
-    instances, pose_index = _read_instances(gt / "instances.json")
+    instances, pose_index, parts = _read_instances(gt / "instances.json")
     known = {int(i) for i in instances.ids} | {0}
+    masks = _instance_masks(out, gt, known)
+    out.segments = _segments(out, gt, instances, parts, masks)
     if ship_masks:
-        out.instance_mask = _instance_masks(out, gt, known)
+        out.instance_mask = masks
         out.instances = instances
 
     out.ground_truth = _ground_truth(gt, out.num_timesteps, known, pose_index)

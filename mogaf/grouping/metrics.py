@@ -11,9 +11,15 @@ Protocol (held-out cameras at observed times, split role
 - predicted label of a pixel = argmax channel where the rendered alpha
   exceeds `alpha` (0.5), background otherwise (also where the
   background channel wins);
-- per-object IoU: for each GT instance, the pixels of all groups whose
-  identity (group_instance_id) is that instance against its GT mask,
-  intersections and unions summed over all frames (a dataset-level IoU);
+- per-object IoU: for each GT instance, the pixels of all groups assigned to
+  it against its GT mask, intersections and unions summed over all frames (a
+  dataset-level IoU). A group is assigned the instance it came from
+  (group_instance_id) where the grouping read instance masks; otherwise (a
+  scene that ships none, scored with its ground-truth segments) the instance
+  it overlaps most, or none where that is the background;
+- per-part IoU, for objects made of pieces that move differently (ground-
+  truth segments with several parts, e.g. a chest's body and lid): each group
+  is assigned the segment it overlaps most, then IoU per segment as above;
 - adjusted Rand index between GT instance ids and predicted group ids
   (fragments of one object count as different clusters) over the pixels
   that are foreground in the GT or in the prediction (pixels =
@@ -93,30 +99,107 @@ def ari_section(gt: np.ndarray, pred: np.ndarray, num_objects: int) -> dict[str,
     return {"ari": adjusted_rand_index(gt, pred)}
 
 
+def assigned_iou(overlap: np.ndarray, assigned: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Intersections and unions (M,) of M GT labels from an overlap matrix
+    (G + 1 predicted labels incl. background row 0, M + 1 GT labels incl.
+    background column 0) when predicted label g counts for GT label
+    assigned[g] (0: none)."""
+    M = overlap.shape[1] - 1
+    inter = np.zeros(M, np.int64)
+    pred = np.zeros(M, np.int64)
+    rows = overlap.sum(axis=1)
+    for g in range(1, overlap.shape[0]):
+        m = int(assigned[g])
+        if m > 0:
+            inter[m - 1] += overlap[g, m]
+            pred[m - 1] += rows[g]
+    union = overlap[:, 1:].sum(axis=0) + pred - inter
+    return inter, union
+
+
+def largest_overlap(overlap: np.ndarray) -> np.ndarray:
+    """(G + 1,) the GT label each predicted label overlaps most (0: background; row 0 stays 0)."""
+    assigned = np.argmax(overlap, axis=1)
+    assigned[0] = 0
+    return assigned
+
+
+def _segment_scores(
+    overlap: np.ndarray, segments, group_instance: np.ndarray | None
+) -> tuple[dict[str, Any], np.ndarray]:
+    """Per-object and per-part IoU from the overlap of rendered group labels
+    with GT segments; also the instance id of each GT segment label."""
+    seg_inst = np.r_[0, segments.instance]  # segment label -> instance id
+    object_ids = np.array(list(dict.fromkeys(segments.instance.tolist())), dtype=np.int64)
+    column = {int(i): k + 1 for k, i in enumerate(object_ids)}
+    object_names = [segments.names[int(np.flatnonzero(segments.instance == i)[0])].split("/")[0] for i in object_ids]
+    # overlap with whole objects: the columns of each object's segments summed
+    col_obj = np.array([0] + [column[int(i)] for i in segments.instance], dtype=np.int64)
+    by_object = np.zeros((overlap.shape[0], len(object_ids) + 1), np.int64)
+    np.add.at(by_object.T, col_obj, overlap.T)
+    if group_instance is None:
+        assigned = largest_overlap(by_object)
+    else:
+        assigned = np.array([0] + [column.get(int(i), 0) for i in group_instance], dtype=np.int64)
+    inter, union = assigned_iou(by_object, assigned)
+    out: dict[str, Any] = {
+        "object_ids": object_ids,
+        "object_names": object_names,
+        "inter": inter,
+        "union": union,
+        "object_matching": "largest overlap" if group_instance is None else "mask identity",
+    }
+    multi = [s for s in range(len(segments.names)) if np.count_nonzero(segments.instance == segments.instance[s]) > 1]
+    if multi:
+        p_inter, p_union = assigned_iou(overlap, largest_overlap(overlap))
+        present = [s for s in multi if p_union[s] > 0]
+        out["part_names"] = [segments.names[s] for s in present]
+        out["per_part_iou"] = [float(p_inter[s] / p_union[s]) for s in present]
+    return out, seg_inst
+
+
 def grouping_quality(
-    model, groups: Groups, frames, *, alpha: float = 0.5, pixels: str = "foreground", backend: str = "auto"
+    model,
+    groups: Groups,
+    frames,
+    *,
+    alpha: float = 0.5,
+    pixels: str = "foreground",
+    backend: str = "auto",
 ) -> dict[str, Any]:
     """Per-object IoU and ARI of rendered group labels against GT masks.
 
     frames: a mogaf.scene.Scene (e.g. split role "evaluation_observed") with
-    instance_mask; frames whose time step is not one of the model's
-    observed steps are skipped. Returns {} when there is nothing to compare.
+    ground-truth segments (frames.segments, preferred: they also score parts
+    and scenes that ship no masks) or instance_mask; frames whose time step is
+    not one of the model's observed steps are skipped. Returns {} when there
+    is nothing to compare.
     """
     if pixels not in ("foreground", "all"):
         raise MogafError(f"grouping quality: pixels must be 'foreground' or 'all', got {pixels!r}")
-    if frames is None or frames.instance_mask is None or frames.num_frames == 0:
+    segments = None if frames is None else frames.segments
+    if frames is None or frames.num_frames == 0 or (frames.instance_mask is None and segments is None):
         return {}
     observed_steps = {int(s) for s in np.asarray(model.timesteps, dtype=np.int64)}
-    if frames.instances is not None and len(frames.instances.ids):
-        object_ids = np.asarray(frames.instances.ids, dtype=np.int64)
-        names = list(frames.instances.names)
+    if segments is not None:
+        names = list(segments.names)
+        object_ids = None
+        gt_labels = segments.label
+        num_gt = len(names)
     else:
-        object_ids = np.unique(frames.instance_mask)
-        object_ids = object_ids[object_ids != 0].astype(np.int64)
-        names = [f"instance{int(i)}" for i in object_ids]
-    inst_of_group = np.r_[0, np.asarray(groups.instance_id, dtype=np.int64)]  # label 0 -> background
-    inter = np.zeros(len(object_ids), dtype=np.int64)
-    union = np.zeros(len(object_ids), dtype=np.int64)
+        if frames.instances is not None and len(frames.instances.ids):
+            object_ids = np.asarray(frames.instances.ids, dtype=np.int64)
+            names = list(frames.instances.names)
+        else:
+            object_ids = np.unique(frames.instance_mask)
+            object_ids = object_ids[object_ids != 0].astype(np.int64)
+            names = [f"instance{int(i)}" for i in object_ids]
+        # GT label k + 1 for object_ids[k], 0 background
+        lookup = {int(i): k + 1 for k, i in enumerate(object_ids)}
+        gt_labels = None
+        num_gt = len(object_ids)
+    G = groups.num_groups
+    overlap = np.zeros((G + 1, num_gt + 1), np.int64)
     gt_all: list[np.ndarray] = []
     pr_all: list[np.ndarray] = []
     used = 0
@@ -124,32 +207,49 @@ def grouping_quality(
         step = int(frames.time_index[f])
         if step not in observed_steps:
             continue
-        gt = np.asarray(frames.instance_mask[f], dtype=np.int64)
+        if gt_labels is not None:
+            gt = gt_column = np.asarray(gt_labels[f], dtype=np.int64)
+        else:
+            gt = np.asarray(frames.instance_mask[f], dtype=np.int64)  # raw ids: the ARI's labels
+            gt_column = np.zeros_like(gt)
+            for i, k in lookup.items():
+                gt_column[gt == i] = k
         H, W = gt.shape
         label = render_group_labels(
-            model, groups.group_id, groups.num_groups, step, frames.K[f], frames.w2c[f], W, H, float(alpha), backend
+            model, groups.group_id, G, step, frames.K[f], frames.w2c[f], W, H, float(alpha), backend
         )
-        pred_inst = inst_of_group[label]
-        pred_inst[label == 0] = 0
-        i, u = per_object_iou(gt, pred_inst, object_ids)
-        inter += i
-        union += u
+        overlap += np.bincount(
+            label.ravel() * (num_gt + 1) + gt_column.ravel(), minlength=(G + 1) * (num_gt + 1)
+        ).reshape(G + 1, num_gt + 1)
         sel = (gt != 0) | (label != 0) if pixels == "foreground" else np.ones_like(gt, dtype=bool)
         gt_all.append(gt[sel])
         pr_all.append(label[sel])
         used += 1
     if used == 0:
         return {}
+    extra: dict[str, Any] = {}
+    if segments is not None:
+        masks_read = frames.instances is not None and frames.instance_mask is not None
+        scores, seg_inst = _segment_scores(overlap, segments, groups.instance_id if masks_read else None)
+        object_ids, names = scores.pop("object_ids"), scores.pop("object_names")
+        inter, union = scores.pop("inter"), scores.pop("union")
+        extra = scores
+        gt_flat = seg_inst[np.concatenate(gt_all)]  # the ARI is over objects, not parts
+    else:
+        inst_of_group = np.r_[0, np.asarray(groups.instance_id, dtype=np.int64)]
+        column = np.array([0] + [lookup.get(int(i), 0) for i in inst_of_group[1:]], dtype=np.int64)
+        inter, union = assigned_iou(overlap, column)
+        gt_flat = np.concatenate(gt_all)
     present = union > 0
     iou = np.where(present, inter / np.maximum(union, 1), 0.0)
-    gt_flat = np.concatenate(gt_all)
     pr_flat = np.concatenate(pr_all)
     return {
         **ari_section(gt_flat, pr_flat, int(present.sum())),
         "mean_iou": float(iou[present].mean()) if present.any() else 0.0,
-        "object_ids": [int(i) for i in object_ids[present]],
+        "object_ids": [int(i) for i in np.asarray(object_ids)[present]],
         "object_names": [names[i] for i in np.flatnonzero(present)],
         "per_object_iou": [float(v) for v in iou[present]],
+        **extra,
         "num_frames": int(used),
         "num_pixels": int(gt_flat.size),
         "pixels": str(pixels),

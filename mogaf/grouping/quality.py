@@ -1,10 +1,12 @@
 """Stage grouping_quality (-> grouping_quality.h5): the grouping's quality
-against GT instance masks at held-out views at observed times.
+against GT instance masks or segments at held-out views at observed times.
 
 Its own stage, not part of evaluation, so that the ablations sharing one
 grouping (forecast-only variants) render its held-out views once. It reads
 the model that was grouped (recon.h5), groups.h5, the split and scene.h5's
-"evaluation_observed" frames: held-out cameras, observed times only.
+"evaluation_observed" frames: held-out cameras, observed times only, with
+their ground-truth segments where the scene has them (synthetic scenes,
+masks shipped or not).
 
 grouping_quality.h5 (stage "grouping_quality"):
   per_object_iou (M,) float64       IoU of each GT object present (mogaf.grouping.metrics)
@@ -27,9 +29,9 @@ import numpy as np
 
 from ..artefact import config_digest, open_artefact, read_artefact, write_artefact
 from ..errors import input_error
-from ..scene import SCENE_STAGE
+from ..scene import SCENE_STAGE, load_segments
 from ..settings import as_dict, defaults, load
-from ..split import Split, load_evenly_spaced_frames, read_split
+from ..split import Split, evenly_spaced_frame_ids, load_evenly_spaced_frames, read_split
 from .params import GroupingQualitySettings
 
 GROUPING_QUALITY_STAGE = "grouping_quality"
@@ -62,10 +64,11 @@ def measure_grouping_quality(
     out: dict[str, Any] = {"method": groups.method, "num_groups": groups.num_groups}
     ids = split.frame_ids.get("evaluation_observed", np.zeros(0, np.int64))
     with open_artefact(scene_h5, SCENE_STAGE) as fh:
-        has_masks = "frames/instance_mask" in fh
+        has_masks = "frames/instance_mask" in fh or "segments" in fh
     if ids.size == 0 or groups.num_groups == 0 or not has_masks:
         return out
     frames = load_evenly_spaced_frames(scene_h5, split, "evaluation_observed", int(p.max_frames))
+    frames.segments = load_segments(scene_h5, evenly_spaced_frame_ids(split, "evaluation_observed", int(p.max_frames)))
     quality = grouping_quality(load_model(grouped_model_h5), groups, frames, alpha=float(p.alpha), pixels=str(p.pixels))
     return {**out, **quality}
 

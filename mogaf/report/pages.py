@@ -92,9 +92,10 @@ def quality_figure(
     grouping = read_grouping_quality(grouping_quality)
     recon = read_per_frame(reconstruction_quality)
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.6))
-    names = grouping.get("object_names", [])
+    names = list(grouping.get("object_names", []))
     if names:
-        ious = grouping["per_object_iou"]
+        names += list(grouping.get("part_names", []))
+        ious = list(grouping["per_object_iou"]) + list(grouping.get("per_part_iou", []))
         left.bar(range(len(names)), ious, color="#4c72b0")
         left.set_xticks(range(len(names)), [str(n) for n in names], rotation=30, ha="right", fontsize=8)
         left.set_ylim(0, 1)

@@ -51,9 +51,12 @@ CELL_NAMES = {"psnr": "PSNR", "lpips": "LPIPS", "epe_3d": "tracking EPE (m)"}
 
 
 def _object_ious(result: dict[str, Any]) -> str:
-    """The grouping's IoU with every ground-truth object (grouping_quality), or "–"."""
+    """The grouping's IoU with every ground-truth object (grouping_quality),
+    then with each part of the objects made of several ("chest/lid"), or "–"."""
     grouping = result.get("grouping") or {}
     names, ious = grouping.get("object_names") or [], grouping.get("per_object_iou") or []
+    names = list(names) + list(grouping.get("part_names") or [])
+    ious = list(ious) + list(grouping.get("per_part_iou") or [])
     return ", ".join(f"{n} {float(v):.2f}" for n, v in zip(names, ious, strict=False)) or "–"
 
 

@@ -23,10 +23,14 @@ Layout of `out_dir` (scale 1x only; frame name "<camera>_<time:05d>"):
     mogaf_gt/instances.json     background id 0 + per object: id, name, rigid, kind,
                                 pose_index (row in object_poses.npy or -1), shape
                                 (box half_extents / sphere radius in the object frame,
-                                cloth / arm dimensions)
+                                cloth / arm dimensions), parts (the pieces that move
+                                each as one: ["whole"], the arm's upper/lower, the
+                                chest's body/lid)
     mogaf_gt/instance/1x/<name>.png   uint16 instance id at pixel centres, every frame
+    mogaf_gt/part/1x/<name>.png uint8 index into its instance's parts at pixel centres
     mogaf_gt/points3d.npy       (P, T, 3) float32 world trajectories of surface points
     mogaf_gt/points_instance.npy (P,) int32 their instance ids
+    mogaf_gt/points_part.npy    (P,) uint8 their index into their instance's parts
     mogaf_gt/tracks2d.npy       (P, T, 2) float32 their pixel coordinates in the train
                                 camera (continuous, pixel centres at +0.5)
     mogaf_gt/visible.npy        (P, T) bool: inside the train image and the first
@@ -112,14 +116,15 @@ def camera_json(world: World, w2c: np.ndarray) -> dict[str, Any]:
 
 
 def _track_points(world: World, rng: np.random.Generator):
-    """GT surface points of every dynamic object: trajectories (P, T, 3), instance (P,)."""
+    """GT surface points of every dynamic object: trajectories (P, T, 3), instance (P,), part (P,)."""
     n = world.params.num_track_points
-    trajs, insts = [], []
+    trajs, insts, parts = [], [], []
     for obj in world.objects:
         material = obj.sample_material(rng, n)
         trajs.append(np.stack([obj.points(material, float(tau)) for tau in world.taus], axis=1))
         insts.append(np.full(n, obj.inst, dtype=np.int32))
-    return np.concatenate(trajs), np.concatenate(insts)
+        parts.append(obj.point_parts(material).astype(np.uint8))
+    return np.concatenate(trajs), np.concatenate(insts), np.concatenate(parts)
 
 
 def _render_all(world: World, root: Path, points3d: np.ndarray, points_inst: np.ndarray) -> dict[str, Any]:
@@ -139,6 +144,7 @@ def _render_all(world: World, root: Path, points3d: np.ndarray, points_inst: np.
             _write_png(root / "rgb" / "1x" / f"{name}.png", view.rgb)
             _write_npy(root / "depth" / "1x" / f"{name}.npy", view.depth.astype(np.float32)[..., None])
             _write_png(root / "mogaf_gt" / "instance" / "1x" / f"{name}.png", view.inst)
+            _write_png(root / "mogaf_gt" / "part" / "1x" / f"{name}.png", view.part)
             dmin, dmax = min(dmin, float(view.depth.min())), max(dmax, float(view.depth.max()))
             w2c = world.camera_w2c(cam, ti)
             fg = np.where(view.inst > 0, 255, 0).astype(np.uint8)
@@ -190,7 +196,7 @@ def _write_layout(root: Path, p: dict[str, Any]) -> None:
     s = world.params
     T = len(world.taus)
     rng = np.random.default_rng([int(s.seed), 777])
-    points3d, points_inst = _track_points(world, rng)
+    points3d, points_inst, points_part = _track_points(world, rng)
     out = _render_all(world, root, points3d, points_inst)
 
     names = {cam: [frame_name(cam, ti) for ti in range(T)] for cam in range(world.num_cameras)}
@@ -264,6 +270,7 @@ def _write_layout(root: Path, p: dict[str, Any]) -> None:
                     "kind": o.kind,
                     "pose_index": pose_index.get(o.inst, -1),
                     "shape": o.shape(),
+                    "parts": list(o.part_names),
                 }
                 for o in world.objects
             ],
@@ -278,6 +285,7 @@ def _write_layout(root: Path, p: dict[str, Any]) -> None:
     _write_npy(gt / "object_pose_ids.npy", np.array([o.inst for o in rigid_objs], dtype=np.int32))
     _write_npy(gt / "points3d.npy", points3d.astype(np.float32))
     _write_npy(gt / "points_instance.npy", points_inst.astype(np.int32))
+    _write_npy(gt / "points_part.npy", points_part)
     _write_npy(gt / "tracks2d.npy", out["tracks"][0].astype(np.float32))
     _write_npy(gt / "visible.npy", out["visible"][0])
     _write_npy(gt / "tracks2d_all.npy", out["tracks"].astype(np.float32))

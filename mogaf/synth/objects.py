@@ -51,6 +51,9 @@ class Object:
     name: str
     rigid: bool
     kind: str
+    # The pieces that move each as one (ground truth for scoring a grouping
+    # by part): one for most objects, one per box of a box chain.
+    part_names: tuple[str, ...] = ("whole",)
 
     def primitives(self, tau: float) -> list:
         raise NotImplementedError
@@ -64,6 +67,10 @@ class Object:
     def extent_points(self, tau: float) -> np.ndarray:
         """Points whose projections bound the object's silhouette (view checks)."""
         raise NotImplementedError
+
+    def point_parts(self, material: np.ndarray) -> np.ndarray:
+        """(n,) index into part_names of each sampled material point."""
+        return np.zeros(len(material), dtype=np.int64)
 
     def bounds(self, tau: float) -> list[tuple[np.ndarray, float]]:
         return [(p.centre, p.radius) for p in self.primitives(tau)]
@@ -199,7 +206,7 @@ class BoxChain(Object):
 
     def primitives(self, tau):
         return [
-            Box(R, c, half, self.texture, self.inst, face_offset=3 * i)
+            Box(R, c, half, self.texture, self.inst, face_offset=3 * i, part=i)
             for i, ((R, c), half) in enumerate(zip(self.segment_frames(tau), self.halves()))
         ]
 
@@ -213,6 +220,9 @@ class BoxChain(Object):
             m = seg == i
             out[m, 1:] = _sample_box_surface(rng, half, int(m.sum()))
         return out
+
+    def point_parts(self, material):
+        return material[:, 0].astype(np.int64)
 
     def points(self, material, tau):
         frames = self.segment_frames(tau)
@@ -230,6 +240,7 @@ class Arm(BoxChain):
     """Two-link arm standing on the ground, bending at shoulder and elbow, swaying about z."""
 
     kind = "arm"
+    part_names = ("upper", "lower")
 
     def __init__(self, inst, name, base, lengths, thickness, texture, phase):
         self.inst, self.name = inst, name
@@ -264,6 +275,7 @@ class Articulated(BoxChain):
     instance it is non-rigid; most of its surface (the body) never moves."""
 
     kind = "articulated"
+    part_names = ("body", "lid")
 
     def __init__(self, inst, name, centre, body_half, lid_thickness, yaw, swing, rate, texture, phase):
         self.inst, self.name = inst, name

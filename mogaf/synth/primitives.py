@@ -4,8 +4,8 @@ Rays are `o + t d` with one origin `o` (3,) and directions `d` (N, 3). The
 renderer scales directions so their camera-space z component is 1, which
 makes the ray parameter t equal to the camera-space depth of the hit.
 
-Every primitive has an instance id (0 = static background), a bounding
-sphere, `intersect(o, d) -> t` (inf where missed) and
+Every primitive has an instance id (0 = static background), a part index
+within its object (0 but for the boxes of a box chain), a bounding sphere, `intersect(o, d) -> t` (inf where missed) and
 `shade(p, d) -> (albedo, normal)` at hit points p.
 """
 
@@ -33,6 +33,8 @@ def bound_hit(o: np.ndarray, d: np.ndarray, centre: np.ndarray, radius: float) -
 class Plane:
     """Infinite plane {x : x[axis] = offset}, textured with the two other coordinates."""
 
+    part = 0
+
     def __init__(self, axis: int, offset: float, coords: tuple[int, int], texture, inst: int = 0):
         self.axis, self.offset, self.coords, self.texture, self.inst = axis, float(offset), coords, texture, inst
         self.centre, self.radius = None, np.inf
@@ -53,7 +55,10 @@ class Plane:
 class Box:
     """Oriented box: world = R @ local + c, local in [-half, half]."""
 
-    def __init__(self, R: np.ndarray, c: np.ndarray, half: np.ndarray, texture, inst: int, face_offset: int = 0):
+    def __init__(
+        self, R: np.ndarray, c: np.ndarray, half: np.ndarray, texture, inst: int, face_offset: int = 0, part: int = 0
+    ):
+        self.part = part
         self.R = np.asarray(R, dtype=np.float64)
         self.c = np.asarray(c, dtype=np.float64)
         self.half = np.asarray(half, dtype=np.float64)
@@ -85,6 +90,8 @@ class Box:
 
 class Sphere:
     """Sphere of `radius` at `c`; R (local -> world) orients its texture."""
+
+    part = 0
 
     def __init__(self, R: np.ndarray, c: np.ndarray, radius: float, texture, inst: int):
         self.R = np.asarray(R, dtype=np.float64)
@@ -120,6 +127,7 @@ class HeightCloth:
 
     SAMPLES = 16
     BISECTIONS = 16
+    part = 0
 
     def __init__(self, origin, E, length, height, amplitude, k, phase, q, texture, inst):
         self.origin = np.asarray(origin, dtype=np.float64)

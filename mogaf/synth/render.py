@@ -116,6 +116,7 @@ class ViewResult:
     rgb: np.ndarray  # (H, W, 3) uint8
     depth: np.ndarray  # (H, W) float64 camera-space z at pixel centres
     inst: np.ndarray  # (H, W) uint16 instance id at pixel centres
+    part: np.ndarray  # (H, W) uint8 part index within that instance (0 on one-piece objects)
 
 
 class Renderer:
@@ -162,7 +163,8 @@ class Renderer:
         if np.any(ic < 0):
             raise RuntimeError("synthetic renderer: a pixel ray missed the background")
         inst_of = np.array([pr.inst for pr in prims], dtype=np.uint16)
-        return ViewResult(rgb=rgb, depth=tc, inst=inst_of[ic])
+        part_of = np.array([pr.part for pr in prims], dtype=np.uint8)
+        return ViewResult(rgb=rgb, depth=tc, inst=inst_of[ic], part=part_of[ic])
 
     def first_hit(self, cam: int, ti: int, points: np.ndarray):
         """Cast rays from camera `cam` at frame ti towards `points` (N, 3).
