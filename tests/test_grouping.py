@@ -10,7 +10,7 @@ from mogaf.errors import MogafError
 from mogaf.grouping import DEFAULT_PARAMS
 from mogaf.grouping.api import group_gaussians
 from mogaf.grouping.core import InstanceTable, MaskFrames, mask_gaussians
-from mogaf.grouping.rigidity import decide_rigidity, estimate_rigid
+from mogaf.grouping.rigidity import decide_rigidity, estimate_rigid, split_still_members
 from mogaf.grouping.stage import rigid_init
 from mogaf.grouping.voting import knn_vote
 from mogaf.scene import Instances
@@ -328,3 +328,38 @@ def test_ari_is_left_out_with_one_ground_truth_object_and_kept_with_two():
     assert "ari" not in one and one["ari_left_out"].startswith("1 object in the ground-truth masks")
     two = ari_section(np.array([1, 1, 2, 2]), np.array([5, 5, 7, 7]), 2)
     assert two == {"ari": 1.0}
+
+
+def test_still_members_of_a_moving_group_get_a_static_group(scene_far):
+    """One foreground mask over a still box and a moving sphere (a still body
+    with one moving part, no instance masks): the split holds the box apart."""
+    sc = scene_far
+    traj = sc.model.trajectory_means.copy()
+    box = sc.labels == 2
+    traj[box] = traj[box][:, :1]
+    model = model_from_points(traj, sc.labels)
+    foreground = (np.asarray(sc.masks) > 0).astype(np.int64)
+
+    def grouping(rigid, mode):
+        inst = Instances(ids=[1], names=["foreground"], rigid=[rigid])
+        return group_gaussians(model, foreground, sc.frames, inst, {"split_still_members": mode})
+
+    assert grouping(-1, "never").num_groups == 1  # the paper's grouping: one group
+    g = grouping(-1, "unlabelled")
+    _check_valid(g, len(sc.labels))
+    assert g.names == ["foreground", "foreground/still"] and list(g.instance_id) == [1, 1]
+    assert list(g.static) == [0, 1] and adjusted_rand_score(sc.labels, g.group_id) > 0.95
+    assert g.rigid_source == ["estimated", "estimated"] and g.rigid[0] == 1
+    # a mask labelled rigid never splits; one labelled non-rigid only with "not_rigid"
+    assert grouping(1, "not_rigid").num_groups == 1
+    assert grouping(0, "unlabelled").num_groups == 1 and grouping(0, "not_rigid").num_groups == 2
+
+
+def test_split_still_members_needs_both_parts_large_enough():
+    disp = np.r_[np.zeros(5), np.ones(95)]
+    group_id = np.zeros(100, np.int64)
+    args = (group_id, np.array([0]), np.array([-1], np.int8), 0.5, "unlabelled")
+    ids, inst, parents = split_still_members(disp, *args, 0.1)
+    assert parents == [] and np.array_equal(ids, group_id)  # 5 % still: too few
+    ids, inst, parents = split_still_members(disp, *args, 0.05)
+    assert parents == [0] and list(inst) == [0, 0] and np.array_equal(ids, (disp <= 0.5).astype(np.int64))

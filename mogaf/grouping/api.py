@@ -14,6 +14,10 @@ Decisions (see also params.DEFAULT_PARAMS):
 - If no Gaussian is claimed by any mask, every Gaussian goes to one group
   (instance id -1, name "unlabelled") whose rigidity is estimated.
 - No foreground Gaussian: zero groups.
+- With split_still_members (off in the paper's setting), a group whose mask
+  does not say it is rigid and that has both still and moving members gives
+  its still members a group of their own, named "<name>/still", after the
+  others (a chest's body under the one foreground mask it shares with its lid).
 """
 
 from __future__ import annotations
@@ -27,7 +31,15 @@ from .core import Groups, InstanceTable, MaskFrames
 from .gaga4d import group_gaga4d
 from .ours import group_ours
 from .params import load_settings, resolve_params
-from .rigidity import decide_rigidity, displacement, group_displacement, is_static_scene, scene_extent
+from .rigidity import (
+    decide_rigidity,
+    displacement,
+    group_displacement,
+    is_static_scene,
+    scene_extent,
+    split_still_members,
+    static_threshold_abs,
+)
 
 
 def instance_table(
@@ -166,13 +178,23 @@ def group_gaussians(
     remap[keep] = np.arange(keep.size)
     group_id = remap[labels]
     group_inst = group_inst[keep]
-    Kg = keep.size
+    group_id, group_inst, parents = split_still_members(
+        disp,
+        group_id,
+        group_inst,
+        table.rigid,
+        static_threshold_abs(extent, s),
+        s.split_still_members,
+        float(s.split_min_fraction),
+    )
+    Kg = group_inst.size
     names: list[str] = []
     seen: dict[int, int] = {}
-    for j in group_inst:
+    for j in group_inst[: Kg - len(parents)]:
         n = seen.get(int(j), 0)
         seen[int(j)] = n + 1
         names.append(table.names[j] if n == 0 else f"{table.names[j]}#{n + 1}")
+    names += [f"{names[k]}/still" for k in parents]
     rigid, sources, residual = decide_rigidity(
         group_inst, table, np.asarray(model.fg.means, np.float64), traj, group_id, s
     )

@@ -93,6 +93,20 @@ class GroupingSettings:
         0.01, "a group is static if its members move less than this fraction of the scene extent"
     )
     static_quantile: float = setting(0.95, "... taken at this quantile of per-Gaussian displacement in the group")
+    # A still body with one moving part (a chest and its lid) under one mask:
+    # its still members become a static group of their own (rigidity.split_still_members).
+    split_still_members: Literal["never", "unlabelled", "not_rigid"] = setting(
+        "never",
+        'not in the paper: "unlabelled" splits groups whose mask carries no rigid flag (a foreground-only '
+        'mask), "not_rigid" also those labelled non-rigid; a member is still if it moves less than '
+        "static_threshold of the scene extent",
+    )
+    split_min_fraction: float = setting(
+        0.1,
+        "split only where the still and the moving members are each at least this share of the group",
+        exclusive_minimum=0,
+        maximum=0.5,
+    )
     seed: int = setting(0, injected=True)
 
 

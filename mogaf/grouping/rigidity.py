@@ -63,6 +63,48 @@ def is_static_scene(disp: np.ndarray, extent: float, params: dict) -> bool:
     return bool(disp.max() <= static_threshold_abs(extent, params))
 
 
+def split_still_members(
+    disp: np.ndarray,
+    group_id: np.ndarray,
+    group_instance: np.ndarray,
+    label_rigid: np.ndarray,
+    threshold: float,
+    mode: str,
+    min_fraction: float,
+) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """Give the still members of a group that also has moving members a group
+    of their own, so that they are held still whatever the moving part does.
+
+    disp (N,) per-Gaussian displacement, group_id (N,) in 0..K-1,
+    group_instance (K,) index into the instance table, label_rigid (J,) its
+    rigid labels (1, 0, -1 unknown). mode "never" | "unlabelled" (groups whose
+    label is unknown) | "not_rigid" (unknown or non-rigid). A group splits
+    where both its still (disp <= threshold) and its moving members are at
+    least min_fraction of it. Returns the new group ids, the groups'
+    instance indices (each split part appended after the K groups, with its
+    parent's identity) and the parent of each appended group.
+    """
+    group_id = np.asarray(group_id, dtype=np.int64).copy()
+    group_instance = np.asarray(group_instance, dtype=np.int64)
+    if mode == "never":
+        return group_id, group_instance, []
+    allowed = (-1,) if mode == "unlabelled" else (-1, 0)
+    parents: list[int] = []
+    for k in range(group_instance.size):
+        j = int(group_instance[k])
+        label = int(label_rigid[j]) if j >= 0 else -1
+        if label not in allowed:
+            continue
+        members = np.flatnonzero(group_id == k)
+        still = disp[members] <= threshold
+        n_still = int(still.sum())
+        if min(n_still, members.size - n_still) < min_fraction * members.size:
+            continue
+        group_id[members[still]] = group_instance.size + len(parents)
+        parents.append(k)
+    return group_id, np.r_[group_instance, group_instance[parents]].astype(np.int64), parents
+
+
 def group_displacement(disp: np.ndarray, group_id: np.ndarray, num_groups: int, quantile: float) -> np.ndarray:
     out = np.zeros(num_groups)
     for k in range(num_groups):
