@@ -10,7 +10,7 @@ from mogaf.errors import MogafError
 from mogaf.grouping import DEFAULT_PARAMS
 from mogaf.grouping.api import group_gaussians
 from mogaf.grouping.core import InstanceTable, MaskFrames, mask_gaussians
-from mogaf.grouping.rigidity import decide_rigidity, estimate_rigid, split_still_members
+from mogaf.grouping.rigidity import decide_rigidity, estimate_rigid, still_members, two_class_threshold
 from mogaf.grouping.stage import rigid_init
 from mogaf.grouping.voting import knn_vote
 from mogaf.scene import Instances
@@ -355,11 +355,24 @@ def test_still_members_of_a_moving_group_get_a_static_group(scene_far):
     assert grouping(0, "unlabelled").num_groups == 1 and grouping(0, "not_rigid").num_groups == 2
 
 
-def test_split_still_members_needs_both_parts_large_enough():
-    disp = np.r_[np.zeros(5), np.ones(95)]
-    group_id = np.zeros(100, np.int64)
-    args = (group_id, np.array([0]), np.array([-1], np.int8), 0.5, "unlabelled")
-    ids, inst, parents = split_still_members(disp, *args, 0.1)
-    assert parents == [] and np.array_equal(ids, group_id)  # 5 % still: too few
-    ids, inst, parents = split_still_members(disp, *args, 0.05)
-    assert parents == [0] and list(inst) == [0, 0] and np.array_equal(ids, (disp <= 0.5).astype(np.int64))
+def test_two_class_threshold_cuts_between_the_modes():
+    assert two_class_threshold(np.array([0.0, 0.1, 1.0, 1.1])) == pytest.approx(0.55)
+    assert two_class_threshold(np.array([2.0])) == 2.0
+
+
+def test_still_members_of_a_jittering_body_and_a_swinging_part():
+    """70 % of a group jitter (1 cm) in place, 30 % swing (a metre): the
+    jitter is cut off from the swing; no cut without two clear classes."""
+    rng = np.random.default_rng(0)
+    G, T = 400, 20
+    pos = np.zeros((G, T, 3))
+    pos[:, :, 0] = np.arange(G)[:, None] * 0.01  # a row of members
+    moving = np.arange(G) >= 280  # one contiguous part
+    pos[moving, :, 2] += np.linspace(0.0, 1.0, T)
+    pos += rng.normal(0.0, 0.01, size=pos.shape)
+    still = still_members(pos, neighbours=16, ratio=3.0, min_fraction=0.1)
+    assert np.array_equal(still, ~moving)
+    assert not still_members(pos, neighbours=16, ratio=1e3, min_fraction=0.1).any()  # classes not far enough apart
+    assert not still_members(pos, neighbours=16, ratio=3.0, min_fraction=0.35).any()  # the moving part is too small
+    pos[:, :, 2] += np.linspace(0.0, 1.0, T)  # everything swings: one class
+    assert not still_members(pos, neighbours=16, ratio=3.0, min_fraction=0.1).any()

@@ -324,6 +324,15 @@ def test_quality_from_segments(toy_files):
     q_anon = grouping_quality(toy_files["model"], anonymous, no_masks, backend="torch")
     assert q_anon["object_matching"] == "largest overlap"
     assert q_anon["per_object_iou"] == from_masks["per_object_iou"] and q_anon["ari"] == from_masks["ari"]
+    # so does a grouping that read one foreground mask: its identity names no object
+    foreground = dataclasses.replace(
+        with_segments,
+        instance_mask=(frames.instance_mask > 0).astype(np.int32),
+        instances=Instances(ids=[1], names=["foreground"], rigid=[-1]),
+    )
+    one_identity = Groups(**{**perfect.__dict__, "instance_id": np.array([1, 1])})
+    q_fg = grouping_quality(toy_files["model"], one_identity, foreground, backend="torch")
+    assert q_fg["object_matching"] == "largest overlap" and q_fg["per_object_iou"] == from_masks["per_object_iou"]
     # one group over a two-part box: it is given the part it overlaps most, the other part scores 0
     parts = dataclasses.replace(no_masks, segments=_segments_of(frames, parts_of_box=True))
     q_parts = grouping_quality(toy_files["model"], anonymous, parts, backend="torch")

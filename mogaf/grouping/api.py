@@ -16,8 +16,9 @@ Decisions (see also params.DEFAULT_PARAMS):
 - No foreground Gaussian: zero groups.
 - With split_still_members (off in the paper's setting), a group whose mask
   does not say it is rigid and that has both still and moving members gives
-  its still members a group of their own, named "<name>/still", after the
-  others (a chest's body under the one foreground mask it shares with its lid).
+  its still members a static group of their own, named "<name>/still", after
+  the others (a chest's body under the one foreground mask it shares with its
+  lid).
 """
 
 from __future__ import annotations
@@ -38,7 +39,6 @@ from .rigidity import (
     is_static_scene,
     scene_extent,
     split_still_members,
-    static_threshold_abs,
 )
 
 
@@ -178,15 +178,7 @@ def group_gaussians(
     remap[keep] = np.arange(keep.size)
     group_id = remap[labels]
     group_inst = group_inst[keep]
-    group_id, group_inst, parents = split_still_members(
-        disp,
-        group_id,
-        group_inst,
-        table.rigid,
-        static_threshold_abs(extent, s),
-        s.split_still_members,
-        float(s.split_min_fraction),
-    )
+    group_id, group_inst, parents = split_still_members(traj, group_id, group_inst, table.rigid, s)
     Kg = group_inst.size
     names: list[str] = []
     seen: dict[int, int] = {}
@@ -200,6 +192,7 @@ def group_gaussians(
     )
     gdisp = group_displacement(disp, group_id, Kg, float(s.static_quantile))
     static = (gdisp <= float(s.static_threshold) * extent).astype(np.int8)
+    static[Kg - len(parents) :] = 1  # a split's still part: held still, whatever its jitter
     return Groups(
         group_id=group_id,
         rigid=rigid,

@@ -158,6 +158,18 @@ def _segment_scores(
     return out, seg_inst
 
 
+def _masks_name_the_objects(frames, segments) -> bool:
+    """Whether the instance masks the grouping read are the ground-truth
+    objects (same ids and names), so that a group's mask identity says which
+    object it is; a foreground-only mask (a scene shipping no masks) is not."""
+    if frames.instances is None or frames.instance_mask is None:
+        return False
+    listed = dict(zip(np.asarray(frames.instances.ids).tolist(), frames.instances.names, strict=True))
+    return all(
+        listed.get(int(i)) == name.split("/")[0] for i, name in zip(segments.instance, segments.names, strict=True)
+    )
+
+
 def grouping_quality(
     model,
     groups: Groups,
@@ -229,8 +241,9 @@ def grouping_quality(
         return {}
     extra: dict[str, Any] = {}
     if segments is not None:
-        masks_read = frames.instances is not None and frames.instance_mask is not None
-        scores, seg_inst = _segment_scores(overlap, segments, groups.instance_id if masks_read else None)
+        scores, seg_inst = _segment_scores(
+            overlap, segments, groups.instance_id if _masks_name_the_objects(frames, segments) else None
+        )
         object_ids, names = scores.pop("object_ids"), scores.pop("object_names")
         inter, union = scores.pop("inter"), scores.pop("union")
         extra = scores

@@ -98,8 +98,11 @@ class GroupingSettings:
     split_still_members: Literal["never", "unlabelled", "not_rigid"] = setting(
         "never",
         'not in the paper: "unlabelled" splits groups whose mask carries no rigid flag (a foreground-only '
-        'mask), "not_rigid" also those labelled non-rigid; a member is still if it moves less than '
-        "static_threshold of the scene extent",
+        'mask), "not_rigid" also those labelled non-rigid',
+    )
+    split_neighbors: int = setting(16, "a member's motion is averaged over this many nearest members", minimum=1)
+    split_motion_ratio: float = setting(
+        3.0, "split only where the moving members' median motion is this many times the still ones'", minimum=1
     )
     split_min_fraction: float = setting(
         0.1,

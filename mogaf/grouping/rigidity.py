@@ -63,42 +63,88 @@ def is_static_scene(disp: np.ndarray, extent: float, params: dict) -> bool:
     return bool(disp.max() <= static_threshold_abs(extent, params))
 
 
+def two_class_threshold(values: np.ndarray) -> float:
+    """Otsu's threshold of 1-D values: the cut between sorted neighbours that
+    maximises the between-class variance (the midpoint of that pair)."""
+    x = np.sort(np.asarray(values, dtype=np.float64))
+    n = x.size
+    if n < 2:
+        return float(x[0]) if n else 0.0
+    i = np.arange(1, n)
+    csum = np.cumsum(x)
+    mean_low = csum[:-1] / i
+    mean_high = (csum[-1] - csum[:-1]) / (n - i)
+    between = (i / n) * (1 - i / n) * (mean_low - mean_high) ** 2
+    k = int(np.argmax(between))
+    return float(0.5 * (x[k] + x[k + 1]))
+
+
+def still_members(positions: np.ndarray, neighbours: int, ratio: float, min_fraction: float) -> np.ndarray:
+    """(G,) the members of a group that stay still while the others move, or
+    none. positions (G, T, 3) observed. A member's motion is the log of its
+    largest displacement from its first position, averaged over its
+    `neighbours` nearest members at the last step (a reconstruction's jitter
+    is not spatially coherent, a moving part is); the two classes are cut at
+    Otsu's threshold and kept where each holds min_fraction of the group and
+    the moving class's median motion is `ratio` times the still class's."""
+    pos = np.asarray(positions, dtype=np.float64)
+    G = pos.shape[0]
+    none = np.zeros(G, bool)
+    if G < 4 or pos.shape[1] < 2:
+        return none
+    from scipy.spatial import cKDTree
+
+    motion = np.log(np.maximum(displacement(pos), 1e-12))
+    k = min(int(neighbours), G)
+    nearest = cKDTree(pos[:, -1]).query(pos[:, -1], k=k)[1].reshape(G, k)
+    smooth = motion[nearest].mean(axis=1)
+    still = smooth <= two_class_threshold(smooth)
+    n_still = int(still.sum())
+    if min(n_still, G - n_still) < min_fraction * G:
+        return none
+    if np.median(smooth[~still]) - np.median(smooth[still]) < np.log(ratio):
+        return none
+    return still
+
+
 def split_still_members(
-    disp: np.ndarray,
+    trajectories: np.ndarray,
     group_id: np.ndarray,
     group_instance: np.ndarray,
     label_rigid: np.ndarray,
-    threshold: float,
-    mode: str,
-    min_fraction: float,
+    settings,
 ) -> tuple[np.ndarray, np.ndarray, list[int]]:
-    """Give the still members of a group that also has moving members a group
-    of their own, so that they are held still whatever the moving part does.
+    """Give the still members of a group whose other members move a group of
+    their own (still_members), so that they are held still whatever the
+    moving part does.
 
-    disp (N,) per-Gaussian displacement, group_id (N,) in 0..K-1,
-    group_instance (K,) index into the instance table, label_rigid (J,) its
-    rigid labels (1, 0, -1 unknown). mode "never" | "unlabelled" (groups whose
-    label is unknown) | "not_rigid" (unknown or non-rigid). A group splits
-    where both its still (disp <= threshold) and its moving members are at
-    least min_fraction of it. Returns the new group ids, the groups'
-    instance indices (each split part appended after the K groups, with its
-    parent's identity) and the parent of each appended group.
+    trajectories (N, T, 3), group_id (N,) in 0..K-1, group_instance (K,)
+    index into the instance table, label_rigid (J,) its rigid labels (1, 0,
+    -1 unknown); settings.split_still_members "never" | "unlabelled" (groups
+    whose label is unknown) | "not_rigid" (unknown or non-rigid). Returns the
+    new group ids, the groups' instance indices (each split part appended
+    after the K groups, with its parent's identity) and the parent of each
+    appended group.
     """
     group_id = np.asarray(group_id, dtype=np.int64).copy()
     group_instance = np.asarray(group_instance, dtype=np.int64)
+    mode = settings.split_still_members
     if mode == "never":
         return group_id, group_instance, []
     allowed = (-1,) if mode == "unlabelled" else (-1, 0)
     parents: list[int] = []
     for k in range(group_instance.size):
         j = int(group_instance[k])
-        label = int(label_rigid[j]) if j >= 0 else -1
-        if label not in allowed:
+        if (int(label_rigid[j]) if j >= 0 else -1) not in allowed:
             continue
         members = np.flatnonzero(group_id == k)
-        still = disp[members] <= threshold
-        n_still = int(still.sum())
-        if min(n_still, members.size - n_still) < min_fraction * members.size:
+        still = still_members(
+            trajectories[members],
+            int(settings.split_neighbors),
+            float(settings.split_motion_ratio),
+            float(settings.split_min_fraction),
+        )
+        if not still.any():
             continue
         group_id[members[still]] = group_instance.size + len(parents)
         parents.append(k)
