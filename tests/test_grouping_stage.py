@@ -240,6 +240,20 @@ def test_rigid_init_stage(toy_files):
         assert np.allclose(rms, r["residual_rms"][i], atol=1e-6)
 
 
+def toy_groups(labels: np.ndarray, instance_id: list[int]) -> Groups:
+    """The toy scene's true grouping (one group per object) with the given mask identities."""
+    return Groups(
+        group_id=labels - 1,
+        rigid=np.ones(2, np.int8),
+        static=np.zeros(2, np.int8),
+        instance_id=np.array(instance_id),
+        names=["sphere", "box"],
+        rigid_source=["label"] * 2,
+        method="ours",
+        params=dict(DEFAULT_PARAMS),
+    )
+
+
 def test_quality_metric_parts(toy_files):
     gt = np.array([[0, 1, 1], [2, 2, 0]])
     pred = np.array([[0, 1, 0], [2, 2, 2]])
@@ -247,17 +261,7 @@ def test_quality_metric_parts(toy_files):
     assert list(inter) == [1, 2] and list(union) == [2, 3]
     assert adjusted_rand_index(gt, gt + 5) == pytest.approx(1.0)
     # Perfect groups (= GT instances) render close to the GT masks.
-    labels = toy_files["labels"]
-    perfect = Groups(
-        group_id=labels - 1,
-        rigid=np.ones(2, np.int8),
-        static=np.zeros(2, np.int8),
-        instance_id=np.array([1, 2]),
-        names=["sphere", "box"],
-        rigid_source=["label"] * 2,
-        method="ours",
-        params=dict(DEFAULT_PARAMS),
-    )
+    perfect = toy_groups(toy_files["labels"], instance_id=[1, 2])
     frames = load_scene(toy_files["scene"], read_split(toy_files["split"]).frame_ids["evaluation_observed"][::4])
     q = grouping_quality(toy_files["model"], perfect, frames, pixels="all", backend="torch")
     assert q["num_frames"] == 3 and q["ari"] > 0.85 and min(q["per_object_iou"]) > 0.7
@@ -298,17 +302,7 @@ def _segments_of(frames, parts_of_box: bool) -> Segments:
 
 
 def test_quality_from_segments(toy_files):
-    labels = toy_files["labels"]
-    perfect = Groups(
-        group_id=labels - 1,
-        rigid=np.ones(2, np.int8),
-        static=np.zeros(2, np.int8),
-        instance_id=np.array([1, 2]),
-        names=["sphere", "box"],
-        rigid_source=["label"] * 2,
-        method="ours",
-        params=dict(DEFAULT_PARAMS),
-    )
+    perfect = toy_groups(toy_files["labels"], instance_id=[1, 2])
     frames = load_scene(toy_files["scene"], read_split(toy_files["split"]).frame_ids["evaluation_observed"][::4])
     from_masks = grouping_quality(toy_files["model"], perfect, frames, backend="torch")
     # segments equal to the masks score exactly as the masks do
@@ -350,16 +344,7 @@ def test_quality_stage_reads_segments_of_a_scene_without_masks(toy_files, tmp_pa
     segments = _segments_of(full, parts_of_box=True)
     bare = dataclasses.replace(full, instance_mask=None, instances=None, segments=segments)
     scene_h5 = save_scene(tmp_path / "scene.h5", bare, config_digest="test")
-    groups = Groups(
-        group_id=toy_files["labels"] - 1,
-        rigid=np.ones(2, np.int8),
-        static=np.zeros(2, np.int8),
-        instance_id=np.array([-1, -1]),
-        names=["group0", "group1"],
-        rigid_source=["estimated"] * 2,
-        method="ours",
-        params=dict(DEFAULT_PARAMS),
-    )
+    groups = toy_groups(toy_files["labels"], instance_id=[-1, -1])
     groups_h5 = write_groups(tmp_path / "groups.h5", groups)
     out = run_grouping_quality_stage(
         toy_files["recon"], groups_h5, scene_h5, toy_files["split"], tmp_path / "gq.h5", {"max_frames": 4}
