@@ -67,6 +67,13 @@ class Segments:
         if len(self.instance) != len(self.names):
             raise MogafError("segments: instance ids and names differ in length")
 
+    def label_problem(self) -> str | None:
+        """A label naming no segment, or None."""
+        top = int(self.label.max()) if self.label.size else 0
+        if top > len(self.names):
+            return f"segment labels go up to {top}, but {len(self.names)} segments are named"
+        return None
+
 
 @dataclass
 class Scene:
@@ -184,8 +191,8 @@ class Scene:
             label = self.segments.label
             if label.shape != (F, H, W):
                 return f"segment labels have shape {label.shape}, expected ({F}, {H}, {W})"
-            if label.size and int(label.max()) > len(self.segments.names):
-                return f"segment labels go up to {int(label.max())}, but {len(self.segments.names)} segments are named"
+            if self.segments.label_problem():
+                return self.segments.label_problem()
         if self.depth is not None:
             if not np.all(np.isfinite(self.depth)):
                 return "depth has NaN or infinite values"
@@ -349,6 +356,12 @@ def load_segments(path: str | os.PathLike, frames: np.ndarray) -> Segments | Non
         label = read_rows(fh, "segments/label", np.asarray(frames, dtype=np.int64))
         instance = read_rows(fh, "segments/instance", np.arange(fh["segments/instance"].shape[0]))
         names = [str(n) for n in fh["segments/names"].asstr()[()]]
-    if len(names) != len(instance) or (label.size and int(label.max()) > len(names)):
-        raise input_error(p, "entries 'segments/*' disagree: labels, instance ids and names (rerun ingest)")
-    return Segments(label=label, instance=instance, names=names)
+    if len(names) != len(instance):
+        raise input_error(
+            p, f"entries 'segments/*' disagree: {len(instance)} instance ids, {len(names)} names (rerun ingest)"
+        )
+    segments = Segments(label=label, instance=instance, names=names)
+    problem = segments.label_problem()
+    if problem:
+        raise input_error(p, f"{problem} (rerun ingest)")
+    return segments

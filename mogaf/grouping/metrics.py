@@ -126,10 +126,10 @@ def largest_overlap(overlap: np.ndarray) -> np.ndarray:
 
 def _segment_scores(
     overlap: np.ndarray, segments, group_instance: np.ndarray | None
-) -> tuple[dict[str, Any], np.ndarray]:
+) -> tuple[np.ndarray, list[str], np.ndarray, np.ndarray, dict[str, Any]]:
     """Per-object and per-part IoU from the overlap of rendered group labels
-    with GT segments; also the instance id of each GT segment label."""
-    seg_inst = np.r_[0, segments.instance]  # segment label -> instance id
+    with GT segments: the objects' ids and names, their intersections and
+    unions, and the section's further keys (matching, parts)."""
     object_ids = np.array(list(dict.fromkeys(segments.instance.tolist())), dtype=np.int64)
     column = {int(i): k + 1 for k, i in enumerate(object_ids)}
     object_names = [segments.names[int(np.flatnonzero(segments.instance == i)[0])].split("/")[0] for i in object_ids]
@@ -142,20 +142,14 @@ def _segment_scores(
     else:
         assigned = np.array([0] + [column.get(int(i), 0) for i in group_instance], dtype=np.int64)
     inter, union = assigned_iou(by_object, assigned)
-    out: dict[str, Any] = {
-        "object_ids": object_ids,
-        "object_names": object_names,
-        "inter": inter,
-        "union": union,
-        "object_matching": "largest overlap" if group_instance is None else "mask identity",
-    }
+    out: dict[str, Any] = {"object_matching": "largest overlap" if group_instance is None else "mask identity"}
     multi = [s for s in range(len(segments.names)) if np.count_nonzero(segments.instance == segments.instance[s]) > 1]
     if multi:
         p_inter, p_union = assigned_iou(overlap, largest_overlap(overlap))
         present = [s for s in multi if p_union[s] > 0]
         out["part_names"] = [segments.names[s] for s in present]
         out["per_part_iou"] = [float(p_inter[s] / p_union[s]) for s in present]
-    return out, seg_inst
+    return object_ids, object_names, inter, union, out
 
 
 def _masks_name_the_objects(frames, segments) -> bool:
@@ -241,16 +235,12 @@ def grouping_quality(
         return {}
     extra: dict[str, Any] = {}
     if segments is not None:
-        scores, seg_inst = _segment_scores(
+        object_ids, names, inter, union, extra = _segment_scores(
             overlap, segments, groups.instance_id if _masks_name_the_objects(frames, segments) else None
         )
-        object_ids, names = scores.pop("object_ids"), scores.pop("object_names")
-        inter, union = scores.pop("inter"), scores.pop("union")
-        extra = scores
-        gt_flat = seg_inst[np.concatenate(gt_all)]  # the ARI is over objects, not parts
+        gt_flat = np.r_[0, segments.instance][np.concatenate(gt_all)]  # the ARI is over objects, not parts
     else:
-        inst_of_group = np.r_[0, np.asarray(groups.instance_id, dtype=np.int64)]
-        column = np.array([0] + [lookup.get(int(i), 0) for i in inst_of_group[1:]], dtype=np.int64)
+        column = np.array([0] + [lookup.get(int(i), 0) for i in groups.instance_id], dtype=np.int64)
         inter, union = assigned_iou(overlap, column)
         gt_flat = np.concatenate(gt_all)
     present = union > 0

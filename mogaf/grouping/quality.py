@@ -64,8 +64,8 @@ def measure_grouping_quality(
     out: dict[str, Any] = {"method": groups.method, "num_groups": groups.num_groups}
     ids = split.frame_ids.get("evaluation_observed", np.zeros(0, np.int64))
     with open_artefact(scene_h5, SCENE_STAGE) as fh:
-        has_masks = "frames/instance_mask" in fh or "segments" in fh
-    if ids.size == 0 or groups.num_groups == 0 or not has_masks:
+        has_ground_truth = "frames/instance_mask" in fh or "segments" in fh
+    if ids.size == 0 or groups.num_groups == 0 or not has_ground_truth:
         return out
     frames = load_evenly_spaced_frames(scene_h5, split, "evaluation_observed", int(p.max_frames))
     frames.segments = load_segments(scene_h5, evenly_spaced_frame_ids(split, "evaluation_observed", int(p.max_frames)))
