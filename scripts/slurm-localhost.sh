@@ -4,7 +4,8 @@
 #   scripts/slurm-localhost.sh install  install what is missing (apt-get; exit 1 when it cannot)
 #   scripts/slurm-localhost.sh up       install, configure, start, wait for an idle node
 #   scripts/slurm-localhost.sh status   each daemon's PID, then sinfo (exit 3 when not all run)
-#   scripts/slurm-localhost.sh down     cancel this cluster's jobs, stop every daemon `up` started, by PID
+#   scripts/slurm-localhost.sh down     cancel this cluster's jobs, stop every daemon `up` started, by PID,
+#                                        remove the configuration `up` wrote
 #
 # Runs as root (Debian/Ubuntu: apt-get). Daemons run in the foreground (-D) in
 # the background, no systemd: munged, mariadbd + slurmdbd (accounting, so that
@@ -227,6 +228,14 @@ down() {
     fi
     local i
     for ((i = ${#DAEMONS[@]} - 1; i >= 0; i--)); do stop "${DAEMONS[i]}"; done
+    # `up` writes them again. Left behind with no controller running, a
+    # slurm.conf makes every SLURM client command wait for it (MessageTimeout,
+    # 10 s), and Snakemake's SLURM plugin runs `scontrol show config` as it
+    # loads, so every later Snakemake start on this machine would wait too.
+    local conf
+    for conf in "$CONF" "$DBD_CONF"; do
+        if [ -e "$conf" ] && ours_or_absent "$conf"; then rm -f "$conf"; fi
+    done
 }
 
 status() {
