@@ -191,8 +191,9 @@ class Scene:
             label = self.segments.label
             if label.shape != (F, H, W):
                 return f"segment labels have shape {label.shape}, expected ({F}, {H}, {W})"
-            if self.segments.label_problem():
-                return self.segments.label_problem()
+            problem = self.segments.label_problem()
+            if problem:
+                return problem
         if self.depth is not None:
             if not np.all(np.isfinite(self.depth)):
                 return "depth has NaN or infinite values"

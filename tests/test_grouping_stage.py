@@ -360,3 +360,22 @@ def test_quality_stage_reads_segments_of_a_scene_without_masks(toy_files, tmp_pa
         del fh["segments/names"]
     with pytest.raises(MogafError, match=r"scene\.h5: has no entry 'segments/names'"):
         load_segments(scene_h5, rows)
+
+
+def test_a_segment_label_past_the_named_segments_is_one_line(toy_files, tmp_path):
+    """The same check on both paths: a scene about to be written, and a
+    scene.h5 whose labels were changed afterwards."""
+    full = load_scene(toy_files["scene"])
+    segments = _segments_of(full, parts_of_box=False)  # labels 0, 1, 2
+    one_named = dataclasses.replace(segments, instance=np.array([1]), names=["sphere"])
+    with pytest.raises(MogafError, match=r"scene\.h5: segment labels go up to 2, but 1 segments are named$"):
+        save_scene(tmp_path / "bad" / "scene.h5", dataclasses.replace(full, segments=one_named), config_digest="test")
+    assert not (tmp_path / "bad" / "scene.h5").exists()
+    scene_h5 = save_scene(tmp_path / "scene.h5", dataclasses.replace(full, segments=segments), config_digest="test")
+    with h5py.File(scene_h5, "r+") as fh:
+        fh["segments/label"][0, 0, 0] = 5
+    with pytest.raises(
+        MogafError, match=r"scene\.h5: segment labels go up to 5, but 2 segments are named \(rerun ingest\)"
+    ):
+        load_segments(scene_h5, np.array([0]))
+    np.testing.assert_array_equal(load_segments(scene_h5, np.array([1])).label, segments.label[[1]])
