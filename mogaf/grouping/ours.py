@@ -42,7 +42,6 @@ import itertools
 
 import numpy as np
 from scipy.spatial import cKDTree
-from sklearn.decomposition import PCA
 
 from .core import MaskFrames, frames_in_time_order, mask_gaussians
 from .params import load_settings
@@ -64,6 +63,9 @@ def motion_features(model, params: dict) -> tuple[np.ndarray, dict]:
     if not np.isfinite(var) or var <= 1e-20:
         return means.copy(), info
     max_c = min(coefs.shape[1], N)
+    # imported here: rigid_init and refine import this module for other names and skip its ~1 s import
+    from sklearn.decomposition import PCA
+
     pca = PCA(n_components=max_c, svd_solver="full", random_state=int(params.seed))
     reduced = pca.fit_transform(coefs)
     ratios = pca.explained_variance_ratio_
