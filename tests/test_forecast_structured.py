@@ -21,7 +21,7 @@ from mogaf.forecast.coherence import coherence, rigid_distance_change
 from mogaf.forecast.group_motion import GroupMotion
 from mogaf.forecast.params import STRUCTURED_CANDIDATES, inert_settings
 from mogaf.forecast.registry import fit_and_rollout, make_forecaster
-from mogaf.forecast.structured import StructuredMoGaF
+from mogaf.forecast.structured import StructuredMoGaF, origin_frames
 from mogaf.forecast.synthetic import add_noise, ballistic_sphere, rigid_box, waving_sheet
 from mogaf.forecast.trajectory import (
     accumulated_rotvec,
@@ -434,6 +434,72 @@ def test_an_exact_backtest_takes_all_the_weight():
     np.testing.assert_allclose(res.poses, np.repeat(obs[:, -1:], 10, axis=1), atol=1e-12)  # quaternions renormalised
 
 
+def test_origin_frames_halve_down_to_two():
+    assert origin_frames(14, 1) == [14]
+    assert origin_frames(14, 3) == [14, 7, 4]
+    assert origin_frames(14, 9) == [14, 7, 4, 2]  # at least 2 frames, each origin later than the one before
+    assert origin_frames(5, 4) == [5, 2]
+    assert origin_frames(2, 3) == [2] and origin_frames(1, 3) == [1]
+
+
+def _stopped_box(resting: int) -> np.ndarray:
+    """A box that moves steadily, then rests for its last `resting` frames, seen with noise."""
+    traj = rigid_box(64, 44)
+    obs = np.concatenate([traj, np.repeat(traj[:, -1:], resting, axis=1)], axis=1)
+    return add_noise(obs, pos_sigma=0.002, rot_sigma=0.0)
+
+
+def test_later_backtest_origins_see_a_stop_the_first_window_does_not():
+    """The box stops 5 frames before the end; a 12-step forecast backtests
+    the last 12, where the stop is a small part: from that origin the line
+    wins. The origins that hold back 6 and 3 frames see the stop: frozen
+    scores best there, takes the most weight on average over the three, and
+    the forecast stays nearer the last pose. Each weight is the mean of the
+    origins' own inverse-squared-error weights."""
+    obs = _stopped_box(5)
+    runs = {
+        n: fit_and_rollout("mogaf", obs, 12, {**QUICK, "structured": {"backtest_origins": n}}, seed=0) for n in (1, 3)
+    }
+    one, three = runs[1].info, runs[3].info
+    assert "backtest_origins" not in one and three["backtest_origins"] == 3
+    assert one["choice"] == "linear_trend" and three["choice"] == "frozen"
+    # the first origin is the same backtest either way
+    for c in DEFAULT_CANDIDATES:
+        assert three[f"backtest_epe_{c}"] == one[f"backtest_epe_{c}"]
+    for n in (6, 3):
+        assert three[f"backtest_epe_frozen_last{n}"] < three[f"backtest_epe_linear_trend_last{n}"]
+    per_origin = [_weights_of_the_scores(three)]
+    for n in (6, 3):
+        scores = {c: three[f"backtest_epe_{c}_last{n}"] for c in DEFAULT_CANDIDATES}
+        scores["learned"] = float(np.hypot(scores["learned"], three[f"learned_refit_drift_last{n}"]))
+        per_origin.append(backtest_weights(scores))
+    want = {c: np.mean([w[c] for w in per_origin]) for c in DEFAULT_CANDIDATES}
+    assert {c: three[f"backtest_weight_{c}"] for c in DEFAULT_CANDIDATES} == pytest.approx(want)
+
+    def travel(res):
+        return np.linalg.norm(res.poses[:, -1, :3] - obs[:, -1, :3], axis=-1).mean()
+
+    assert travel(runs[3]) < 0.5 * travel(runs[1])
+
+
+def test_later_backtest_origins_keep_a_steady_motion_moving():
+    """On a box that slides and spins steadily to the end, every origin says
+    the same: frozen keeps almost no weight and the forecast is about the
+    single window's."""
+    obs = add_noise(_uniform_box(48, 40), pos_sigma=0.002, rot_sigma=0.0)
+    fut = _uniform_box(48, 52)[:, 40:]
+    runs = {
+        n: fit_and_rollout("mogaf", obs, 12, {**QUICK, "structured": {"backtest_origins": n}}, seed=0, rigid=True)
+        for n in (1, 3)
+    }
+    assert runs[3].info["backtest_weight_frozen"] < 0.05
+
+    def epe(res):
+        return np.linalg.norm(res.poses[..., :3] - fut[..., :3], axis=-1).mean()
+
+    assert epe(runs[3]) < 1.2 * epe(runs[1]) + 1e-3
+
+
 def test_info_records_the_decision():
     obs = rigid_box(32, 24)
     info = fit_and_rollout("mogaf", obs, 4, QUICK, seed=0).info
@@ -515,6 +581,8 @@ def test_bad_structured_settings_are_refused_by_name():
         make_forecaster("mogaf", {"structured": {"context": 1}})
     with pytest.raises(MogafError, match="combine"):
         make_forecaster("mogaf", {"structured": {"combine": "mean"}})
+    with pytest.raises(MogafError, match="backtest_origins"):
+        make_forecaster("mogaf", {"structured": {"backtest_origins": 0}})
     with pytest.raises(MogafError, match="trend_window"):
         make_forecaster("mogaf", {"structured": {"trend_window": 1}})
     with pytest.raises(MogafError, match="backtest_margin applies to combine: select"):
@@ -540,6 +608,7 @@ def _changed(section: dict, change: dict, key: str) -> dict:
     [
         ({"structured": {"candidates": WITH_VELOCITY}}, {}, {"trend_window": 12}, "structured.trend_window"),
         ({"structured": {"combine": "select"}}, {}, {"backtest_neighbors": 4}, "structured.backtest_neighbors"),
+        ({"structured": {"combine": "select"}}, {}, {"backtest_origins": 3}, "structured.backtest_origins"),
         ({"structured": {"gate": False}}, {}, {"drift_check": False}, "structured.drift_check"),
         ({"structured": {"gate": False}}, {}, {"backtest_frac": 0.1}, "structured.backtest_frac"),
         ({"structured": {"candidates": ["frozen", "linear_trend"]}}, {}, {"horizon": 4}, "structured.horizon"),

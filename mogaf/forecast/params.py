@@ -48,6 +48,15 @@ class StructuredSettings:
         exclusive_minimum=0,
         exclusive_maximum=1,
     )
+    backtest_origins: int = setting(
+        1,
+        "combine: weighted (select scores one window): origins the backtest scores from, 1 = the last h observed "
+        "frames held back (backtest_frac); n > 1 adds origins holding back about h/2, h/4 and so on (at least 2), the "
+        "learned candidate being the backtest's network at each (no extra fit), and weighs each candidate by its "
+        "mean weight over the origins. Later origins see a change of motion in the last frames (an object that "
+        "stopped)",
+        minimum=1,
+    )
     backtest_margin: float = setting(
         0.0,
         "combine: select: the learned forecaster is chosen only when its backtest error is this share below the best "
@@ -280,6 +289,7 @@ PAPER_ONLY = ("weight_decay", "loss_space", "batch_tokens", "norm_eps")
 BACKTEST_ONLY = (
     "candidates",
     "backtest_frac",
+    "backtest_origins",
     "backtest_margin",
     "combine",
     "backtest_neighbors",
@@ -315,6 +325,7 @@ def _unread_by_mogaf(net: MogafSettings, own: StructuredSettings, changed: Mappi
         why.setdefault("structured.trend_window", "candidates has no linear_trend")
     if own.combine == "select":
         why.setdefault("structured.backtest_neighbors", "combine is select, which decides per group")
+        why.setdefault("structured.backtest_origins", "combine is select, which scores one window")
     if own.gate and "learned" not in own.candidates:
         for k in LEARNED_ONLY:
             if k != "context" or "constant_acceleration" not in own.candidates:

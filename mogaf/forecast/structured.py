@@ -46,7 +46,9 @@ pose's normalised level, and Gaussians rolled out one by one drift apart.
     averages their forecasts, weighted by the inverse squared score (one
     backtest window is a noisy judge); a rigid group blends as one pose, and
     in a non-rigid group each moving Gaussian's weights come from the scores
-    over its `backtest_neighbors` nearest moving Gaussians. `combine: select`
+    over its `backtest_neighbors` nearest moving Gaussians; `backtest_origins`
+    > 1 also scores from later origins (about h/2, h/4, ... frames held
+    back) and averages each candidate's weights over them. `combine: select`
     refits and rolls out the best alone (`backtest_margin`: the share by
     which the learned forecaster must win). Scores, drift, weights and choice
     are recorded in the forecast's info. Without enough frames for a
@@ -128,15 +130,41 @@ class Backtest:
     refit_learned: FittedCandidate | None = None  # the drift check's refit on every frame, kept for the forecast
     iterations: int = 0  # optimiser steps of the networks fitted: the backtest's, the drift check's refit
     info: dict[str, Any] = field(default_factory=dict)
+    drift: np.ndarray | None = None  # (G, h) the drift check's member distances per step
+    later: list[OriginScores] = field(default_factory=list)  # backtest_origins > 1: the later origins
+
+
+@dataclass
+class OriginScores:
+    """The candidates' scores from a later backtest origin: fitted on the
+    first T - `frames` observed frames, scored on the last `frames`."""
+
+    frames: int
+    scores: dict[str, float]
+    member_scores: dict[str, np.ndarray]
+
+
+def origin_frames(h: int, origins: int) -> list[int]:
+    """Observed frames held back at each backtest origin, earliest origin
+    first: h, then about h/2, h/4, ... (at least 2, each fewer than the one
+    before), at most `origins` of them."""
+    out = [int(h)]
+    while len(out) < origins:
+        n = max(2, int(round(h / 2 ** len(out))))
+        if n >= out[-1]:
+            break
+        out.append(n)
+    return out
 
 
 def backtest(
     obs: np.ndarray, motion: GroupMotion, candidates: list[str], run: MogafRun, seed: int, h: int, device: Any
 ) -> Backtest:
     """Backtest on observed frames only: fit on the first T - h, score on the
-    last h. On short observations the backtested network reads a shorter
-    context (window_sizes) than the one refitted on all T frames, which keeps
-    its own."""
+    last h (and, backtest_origins > 1 under combine: weighted, from later
+    origins too: _later_origin). On short observations the backtested network
+    reads a shorter context (window_sizes) than the one refitted on all T
+    frames, which keeps its own."""
     own, T = run.own, obs.shape[1]
     past = GroupMotion(obs[:, : T - h], motion.rigid, own.still_factor)
     # combine: weighted, non-rigid: every moving member scored over its nearest
@@ -163,7 +191,53 @@ def backtest(
         if not np.isfinite(bt.scores[name]):
             bt.member_scores[name][:] = np.nan
     bt.info["backtest_frames"] = h
+    origins = origin_frames(h, int(own.backtest_origins)) if own.combine == "weighted" else [h]
+    for n in origins[1:]:
+        bt.later.append(_later_origin(obs, motion, candidates, run, seed, device, n, learned_net, bt, neighbours))
     return bt
+
+
+def _later_origin(
+    obs: np.ndarray,
+    motion: GroupMotion,
+    candidates: list[str],
+    run: MogafRun,
+    seed: int,
+    device: Any,
+    n: int,
+    learned_net: Any,
+    bt: Backtest,
+    neighbours: Any,
+) -> OriginScores:
+    """The candidates scored from a later origin, on the last n observed
+    frames: the simple ones refitted on the first T - n, the learned one the
+    backtest's network (fitted on the first T - h, no new fit) reading the
+    first T - n as its context, its score combined with the drift check's
+    drift over its first n steps. Scores and drift are recorded in bt.info
+    (`..._last{n}`)."""
+    own, T = run.own, obs.shape[1]
+    past = GroupMotion(obs[:, : T - n], motion.rigid, own.still_factor)
+    out = OriginScores(n, {}, {})
+    for name in candidates:
+        if name == "learned" and (learned_net is None or not past.series.shape[0]):
+            fitted = FittedCandidate("constant_velocity", past, run, seed, device)  # the untrained network's forecast
+        else:
+            fitted = FittedCandidate(name, past, run, seed, device, model=learned_net if name == "learned" else None)
+        distances = member_distances(fitted.rollout(n), obs[:, T - n :])
+        out.scores[name] = float(distances.mean())
+        bt.info[f"backtest_epe_{name}_last{n}"] = out.scores[name]
+        if bt.local:
+            out.member_scores[name] = neighbour_mean(distances[motion.moving].mean(axis=1), neighbours)
+        if name == "learned" and bt.drift is not None:  # as the drift check does at the first origin
+            drift = bt.drift[:, :n]
+            bt.info[f"learned_refit_drift_last{n}"] = float(drift.mean())
+            out.scores[name] = float(np.hypot(out.scores[name], drift.mean()))
+            if bt.local:
+                member_drift = neighbour_mean(drift[motion.moving].mean(axis=1), neighbours)
+                out.member_scores[name] = np.hypot(out.member_scores[name], member_drift)
+        if bt.local and not np.isfinite(out.scores[name]):
+            out.member_scores[name][:] = np.nan
+    return out
 
 
 def _drift_check(
@@ -178,6 +252,7 @@ def _drift_check(
     judged = FittedCandidate("learned", motion, run, seed, device, model=learned_net)
     distances = member_distances(bt.refit_learned.rollout(bt.frames), judged.rollout(bt.frames))
     drift = float(distances.mean())
+    bt.drift = distances
     bt.scores["learned"] = float(np.hypot(bt.scores["learned"], drift))
     if bt.local:
         member_drift = neighbour_mean(distances[motion.moving].mean(axis=1), neighbours)
@@ -223,14 +298,28 @@ def weighting(bt: Backtest | None, candidates: list[str], own: StructuredSetting
         return out
     if bt.local:
         # each moving member's own weighting; the group's figures are their means
-        out.blend = backtest_weights(bt.member_scores)
+        out.blend = _mean_weights([bt.member_scores] + [o.member_scores for o in bt.later])
         out.weights = {c: float(w.mean()) for c, w in out.blend.items()}
         out.info["backtest_neighbors"] = int(own.backtest_neighbors)
     else:
-        out.weights = out.blend = backtest_weights(scores)
+        out.weights = out.blend = _mean_weights([scores] + [o.scores for o in bt.later])
+    if bt.later:
+        out.info["backtest_origins"] = 1 + len(bt.later)
     out.info.update({f"backtest_weight_{c}": w for c, w in out.weights.items()})
     out.choice = max(candidates, key=lambda c: out.weights[c])
     return out
+
+
+def _mean_weights(origin_scores: list[dict[str, Any]]) -> dict[str, Any]:
+    """The candidates' backtest weights, each origin's own, averaged over the
+    origins: every origin has one vote, however short its window (a short,
+    late window's errors are small, and would carry little weight in a
+    pooled score). One origin: its weights."""
+    weights = [backtest_weights(s) for s in origin_scores]
+    if len(weights) == 1:
+        return weights[0]
+    mean = {c: sum(w[c] for w in weights) / len(weights) for c in weights[0]}
+    return {c: (float(v) if np.ndim(v) == 0 else v) for c, v in mean.items()}
 
 
 def refit(
