@@ -187,9 +187,7 @@ def backtest(
             learned_net = fitted.model
     if own.drift_check and learned_net is not None and motion.series.shape[0] and np.isfinite(bt.scores["learned"]):
         _drift_check(bt, motion, learned_net, run, seed, device, neighbours)
-    for name in bt.member_scores:  # as in the group's weighting: no weight for a non-finite backtest
-        if not np.isfinite(bt.scores[name]):
-            bt.member_scores[name][:] = np.nan
+    _no_weight_where_non_finite(bt.scores, bt.member_scores)
     bt.info["backtest_frames"] = h
     origins = origin_frames(h, int(own.backtest_origins)) if own.combine == "weighted" else [h]
     for n in origins[1:]:
@@ -228,16 +226,35 @@ def _later_origin(
         bt.info[f"backtest_epe_{name}_last{n}"] = out.scores[name]
         if bt.local:
             out.member_scores[name] = neighbour_mean(distances[motion.moving].mean(axis=1), neighbours)
-        if name == "learned" and bt.drift is not None:  # as the drift check does at the first origin
-            drift = bt.drift[:, :n]
-            bt.info[f"learned_refit_drift_last{n}"] = float(drift.mean())
-            out.scores[name] = float(np.hypot(out.scores[name], drift.mean()))
-            if bt.local:
-                member_drift = neighbour_mean(drift[motion.moving].mean(axis=1), neighbours)
-                out.member_scores[name] = np.hypot(out.member_scores[name], member_drift)
-        if bt.local and not np.isfinite(out.scores[name]):
-            out.member_scores[name][:] = np.nan
+    if bt.drift is not None:  # as the drift check does at the first origin
+        drift = bt.drift[:, :n]
+        bt.info[f"learned_refit_drift_last{n}"] = float(drift.mean())
+        _with_drift(out.scores, out.member_scores, drift, motion, neighbours)
+    _no_weight_where_non_finite(out.scores, out.member_scores)
     return out
+
+
+def _with_drift(
+    scores: dict[str, float],
+    member_scores: dict[str, np.ndarray],
+    drift: np.ndarray,
+    motion: GroupMotion,
+    neighbours: Any,
+) -> None:
+    """The learned candidate's scores combined (root sum of squares) with the
+    members' drift (G, n): the group's with its mean, each moving member's
+    (when scored per member) with its neighbours' mean."""
+    scores["learned"] = float(np.hypot(scores["learned"], drift.mean()))
+    if "learned" in member_scores:
+        member_drift = neighbour_mean(drift[motion.moving].mean(axis=1), neighbours)
+        member_scores["learned"] = np.hypot(member_scores["learned"], member_drift)
+
+
+def _no_weight_where_non_finite(scores: dict[str, float], member_scores: dict[str, np.ndarray]) -> None:
+    """As in the group's weighting: a candidate with a non-finite score gets no weight at any member."""
+    for name in member_scores:
+        if not np.isfinite(scores[name]):
+            member_scores[name][:] = np.nan
 
 
 def _drift_check(
@@ -250,14 +267,9 @@ def _drift_check(
     candidate's scores are combined with it (root sum of squares)."""
     bt.refit_learned = FittedCandidate("learned", motion, run, seed, device)
     judged = FittedCandidate("learned", motion, run, seed, device, model=learned_net)
-    distances = member_distances(bt.refit_learned.rollout(bt.frames), judged.rollout(bt.frames))
-    drift = float(distances.mean())
-    bt.drift = distances
-    bt.scores["learned"] = float(np.hypot(bt.scores["learned"], drift))
-    if bt.local:
-        member_drift = neighbour_mean(distances[motion.moving].mean(axis=1), neighbours)
-        bt.member_scores["learned"] = np.hypot(bt.member_scores["learned"], member_drift)
-    bt.info["learned_refit_drift"] = drift
+    bt.drift = member_distances(bt.refit_learned.rollout(bt.frames), judged.rollout(bt.frames))
+    _with_drift(bt.scores, bt.member_scores, bt.drift, motion, neighbours)
+    bt.info["learned_refit_drift"] = float(bt.drift.mean())
     bt.iterations += bt.refit_learned.info.get("iterations", 0)
 
 
@@ -314,10 +326,8 @@ def _mean_weights(origin_scores: list[dict[str, Any]]) -> dict[str, Any]:
     """The candidates' backtest weights, each origin's own, averaged over the
     origins: every origin has one vote, however short its window (a short,
     late window's errors are small, and would carry little weight in a
-    pooled score). One origin: its weights."""
+    pooled score)."""
     weights = [backtest_weights(s) for s in origin_scores]
-    if len(weights) == 1:
-        return weights[0]
     mean = {c: sum(w[c] for w in weights) / len(weights) for c in weights[0]}
     return {c: (float(v) if np.ndim(v) == 0 else v) for c, v in mean.items()}
 
