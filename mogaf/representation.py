@@ -34,14 +34,16 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from .artefact import read_artefact, write_artefact
 from .errors import input_error
 from .sh import num_sh_rest
+
+if TYPE_CHECKING:  # torch is imported where a function computes with it: reading a model needs only numpy
+    import torch
 
 MODEL_STAGES = ("recon", "refine")
 GAUSSIAN_KEYS = ("means", "quats", "log_scales", "opacity_logits", "color_logits")
@@ -50,6 +52,8 @@ GAUSSIAN_KEYS = ("means", "quats", "log_scales", "opacity_logits", "color_logits
 # ------------------------------------------------------------------ rotations
 def normalize_quat(q: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     """Unit quaternions; a zero quaternion maps to identity (finite gradient)."""
+    import torch
+
     norm = q.norm(dim=-1, keepdim=True)
     identity = torch.zeros_like(q)
     identity[..., 0] = 1.0
@@ -59,6 +63,8 @@ def normalize_quat(q: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
 
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     """wxyz quaternions (...,4) to rotation matrices (...,3,3)."""
+    import torch
+
     w, x, y, z = normalize_quat(q).unbind(-1)
     return torch.stack(
         [
@@ -79,6 +85,7 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
 def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
     """Rotation matrices to wxyz quaternions with w >= 0 (roma's robust method)."""
     import roma
+    import torch
 
     xyzw = roma.rotmat_to_unitquat(R)
     q = torch.cat([xyzw[..., 3:], xyzw[..., :3]], dim=-1)
@@ -87,6 +94,8 @@ def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
 
 def rot6d_to_matrix(x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
     """Continuous 6D rotation (Zhou et al.) to matrices; rows b1, b2, b1 x b2."""
+    import torch
+
     a1, a2 = x[..., :3], x[..., 3:6]
     b1 = a1 / a1.norm(dim=-1, keepdim=True).clamp_min(eps)
     a2p = a2 - (b1 * a2).sum(-1, keepdim=True) * b1
@@ -117,6 +126,8 @@ def blend_bases(
 
     Returns R (N,...,3,3) and t (N,...,3).
     """
+    import torch
+
     B = coefs.shape[1]
     r = torch.einsum("nb,bk->nk", coefs, rot6d.reshape(B, -1)).reshape((coefs.shape[0],) + rot6d.shape[1:])
     t = torch.einsum("nb,bk->nk", coefs, translations.reshape(B, -1)).reshape(

@@ -8,8 +8,10 @@ view-dependent offset to it (Shape-of-Motion activates colours with a sigmoid).
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:  # imported where a function computes with it: num_sh_rest needs no torch
+    import torch
 
 # Real spherical-harmonics constants (degree 0..3), as in 3DGS / gsplat.
 SH_C0 = 0.28209479177387814
@@ -32,6 +34,8 @@ def num_sh_rest(degree: int) -> int:
 
 def sh_rest_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
     """Real SH basis values of degree 1..`degree` for unit directions (N,3) -> (N,M)."""
+    import torch
+
     x, y, z = dirs.unbind(-1)
     out = []
     if degree >= 1:
@@ -64,6 +68,8 @@ def gaussian_colors(
     color_logits with colour = sigmoid(.)); higher degrees add a
     view-dependent offset to the logit.
     """
+    import torch
+
     x = color_logits
     if sh_rest is not None and sh_rest.shape[1] > 0 and means is not None and cam_center is not None:
         degree = int(round(math.sqrt(sh_rest.shape[1] + 1))) - 1

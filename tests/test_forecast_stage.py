@@ -426,3 +426,25 @@ def test_same_inputs_same_seed_same_arrays(inputs, mogaf_parts, tmp_path):
         seed=8,
     )
     assert not np.array_equal(_arrays(other)["means"], a["means"])
+
+
+def test_merges_and_untrained_forecasts_run_without_torch(inputs, mogaf_parts, tmp_path):
+    """A merge job and the constant-velocity and frozen forecasts compute with
+    NumPy alone: in a fresh process they never import torch (about 2.5 s per
+    job, most of such a job's run time)."""
+    import subprocess
+    import sys
+
+    code = f"""
+import sys
+from mogaf.forecast.stage import run_forecast_merge
+args = ({str(inputs["model"])!r}, {str(inputs["groups"])!r}, {str(inputs["split"])!r})
+run_forecast_merge(*args, {[str(p) for p in mogaf_parts]!r}, {str(tmp_path / "mogaf.h5")!r},
+                   {{"groupwise": True, **{MOGAF_FAST!r}}}, method="mogaf", seed=7)
+for method in ("constant_velocity", "frozen"):
+    run_forecast_merge(*args, [], {str(tmp_path)!r} + f"/{{method}}.h5", {{}}, method=method, seed=0)
+print("torch" in sys.modules)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
+    assert {p.name for p in tmp_path.glob("*.h5")} == {"mogaf.h5", "constant_velocity.h5", "frozen.h5"}

@@ -330,6 +330,34 @@ def test_ari_is_left_out_with_one_ground_truth_object_and_kept_with_two():
     assert two == {"ari": 1.0}
 
 
+def test_adjusted_rand_index_equals_scikit_learns():
+    """The pair-counting ARI of the grouping_quality stage (no sklearn import
+    there) against scikit-learn's, bit for bit: random labellings, the
+    degenerate partitions, and a labelling large enough that the pair products
+    overflow int64."""
+    from mogaf.grouping.metrics import adjusted_rand_index
+
+    rng = np.random.default_rng(0)
+    cases = [
+        (np.zeros(5, int), np.zeros(5, int)),
+        (np.arange(5), np.arange(5)),
+        (np.zeros(5, int), np.arange(5)),
+        (np.arange(5), np.zeros(5, int)),
+        (np.array([3]), np.array([7])),
+    ]
+    for _ in range(300):
+        n = int(rng.integers(1, 300))
+        a = rng.integers(0, int(rng.integers(1, 6)), n)
+        b = a.copy() if rng.random() < 0.3 else rng.integers(0, int(rng.integers(1, 6)), n)
+        b[rng.random(n) < 0.1] = 9
+        cases.append((3 * a - 5, b))
+    big = rng.integers(0, 4, 3_000_000)
+    cases.append((big, np.where(rng.random(big.size) < 0.9, big, rng.integers(0, 4, big.size))))
+    for a, b in cases:
+        assert adjusted_rand_index(a, b) == adjusted_rand_score(a, b), (a, b)
+    assert adjusted_rand_index(np.array([]), np.array([])) == 1.0
+
+
 def test_still_members_of_a_moving_group_get_a_static_group(scene_far):
     """One foreground mask over a still box and a moving sphere (a still body
     with one moving part, no instance masks): the split holds the box apart."""

@@ -381,15 +381,16 @@ def test_a_segment_label_past_the_named_segments_is_one_line(toy_files, tmp_path
     np.testing.assert_array_equal(load_segments(scene_h5, np.array([1])).label, segments.label[[1]])
 
 
-def test_rigid_init_and_refine_do_not_import_scikit_learn():
-    """scikit-learn (with the SciPy and pandas parts it pulls, about a second
-    per process) is the group stage's PCA alone: the rigid_init and refine
-    jobs import this package for other names."""
+def test_rigid_init_refine_and_grouping_quality_do_not_import_scikit_learn():
+    """scikit-learn (with the SciPy and pandas parts it pulls, one to two
+    seconds per process) is the group stage's PCA alone: the rigid_init and
+    refine jobs import this package for other names, and grouping_quality
+    computes its adjusted Rand index itself."""
     import subprocess
     import sys
 
     code = (
-        "import sys, mogaf.grouping.stage, mogaf.refine.stage; "
+        "import sys, mogaf.grouping.stage, mogaf.refine.stage, mogaf.grouping.quality; "
         "print(sorted(m for m in ('sklearn', 'pandas') if m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
