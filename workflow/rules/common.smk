@@ -204,6 +204,18 @@ def device(wildcards):
     return scene_cfg(wildcards)["device"]
 
 
+# ------------------------------------------------------------------ scheduling
+# With more jobs ready than cores, Snakemake starts the higher priority first:
+# the chain every forecast waits for, then the trained forecasts (the longest
+# jobs: started late, they trail alone at the end), then the jobs only
+# evaluation reads. Rules not listed: 0.
+PRIORITY = {
+    **dict.fromkeys(["synthesize", "ingest", "split", "priors", "recon", "group", "rigid_init", "refine"], 3),
+    "forecast_group": 2,
+    **dict.fromkeys(["forecast", "grouping_quality", "reconstruction_quality"], 1),
+}
+
+
 # ------------------------------------------------------------------ paths (patterns: mogaf.registry)
 def artefact(stage, role=None):
     """The path pattern of a stage's artefact (or further output `role`), for its rule's output."""

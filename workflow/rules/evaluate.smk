@@ -15,7 +15,9 @@ rule evaluate:
         benchmark_tsv("evaluate")
     conda:
         "../../envs/mogaf.yaml"
-    threads: 2
+    # One core: the job uses about one, and a two-core job waits until both are
+    # free (a sweep's evaluation then missed a core idle during refinement).
+    threads: 1
     params:
         evaluate=params_for("evaluate"),
         methods=lambda wildcards: scene_cfg(wildcards)["forecast"]["methods"],

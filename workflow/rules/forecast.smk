@@ -15,6 +15,7 @@ rule forecast_group:
         log_file("forecast_group"),
     benchmark:
         benchmark_tsv("forecast_group")
+    priority: PRIORITY["forecast_group"]
     conda:
         "../../envs/mogaf.yaml"
     threads: 1
@@ -40,6 +41,7 @@ rule forecast:
         log_file("forecast"),
     benchmark:
         benchmark_tsv("forecast")
+    priority: PRIORITY["forecast"]
     conda:
         "../../envs/mogaf.yaml"
     params:

@@ -11,6 +11,7 @@ checkpoint group:
         log_file("group"),
     benchmark:
         benchmark_tsv("group")
+    priority: PRIORITY["group"]
     conda:
         "../../envs/mogaf.yaml"
     # One core: the same artefact as with two (measured), no slower, and it can

@@ -12,6 +12,7 @@ rule grouping_quality:
         log_file("grouping_quality"),
     benchmark:
         benchmark_tsv("grouping_quality")
+    priority: PRIORITY["grouping_quality"]
     conda:
         "../../envs/mogaf.yaml"
     # One core: the same artefact as with two (measured), no slower, and it can

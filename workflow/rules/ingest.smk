@@ -10,6 +10,7 @@ rule ingest:
         log_file("ingest"),
     benchmark:
         benchmark_tsv("ingest")
+    priority: PRIORITY["ingest"]
     conda:
         "../../envs/mogaf.yaml"
     params:

@@ -10,6 +10,7 @@ rule priors:
         log_file("priors"),
     benchmark:
         benchmark_tsv("priors")
+    priority: PRIORITY["priors"]
     conda:
         "../../envs/mogaf.yaml"
     params:

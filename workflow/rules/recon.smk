@@ -11,6 +11,7 @@ rule recon:
         log_file("recon"),
     benchmark:
         benchmark_tsv("recon")
+    priority: PRIORITY["recon"]
     conda:
         "../../envs/mogaf.yaml"
     # One torch thread (recon.threads): fixed float-reduction order, so artefacts are

@@ -13,6 +13,7 @@ rule reconstruction_quality:
         log_file("reconstruction_quality"),
     benchmark:
         benchmark_tsv("reconstruction_quality")
+    priority: PRIORITY["reconstruction_quality"]
     conda:
         "../../envs/mogaf.yaml"
     # One core: the same artefact as with two (measured), no slower, and it can

@@ -10,6 +10,7 @@ rule refine:
         log_file("refine"),
     benchmark:
         benchmark_tsv("refine")
+    priority: PRIORITY["refine"]
     conda:
         "../../envs/mogaf.yaml"
     # One torch thread (recon.threads): fixed float-reduction order, so artefacts are

@@ -12,6 +12,7 @@ rule rigid_init:
         log_file("rigid_init"),
     benchmark:
         benchmark_tsv("rigid_init")
+    priority: PRIORITY["rigid_init"]
     conda:
         "../../envs/mogaf.yaml"
     params:

@@ -9,6 +9,7 @@ rule split:
         artefact("split"),
     log:
         log_file("split"),
+    priority: PRIORITY["split"]
     conda:
         "../../envs/mogaf.yaml"
     script:

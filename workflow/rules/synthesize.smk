@@ -9,6 +9,7 @@ rule synthesize:
         log_file("synthesize"),
     wildcard_constraints:
         dataset="|".join(synthetic_datasets()),
+    priority: PRIORITY["synthesize"]
     conda:
         "../../envs/mogaf.yaml"
     params:
