@@ -39,7 +39,7 @@ from .densify import DensifyRules, DensityStats, control_step
 from .frame_losses import FrameLosses
 from .init_common import InitResult
 from .interpolation import gap_interpolation
-from .losses import basis_smoothness, gradient_loss, masked_l1, rgb_loss, z_velocity_loss
+from .losses import basis_smoothness, gradient_loss, last_dim_variance, masked_l1, rgb_loss, z_velocity_loss
 from .model import ReconModel, gaussian_colors
 from .params import load_settings
 from .schedule import TrainerSchedule, _lr_names
@@ -367,7 +367,7 @@ class Trainer(TrainerSchedule, FrameLosses):
                 )
         if p.w_scale_var > 0:
             for g in m.parts().values():
-                reg = reg + p.w_scale_var * torch.var(g.get("log_scales"), dim=-1).mean()
+                reg = reg + p.w_scale_var * last_dim_variance(g.get("log_scales")).mean()
         if self.extra_loss is not None:
             reg = reg + self.extra_loss(pick, note)
         return reg
