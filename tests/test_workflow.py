@@ -55,6 +55,15 @@ def test_default_target_lists_the_chain(tmp_path):
     # The run-time sweep changes reconstruction only: priors and split are shared.
     assert counts["priors"] == 1 and counts["split"] == 1 and counts["recon"] == 3
 
+    def priorities(rule):
+        return {int(p) for b in job_blocks(res.stdout, rule) for p in re.findall(r"^\s*priority: (\d+)$", b, re.M)}
+
+    # With more jobs ready than cores, the chain every forecast waits for goes
+    # before what only evaluation reads (PRIORITY in common.smk; 0 is not printed).
+    assert priorities("recon") == priorities("refine") == {3}
+    assert priorities("grouping_quality") == priorities("reconstruction_quality") == {1}
+    assert priorities("evaluate") == set()
+
 
 def test_tables_read_other_configs_results_without_rebuilding_them(tmp_path):
     """A metrics.json of a scene this config does not know (another config's

@@ -87,7 +87,7 @@ def adjusted_rand_index(gt: np.ndarray, pred: np.ndarray) -> float:
         return 1.0
     # Pair counting (Hubert & Arabie) over the contingency table, in Python
     # integers: the pair products overflow int64 from a few million pixels.
-    # (Not scikit-learn's function: importing sklearn.metrics took 2 s of the stage.)
+    # Not scikit-learn's function: importing sklearn.metrics costs seconds a process.
     _, gi = np.unique(gt, return_inverse=True)
     _, pi = np.unique(pred, return_inverse=True)
     table = np.bincount(gi.ravel() * (int(pi.max()) + 1) + pi.ravel()).astype(np.int64)
