@@ -35,11 +35,9 @@ def _local_rotations(points: np.ndarray, k: int = 8) -> np.ndarray:
 
 
 def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    import torch
+    import torch  # local: only this path computes with it
 
-    from mogaf.representation import (
-        matrix_to_quat,  # local: mogaf.representation imports torch, which only this path needs
-    )
+    from mogaf.representation import matrix_to_quat
 
     return matrix_to_quat(torch.from_numpy(np.ascontiguousarray(R, dtype=np.float64))).numpy()
 

@@ -55,9 +55,9 @@ def rigid_decomposition(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
 
 
 def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    import torch
+    import torch  # local: only this path computes with it
 
-    from mogaf.representation import matrix_to_quat  # local: mogaf.representation imports torch at module level
+    from mogaf.representation import matrix_to_quat
 
     return matrix_to_quat(torch.from_numpy(np.ascontiguousarray(R, dtype=np.float64))).numpy()
 
