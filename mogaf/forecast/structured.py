@@ -177,10 +177,7 @@ def backtest(
     learned_net = None
     for name in candidates:
         fitted = FittedCandidate(name, past, run, seed, device)
-        distances = member_distances(fitted.rollout(h), obs[:, T - h :])
-        bt.scores[name] = float(distances.mean())
-        if local:
-            bt.member_scores[name] = neighbour_mean(distances[moving].mean(axis=1), neighbours)
+        _score(fitted, obs, h, name, bt.scores, bt.member_scores, moving, neighbours)
         bt.info[f"backtest_epe_{name}"] = bt.scores[name]
         bt.iterations += fitted.info.get("iterations", 0)
         if name == "learned":
@@ -221,17 +218,33 @@ def _later_origin(
             fitted = FittedCandidate("constant_velocity", past, run, seed, device)  # the untrained network's forecast
         else:
             fitted = FittedCandidate(name, past, run, seed, device, model=learned_net if name == "learned" else None)
-        distances = member_distances(fitted.rollout(n), obs[:, T - n :])
-        out.scores[name] = float(distances.mean())
+        _score(fitted, obs, n, name, out.scores, out.member_scores, motion.moving, neighbours)
         bt.info[f"backtest_epe_{name}_last{n}"] = out.scores[name]
-        if bt.local:
-            out.member_scores[name] = neighbour_mean(distances[motion.moving].mean(axis=1), neighbours)
     if bt.drift is not None:  # as the drift check does at the first origin
         drift = bt.drift[:, :n]
         bt.info[f"learned_refit_drift_last{n}"] = float(drift.mean())
         _with_drift(out.scores, out.member_scores, drift, motion, neighbours)
     _no_weight_where_non_finite(out.scores, out.member_scores)
     return out
+
+
+def _score(
+    fitted: FittedCandidate,
+    obs: np.ndarray,
+    n: int,
+    name: str,
+    scores: dict[str, float],
+    member_scores: dict[str, np.ndarray],
+    moving: np.ndarray,
+    neighbours: Any,
+) -> None:
+    """A candidate's backtest score on the last n observed frames: its mean
+    member distance, and (when scored per member, `neighbours` given) each
+    moving member's mean over its nearest moving members."""
+    distances = member_distances(fitted.rollout(n), obs[:, obs.shape[1] - n :])
+    scores[name] = float(distances.mean())
+    if neighbours is not None:
+        member_scores[name] = neighbour_mean(distances[moving].mean(axis=1), neighbours)
 
 
 def _with_drift(
