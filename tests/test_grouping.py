@@ -10,13 +10,7 @@ from mogaf.errors import MogafError
 from mogaf.grouping import DEFAULT_PARAMS
 from mogaf.grouping.api import group_gaussians
 from mogaf.grouping.core import InstanceTable, MaskFrames, mask_gaussians
-from mogaf.grouping.rigidity import (
-    decide_rigidity,
-    estimate_rigid,
-    still_members,
-    still_members_by_fit,
-    two_class_threshold,
-)
+from mogaf.grouping.rigidity import decide_rigidity, estimate_rigid, still_members, two_class_threshold
 from mogaf.grouping.stage import rigid_init
 from mogaf.grouping.voting import knn_vote
 from mogaf.scene import Instances
@@ -364,8 +358,7 @@ def test_adjusted_rand_index_equals_scikit_learns():
     assert adjusted_rand_index(np.array([]), np.array([])) == 1.0
 
 
-@pytest.mark.parametrize("split_by", ["displacement", "rigid_fit"])
-def test_still_members_of_a_moving_group_get_a_static_group(scene_far, split_by):
+def test_still_members_of_a_moving_group_get_a_static_group(scene_far):
     """One foreground mask over a still box and a moving sphere (a still body
     with one moving part, no instance masks): the split holds the box apart."""
     sc = scene_far
@@ -377,7 +370,7 @@ def test_still_members_of_a_moving_group_get_a_static_group(scene_far, split_by)
 
     def grouping(rigid, mode):
         inst = Instances(ids=[1], names=["foreground"], rigid=[rigid])
-        return group_gaussians(model, foreground, sc.frames, inst, {"split_still_members": mode, "split_by": split_by})
+        return group_gaussians(model, foreground, sc.frames, inst, {"split_still_members": mode})
 
     assert grouping(-1, "never").num_groups == 1  # the paper's grouping: one group
     g = grouping(-1, "unlabelled")
@@ -411,53 +404,3 @@ def test_still_members_of_a_jittering_body_and_a_swinging_part():
     assert not still_members(pos, neighbours=16, ratio=3.0, min_fraction=0.35).any()  # the moving part is too small
     pos[:, :, 2] += np.linspace(0.0, 1.0, T)  # everything swings: one class
     assert not still_members(pos, neighbours=16, ratio=3.0, min_fraction=0.1).any()
-
-
-def _hinged_chest(rng, swing: float, jitter: float, body_drift: float = 0.0):
-    """A still box (1,400 members) and a lid (600) swinging by `swing` rad
-    about the hinge along y at x = -1, z = 1; returns (G, 30, 3), lid mask."""
-    T = 30
-    body = rng.uniform([-1.0, -0.5, 0.0], [1.0, 0.5, 1.0], (1400, 3))
-    lid = rng.uniform([0.0, -0.5, 0.0], [2.0, 0.5, 0.1], (600, 3))  # relative to the hinge
-    pos = np.empty((2000, T, 3))
-    pos[:1400] = body[:, None] + np.linspace(0.0, body_drift, T)[:, None] * np.array([1.0, 0.0, 0.0])
-    for t, a in enumerate(np.linspace(0.0, swing, T)):
-        c, s = np.cos(a), np.sin(a)
-        rotated = np.stack([lid[:, 0] * c - lid[:, 2] * s, lid[:, 1], lid[:, 0] * s + lid[:, 2] * c], axis=1)
-        pos[1400:, t] = rotated + np.array([-1.0, 0.0, 1.0])
-    return pos + rng.normal(0.0, jitter, pos.shape), np.arange(2000) >= 1400
-
-
-def test_still_members_by_fit_follow_the_hinge():
-    """The lid's members near the hinge barely move, so a displacement cut
-    gives them to the body; the rigid-motion fit gives them to the lid."""
-    rng = np.random.default_rng(0)
-    pos, lid = _hinged_chest(rng, swing=0.8, jitter=0.02)
-    by_fit = still_members_by_fit(pos, neighbours=16, ratio=3.0, min_fraction=0.1)
-    by_displacement = still_members(pos, neighbours=16, ratio=3.0, min_fraction=0.1)
-    assert (by_fit != ~lid).mean() < 0.005
-    assert (by_displacement != ~lid).mean() > 0.02  # what the fit is for
-    # a body that drifts a tenth of the lid's swing still counts as the still part
-    pos, lid = _hinged_chest(rng, swing=0.8, jitter=0.02, body_drift=0.1)
-    assert (still_members_by_fit(pos, neighbours=16, ratio=3.0, min_fraction=0.1) != ~lid).mean() < 0.005
-    assert not still_members_by_fit(pos, neighbours=16, ratio=1e3, min_fraction=0.1).any()
-    assert not still_members_by_fit(pos, neighbours=16, ratio=3.0, min_fraction=0.35).any()  # lid too small
-
-
-def test_still_members_by_fit_leave_one_motion_whole():
-    """A body spinning in place (its core barely moves) and a body moving as
-    one are each one rigid motion: nothing is split off."""
-    rng = np.random.default_rng(1)
-    points = rng.uniform(-1.0, 1.0, (1500, 3))
-    T = 30
-    spin = np.empty((1500, T, 3))
-    for t, a in enumerate(np.linspace(0.0, 2.0, T)):
-        c, s = np.cos(a), np.sin(a)
-        spin[:, t] = np.stack(
-            [points[:, 0] * c - points[:, 1] * s, points[:, 0] * s + points[:, 1] * c, points[:, 2]], 1
-        )
-    spin += rng.normal(0.0, 0.01, spin.shape)
-    assert not still_members_by_fit(spin, neighbours=16, ratio=3.0, min_fraction=0.1).any()
-    shifted = points[:, None] + np.linspace(0.0, 1.0, T)[:, None] * np.array([0.0, 0.0, 1.0])
-    assert not still_members_by_fit(shifted + rng.normal(0.0, 0.01, shifted.shape), 16, 3.0, 0.1).any()
-    assert not still_members_by_fit(np.repeat(points[:, None], T, axis=1), 16, 3.0, 0.1).any()  # nothing moves

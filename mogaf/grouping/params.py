@@ -100,11 +100,6 @@ class GroupingSettings:
         'not in the paper: "unlabelled" splits groups whose mask carries no rigid flag (a foreground-only '
         'mask), "not_rigid" also those labelled non-rigid',
     )
-    split_by: Literal["displacement", "rigid_fit"] = setting(
-        "displacement",
-        'how still members are told apart: "displacement" cuts their averaged displacement, "rigid_fit" '
-        "fits a still and a moving rigid motion and gives each member to the one that carries it best",
-    )
     split_neighbors: int = setting(16, "a member's motion is averaged over this many nearest members", minimum=1)
     split_motion_ratio: float = setting(
         3.0, "split only where the moving members' median motion is this many times the still ones'", minimum=1

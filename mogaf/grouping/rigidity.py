@@ -107,64 +107,6 @@ def still_members(positions: np.ndarray, neighbours: int, ratio: float, min_frac
     return still
 
 
-def _rigid_path(reference: np.ndarray, positions: np.ndarray, fit: np.ndarray) -> np.ndarray:
-    """(T, G, 3): every member carried by the best rigid motion of the `fit`
-    members (per step, reference (G, 3) -> positions (G, T, 3))."""
-    from ..rigid import procrustes_numpy
-
-    R, t = procrustes_numpy(reference[fit], np.transpose(positions[fit], (1, 0, 2)))
-    return np.einsum("tij,gj->tgi", R, reference) + t[:, None, :]
-
-
-def still_members_by_fit(
-    positions: np.ndarray, neighbours: int, ratio: float, min_fraction: float, iterations: int = 20
-) -> np.ndarray:
-    """(G,) the members of a group that follow a still rigid motion while the
-    others follow a moving one (a body and the lid hinged on it), or none.
-
-    Two rigid motions, started from still_members' displacement cut, are fitted
-    in turn to their members (first observed step -> every step) and each
-    member goes to the motion that carries it with the smaller squared
-    residual, averaged over its `neighbours` nearest members at the last step;
-    near a hinge both motions move a member little, but only one of them
-    moves it right. The cut is kept where each class holds min_fraction of the
-    group and the moving class's members are carried `ratio` times further
-    (median over them of the largest displacement) by their own motion than by
-    the still one: a part spinning in place is one motion, not a still core.
-    """
-    pos = np.asarray(positions, dtype=np.float64)
-    G = pos.shape[0]
-    none = np.zeros(G, bool)
-    if G < 8 or pos.shape[1] < 2:
-        return none
-    from scipy.spatial import cKDTree
-
-    motion = np.log(np.maximum(displacement(pos), 1e-12))
-    k = min(int(neighbours), G)
-    nearest = cKDTree(pos[:, -1]).query(pos[:, -1], k=k)[1].reshape(G, k)
-    smooth = motion[nearest].mean(axis=1)
-    still = smooth <= two_class_threshold(smooth)
-    reference = pos[:, 0]
-    observed = np.transpose(pos, (1, 0, 2))
-    for _ in range(int(iterations)):
-        if min(int(still.sum()), int((~still).sum())) < 3:
-            return none
-        paths = [_rigid_path(reference, pos, fit) for fit in (still, ~still)]
-        residual = [(((p - observed) ** 2).sum(-1).mean(axis=0))[nearest].mean(axis=1) for p in paths]
-        updated = residual[0] <= residual[1]
-        if np.array_equal(updated, still):
-            break
-        still = updated
-    n_still = int(still.sum())
-    if min(n_still, G - n_still) < min_fraction * G:
-        return none
-    paths = [_rigid_path(reference, pos, fit) for fit in (still, ~still)]
-    carried = [np.linalg.norm(p[:, ~still] - reference[~still], axis=-1).max(axis=0) for p in paths]
-    if np.median(carried[1]) < ratio * np.median(carried[0]):
-        return none
-    return still
-
-
 def split_still_members(
     trajectories: np.ndarray,
     group_id: np.ndarray,
@@ -196,8 +138,7 @@ def split_still_members(
         if (int(label_rigid[j]) if j >= 0 else -1) not in allowed:
             continue
         members = np.flatnonzero(group_id == k)
-        find = still_members_by_fit if settings.split_by == "rigid_fit" else still_members
-        still = find(
+        still = still_members(
             trajectories[members],
             int(settings.split_neighbors),
             float(settings.split_motion_ratio),
