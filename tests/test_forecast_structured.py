@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 
 from mogaf.errors import MogafError
-from mogaf.forecast import quat
+from mogaf.forecast import candidates, quat
 from mogaf.forecast.candidates import (
     WeightedCandidates,
     backtest_weights,
     blend_trajectories,
     nearest_members,
     neighbour_mean,
+    neighbour_smoothed_poses,
 )
 from mogaf.forecast.channel_net import window_sizes
 from mogaf.forecast.coherence import coherence, rigid_distance_change
@@ -297,6 +298,92 @@ def test_neighbour_mean_is_local_and_the_group_mean_when_k_covers_it():
     np.testing.assert_allclose(neighbour_mean(values, nearest_members(positions, 5)), values)
     assert nearest_members(positions, 12).shape == (10, 10)  # at most the group
     np.testing.assert_allclose(neighbour_mean(values, nearest_members(positions, 10)), 2.0)
+
+
+def _turned_and_shifted(last: np.ndarray, shift: np.ndarray, turn: np.ndarray) -> np.ndarray:
+    """Poses (M, n, 7): every member shifted by shift (n, 3) and turned by turn (n, 4) from `last` (M, 7)."""
+    out = np.empty((len(last), len(shift), 7))
+    out[..., :3] = last[:, None, :3] + shift[None]
+    out[..., 3:] = quat.mul(turn[None], last[:, None, 3:])
+    return out
+
+
+def test_neighbour_smoothed_poses_keep_a_shared_motion_and_average_the_rest_out(monkeypatch):
+    rng = np.random.default_rng(0)
+    m, n = 400, 6
+    last = np.concatenate([rng.uniform(size=(m, 3)), quat.normalize(rng.normal(size=(m, 4)))], axis=-1)
+    shift = np.outer(np.arange(1, n + 1), [0.01, -0.02, 0.005])
+    turn = quat.from_axis_angle(np.array([0.3, 0.1, 1.0]), np.linspace(0.05, 0.3, n))
+    shared = _turned_and_shifted(last, shift, turn)
+    neighbours = nearest_members(last[:, :3], 16)
+    np.testing.assert_allclose(neighbour_smoothed_poses(shared, last, neighbours), shared, atol=1e-12)
+    # a quaternion's sign names no other rotation
+    flipped = shared.copy()
+    flipped[::3, :, 3:] *= -1.0
+    np.testing.assert_allclose(neighbour_smoothed_poses(flipped, last, neighbours), shared, atol=1e-12)
+    # each member alone: its own pose
+    own = neighbour_smoothed_poses(shared, last, np.arange(m)[:, None])
+    np.testing.assert_allclose(own, shared, atol=1e-12)
+    # independent jitter on top of the shared motion shrinks about as 1/sqrt(k)
+    noisy = shared.copy()
+    noisy[..., :3] += rng.normal(scale=0.01, size=(m, n, 3))
+    smoothed = neighbour_smoothed_poses(noisy, last, neighbours)
+    before = np.abs(noisy[..., :3] - shared[..., :3]).std()
+    after = np.abs(smoothed[..., :3] - shared[..., :3]).std()
+    assert after < 0.4 * before
+    # an affine field (a small body rotation's displacements) is kept but for the slopes' small ridge
+    rotation = quat.from_axis_angle(np.array([0.0, 0.0, 1.0]), np.linspace(0.01, 0.06, n))
+    centre = last[:, :3].mean(0)
+    turning = shared.copy()
+    turning[..., :3] = centre + quat.rotate(rotation[None], last[:, None, :3] - centre)
+    kept = neighbour_smoothed_poses(turning, last, neighbours)
+    motion = np.abs(turning[..., :3] - last[:, None, :3]).max()
+    assert np.abs(kept[..., :3] - turning[..., :3]).max() < 0.01 * motion
+    # members taken in passes (a big group): the same fit, bit for bit
+    monkeypatch.setattr(candidates, "LOCAL_LINEAR_CHUNK", 16 * 6 * 7 * 5)
+    np.testing.assert_array_equal(neighbour_smoothed_poses(noisy, last, neighbours), smoothed)
+    # two members in one place turning the same angle in opposite senses: no mean turn, none
+    pair = _turned_and_shifted(last[:2], np.zeros((1, 3)), quat.from_axis_angle(np.array([0, 0, 1.0]), [0.2]))
+    pair[1, :, 3:] = quat.mul(quat.from_axis_angle(np.array([0, 0, 1.0]), -0.2), last[1, 3:])[None]
+    pair[1, :, :3] = pair[0, :, :3]
+    pair_last = last[:2].copy()
+    pair_last[1, :3] = pair_last[0, :3]
+    both = np.array([[0, 1], [1, 0]])
+    np.testing.assert_allclose(neighbour_smoothed_poses(pair, pair_last, both), pair_last[:, None], atol=1e-12)
+
+
+def _neighbour_change(poses: np.ndarray, last: np.ndarray, k: int = 8) -> float:
+    """Mean |d_ij(end) - d_ij(T)| over each member's k nearest at the last observed frame: local tearing."""
+    nb = nearest_members(last[:, :3], k + 1)[:, 1:]
+    before = np.linalg.norm(last[:, None, :3] - last[nb, :3], axis=-1)
+    after = np.linalg.norm(poses[:, None, -1, :3] - poses[nb, -1, :3], axis=-1)
+    return float(np.abs(after - before).mean())
+
+
+def test_coherent_neighbours_hold_a_noisy_surface_together_and_leave_rigid_groups_alone():
+    """Each Gaussian of a jittered sheet extrapolates its own jitter; the
+    local affine fit keeps the sheet's local structure, and its forecast of
+    the travelling wave stays about as close to the truth."""
+    truth = waving_sheet(600, 40)
+    obs = add_noise(truth[:, :32], pos_sigma=0.004, rot_sigma=0.0)
+    own = fit_and_rollout("mogaf", obs, 8, QUICK, seed=1, rigid=False)
+    coherent = fit_and_rollout(
+        "mogaf", obs, 8, {**QUICK, "structured": {"coherent_neighbors": 16}}, seed=1, rigid=False
+    )
+    assert coherent.info["coherent_neighbors"] == 16 and "coherent_neighbors" not in own.info
+    assert _neighbour_change(coherent.poses, obs[:, -1]) < 0.5 * _neighbour_change(own.poses, obs[:, -1])
+    error = {
+        name: np.linalg.norm(res.poses[..., :3] - truth[:, 32:, :3], axis=-1).mean()
+        for name, res in (("own", own), ("coherent", coherent))
+    }
+    assert error["coherent"] < 1.01 * error["own"]
+    # a rigid group is one motion already: the same forecast, bit for bit
+    box = add_noise(rigid_box(128, 30), pos_sigma=0.002, rot_sigma=0.0)
+    plain = fit_and_rollout("mogaf", box, 10, QUICK, seed=0, rigid=True).poses
+    smoothed = fit_and_rollout(
+        "mogaf", box, 10, {**QUICK, "structured": {"coherent_neighbors": 16}}, seed=0, rigid=True
+    )
+    np.testing.assert_array_equal(smoothed.poses, plain)
 
 
 def test_blend_with_member_weights_blends_each_row_on_its_own():

@@ -74,6 +74,61 @@ def neighbour_mean(values: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
     return values[neighbours].mean(axis=1)
 
 
+def local_linear_fit(values: np.ndarray, positions: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+    """(M, D) each member's value of the least-squares affine function of
+    position fitted to `values` (M, D) over its neighbours (M, k) at
+    `positions` (M, 3): a field that is affine over a neighbourhood (a
+    shift, a small turn, a stretch) is kept, what varies faster (noise) is
+    averaged out. The slopes carry a ridge of LOCAL_LINEAR_RIDGE x the
+    neighbourhood's mean squared distance, so a flat or thin neighbourhood
+    (a surface, a rod) has no slope across itself."""
+    m, k = neighbours.shape
+    out = np.empty((m, values.shape[1]))
+    # members per pass: the gathered neighbour values (chunk, k, D) stay near 64 MB
+    chunk = max(1, LOCAL_LINEAR_CHUNK // (k * max(1, values.shape[1])))
+    for start in range(0, m, chunk):
+        nb = neighbours[start : start + chunk]
+        rel = positions[nb] - positions[start : start + chunk, None, :]  # (c, k, 3)
+        design = np.concatenate([np.ones(rel.shape[:2] + (1,)), rel], axis=-1)  # (c, k, 4)
+        normal = np.einsum("cki,ckj->cij", design, design)
+        spread = np.einsum("cki,cki->c", rel, rel) / k
+        ridge = np.maximum(LOCAL_LINEAR_RIDGE * spread, np.finfo(np.float64).tiny)
+        normal[:, 1:, 1:] += ridge[:, None, None] * np.eye(3)
+        rhs = np.einsum("cki,ckd->cid", design, values[nb])
+        out[start : start + chunk] = np.linalg.solve(normal, rhs)[:, 0]
+    return out
+
+
+LOCAL_LINEAR_RIDGE = 1e-2  # ours: small beside a full neighbourhood's k x spread, large beside a flat one's thickness
+LOCAL_LINEAR_CHUNK = 1 << 23  # float64 values gathered per pass
+
+
+def neighbour_smoothed_poses(poses: np.ndarray, last: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+    """Forecast poses (M, n, 7) with each member's motion since its last
+    observed pose `last` (M, 7), displacement and rotation, replaced by the
+    local affine fit over its neighbours (M, k) (nearest_members at the last
+    observed frame, itself included): local_linear_fit of the displacements
+    and of the relative quaternions, each on the identity's side (w >= 0),
+    renormalised (for the small turns of a few forecast steps, close to a
+    fit of the turns themselves)."""
+    poses = np.asarray(poses, np.float64)
+    last = np.asarray(last, np.float64)
+    m, n = poses.shape[:2]
+    shift = (poses[..., :3] - last[:, None, :3]).reshape(m, n * 3)
+    turn = quat.mul(poses[..., 3:], quat.conj(last[:, None, 3:]))
+    turn = np.where(turn[..., :1] < 0.0, -turn, turn).reshape(m, n * 4)
+    fitted = local_linear_fit(np.concatenate([shift, turn], axis=1), last[:, :3], neighbours)
+    fitted_turn = fitted[:, n * 3 :].reshape(m, n, 4)
+    norm = np.linalg.norm(fitted_turn, axis=-1, keepdims=True)
+    # Opposite turns of the same size cancel: no fitted turn, so no turn.
+    identity = np.array([1.0, 0.0, 0.0, 0.0])
+    fitted_turn = np.where(norm > 1e-12, fitted_turn / np.where(norm > 1e-12, norm, 1.0), identity)
+    out = np.empty_like(poses)
+    out[..., :3] = last[:, None, :3] + fitted[:, : n * 3].reshape(m, n, 3)
+    out[..., 3:] = quat.normalize(quat.mul(fitted_turn, last[:, None, 3:]))
+    return out
+
+
 # Least-squares polynomial candidates: (degree, the setting naming their window).
 POLYNOMIAL_CANDIDATES = {"linear_trend": (1, "trend_window"), "constant_acceleration": (2, "context")}
 

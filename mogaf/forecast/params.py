@@ -104,6 +104,15 @@ class StructuredSettings:
         "differently (a swaying cloth and a thrown ball beside it); 32 is a plausible neighbourhood, not tuned",
         minimum=0,
     )
+    coherent_neighbors: int = setting(
+        0,
+        "non-rigid groups: each moving Gaussian's forecast motion (displacement and turn since its last observed "
+        "pose) is the local affine fit over its this many nearest moving Gaussians at the last observed frame, "
+        "itself included; 0 = each its own. Each Gaussian's series is extrapolated on its own, and their noise, "
+        "which grows over the forecast, tears a surface apart where the truth moves it as a piece; an affine fit "
+        "keeps a shift, a small turn and a stretch (docs/forecasting.md, variant coherent_forecast)",
+        minimum=0,
+    )
     drift_check: bool = setting(
         True,
         "the learned candidate's backtest error is combined (root sum of squares) with its refit drift: the mean "

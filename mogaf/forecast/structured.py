@@ -56,6 +56,12 @@ pose's normalised level, and Gaussians rolled out one by one drift apart.
     forecast length (through h), so the first k steps of a longer forecast
     need not equal a k-step forecast.
 
+`coherent_neighbors` > 0 (off by default; variant coherent_forecast): in a
+non-rigid group each moving Gaussian's forecast motion is replaced by the
+local affine fit of its nearest moving Gaussians' motions
+(candidates.neighbour_smoothed_poses), so noise extrapolated Gaussian by
+Gaussian does not tear a surface apart.
+
 Known limit: a rigid group whose members lie on one line has no observable
 rotation about that line; Procrustes then picks one, which can turn the
 members' orientations about it.
@@ -82,6 +88,7 @@ from mogaf.forecast.candidates import (
     member_distances,
     nearest_members,
     neighbour_mean,
+    neighbour_smoothed_poses,
 )
 from mogaf.forecast.channel_net import window_sizes
 from mogaf.forecast.group_motion import GroupMotion
@@ -410,8 +417,25 @@ class StructuredMoGaF(Forecaster):
         info["still_fraction"] = float(motion.still.mean())
         info["choice"] = decision.choice
         self.fitted, refit_info = refit(motion, decision, candidates, bt, run, self.seed, device)
+        self.motion = motion
+        self.coherent = coherent_neighbours(motion, int(own.coherent_neighbors))
+        if self.coherent is not None:
+            info["coherent_neighbors"] = int(self.coherent.shape[1])
         self.info.update(info)
         self.info.update(refit_info)
 
     def _rollout(self, n_steps: int) -> np.ndarray:
-        return self.fitted.rollout(n_steps)
+        poses = self.fitted.rollout(n_steps)
+        if self.coherent is not None:
+            moving = self.motion.moving
+            poses[moving] = neighbour_smoothed_poses(poses[moving], self.motion.last[moving], self.coherent)
+        return poses
+
+
+def coherent_neighbours(motion: GroupMotion, k: int) -> np.ndarray | None:
+    """(M, k) each moving member's k nearest moving members at the last
+    observed frame (coherent_neighbors), or None where nothing is smoothed: a
+    rigid group (already one motion), k < 2 or fewer than 2 moving members."""
+    if motion.rigid or k < 2 or len(motion.moving) < 2:
+        return None
+    return nearest_members(motion.last[motion.moving, :3], k)
