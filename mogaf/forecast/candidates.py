@@ -115,13 +115,12 @@ def neighbour_smoothed_poses(poses: np.ndarray, last: np.ndarray, neighbours: np
     last = np.asarray(last, np.float64)
     m, n = poses.shape[:2]
     shift = (poses[..., :3] - last[:, None, :3]).reshape(m, n * 3)
-    turn = quat.mul(poses[..., 3:], quat.conj(last[:, None, 3:]))
-    turn = np.where(turn[..., :1] < 0.0, -turn, turn).reshape(m, n * 4)
+    identity = np.array([1.0, 0.0, 0.0, 0.0])
+    turn = quat.align_to(quat.mul(poses[..., 3:], quat.conj(last[:, None, 3:])), identity).reshape(m, n * 4)
     fitted = local_linear_fit(np.concatenate([shift, turn], axis=1), last[:, :3], neighbours)
     fitted_turn = fitted[:, n * 3 :].reshape(m, n, 4)
     norm = np.linalg.norm(fitted_turn, axis=-1, keepdims=True)
     # Opposite turns of the same size cancel: no fitted turn, so no turn.
-    identity = np.array([1.0, 0.0, 0.0, 0.0])
     fitted_turn = np.where(norm > 1e-12, fitted_turn / np.where(norm > 1e-12, norm, 1.0), identity)
     out = np.empty_like(poses)
     out[..., :3] = last[:, None, :3] + fitted[:, : n * 3].reshape(m, n, 3)
