@@ -180,6 +180,8 @@ def stage_arguments(spec: registry.StageSpec, args: argparse.Namespace, cfg: dic
         kwargs["device"] = cfg["device"]
     if spec.checkpoint:
         kwargs["checkpoint"] = args.checkpoint
+    if spec.threads_argument:
+        kwargs["job_threads"] = args.threads
     if spec.name in SPECIAL:
         SPECIAL[spec.name](args, cfg, kwargs)
     return kwargs

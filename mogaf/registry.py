@@ -141,6 +141,8 @@ class StageSpec:
     fixed: tuple[tuple[str, Any], ...] = ()  # constant keyword arguments of the function
     # torch's thread count follows the rule's `threads` (False: torch's default, as these stages always ran)
     torch_threads: bool = True
+    # the rule's `threads` (the CLI's --threads) passed as `job_threads`, for a stage that sets torch's count only where it uses torch
+    threads_argument: bool = False
     # What determines the artefact besides its upstream stages: config keys
     # (dotted); None: the stage is never shared across variants by this table.
     digest_sections: tuple[str, ...] | None = None
@@ -351,8 +353,10 @@ STAGES: tuple[StageSpec, ...] = (
         ),
         settings="forecast",
         seed="kwarg",
+        device="kwarg",
         wildcards=("method",),
         torch_threads=False,
+        threads_argument=True,
         variant_key="forecast:{method}",
         job="forecast_{method}",
         cli="forecast",

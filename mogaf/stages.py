@@ -291,6 +291,8 @@ def rule_arguments(spec: registry.StageSpec, smk: Any) -> dict[str, Any]:
     for key in ("seed", "device", "checkpoint"):
         if getattr(spec, key):
             kwargs[key] = smk.params.get(key)
+    if spec.threads_argument:
+        kwargs["job_threads"] = smk.threads
     kwargs.update({w: smk.wildcards.get(w) for w in spec.wildcards})
     return kwargs
 
@@ -390,13 +392,17 @@ def forecast_merge(
     params: Mapping[str, Any],
     method: str,
     seed: int = 0,
+    device: str = "cpu",
+    job_threads: int | None = None,
 ) -> Path:
     from .forecast.stage import run_forecast_merge  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out}, [model, groups, split, *parts])
     with stage_inputs(model, groups, split, *parts):
         check_groups_cover(model, groups)
-        return run_forecast_merge(model, groups, split, parts, out, dict(params), method=method, seed=seed)
+        return run_forecast_merge(
+            model, groups, split, parts, out, dict(params), method=method, seed=seed, device=device, threads=job_threads
+        )
 
 
 def evaluate(

@@ -128,9 +128,10 @@ def test_forecast_merge_subcommand(in_repo, tmp_path, monkeypatch):
     seen = {}
     monkeypatch.setattr(cli.stages, "run_stage", lambda fn, log, threads=None, **kw: seen.update(kw, fn=fn))
     args = ["forecast", "--model-h5", "m.h5", "--groups-h5", "g.h5", "--split-h5", "s.h5", "--out", "f.h5"]
-    assert cli.main([*args, "--method", "gcn", "--parts", "a.h5", "b.h5"]) == 0
+    assert cli.main([*args, "--method", "gcn", "--parts", "a.h5", "b.h5", "--threads", "1"]) == 0
     assert seen["fn"] is cli.stages.forecast_merge and seen["parts"] == ["a.h5", "b.h5"] and seen["method"] == "gcn"
-    assert seen["params"]["methods"] and "device" not in seen
+    # the device and threads a trained method computes with under forecast.jobs: per_method
+    assert seen["params"]["methods"] and seen["device"] == "auto" and seen["job_threads"] == 1
 
 
 def test_grouping_quality_gets_its_config_section(in_repo, tmp_path, monkeypatch):

@@ -144,6 +144,10 @@ def test_method_jobs(inputs):
     for m in ("mogaf", "gcn", "ode"):
         assert method_jobs(m, per_group) == [str(RIGID), str(NONRIGID)]
         assert method_jobs(m, joint) == ["all"]
+        # forecast.jobs: per_method: the merge job runs them all
+        assert method_jobs(m, per_group, "per_method") == []
+    with pytest.raises(MogafError, match="forecast.jobs must be one of per_group, per_method, got 'per_gaussian'"):
+        method_jobs("mogaf", per_group, "per_gaussian")
 
 
 # ------------------------------------------------------------------ group jobs
@@ -339,6 +343,34 @@ def test_merge_trained_method_covers_every_dynamic_gaussian(inputs, mogaf_parts,
     np.testing.assert_array_equal(means[s], np.repeat(model.trajectory_means[s, -1:], T - T_OBS, axis=1))
     covered = np.concatenate([read_artefact(p, "forecast_group")["members"] for p in mogaf_parts])
     assert sorted(covered.tolist()) == list(range(N_PER, N))
+
+
+def test_merge_per_method_is_the_group_jobs_forecast(inputs, mogaf_parts, tmp_path):
+    """forecast.jobs: per_method trains every group inside the merge job: the
+    same poses, bit for bit, as the group jobs merged (their seeds, settings
+    and threads), and it takes no group files."""
+    params = {"groupwise": True, **MOGAF_FAST}
+    per_group = read_artefact(_merge(inputs, tmp_path / "pg.h5", mogaf_parts, "mogaf", params, seed=7), "forecast")
+    out = run_forecast_merge(
+        str(inputs["model"]),
+        str(inputs["groups"]),
+        str(inputs["split"]),
+        [],
+        str(tmp_path / "pm.h5"),
+        {**params, "jobs": "per_method"},
+        method="mogaf",
+        seed=7,
+        threads=1,
+    )
+    per_method = read_artefact(out, "forecast")
+    for key in ("means", "quats", "group_id", "timesteps"):
+        np.testing.assert_array_equal(per_method[key], per_group[key])
+    assert per_method.attrs["jobs"] == "per_method" and per_group.attrs["jobs"] == "per_group"
+    assert per_method.attrs["num_groups_trained"] == 2
+    assert set(per_method.attrs["flags"]) == {str(RIGID), str(NONRIGID)}
+    with pytest.raises(MogafError, match=r"computed in the merge job \(per_method\), it takes no group files"):
+        _merge(inputs, tmp_path / "x.h5", mogaf_parts, "mogaf", {**params, "jobs": "per_method"}, seed=7)
+    assert not (tmp_path / "x.h5").exists()
 
 
 def test_merge_refuses_missing_overlapping_and_foreign_parts(inputs, mogaf_parts, tmp_path):

@@ -31,7 +31,11 @@ from support.paths import REPO
 pytestmark = pytest.mark.long
 
 SNAKEFILE = str(REPO / "Snakefile")
-CONFIGS = [str(REPO / "config" / "config.yaml"), str(REPO / ".test" / "config.yaml")]
+CONFIGS = [
+    str(REPO / "config" / "config.yaml"),
+    str(REPO / ".test" / "config.yaml"),
+    str(REPO / ".test" / "per_method.yaml"),
+]
 RATIO = Path("results/synthetic/tiny/ratio0.6")
 METHODS = ["mogaf", "mogaf_paper", "gcn", "ode", "constant_velocity", "frozen"]
 
@@ -175,6 +179,20 @@ def test_artefacts_record_their_lineage(runs):
     )
     forecast = read_lineage(ratio / "forecast" / "mogaf.h5")
     assert forecast.inputs["refine"] == (lineage["refined.h5"].digest,)
+
+
+def test_per_method_layout_trains_in_the_merge_jobs(runs):
+    """forecast.jobs: per_method (.test/per_method.yaml): no forecast_group job
+    ran; each trained method's merge job trained its one job ('all')."""
+    from mogaf.artefact import read_attrs
+
+    ratio = runs["first"] / RATIO
+    assert not list((ratio / "logs").glob("forecast_*_group*.log"))
+    assert not list((ratio / "forecast").glob("*/group*.h5"))
+    for method in ("mogaf", "gcn"):
+        attrs = read_attrs(ratio / "forecast" / f"{method}.h5")
+        assert attrs["jobs"] == "per_method" and attrs["num_groups_trained"] == 1, attrs
+        assert set(attrs["flags"]) == {"all"}
 
 
 def test_writes_only_results_snakemake_and_cache(runs):

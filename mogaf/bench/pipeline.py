@@ -123,6 +123,15 @@ def _detail(folder: Path, name: str) -> dict[str, float]:
     if m:
         info = _attrs(folder / "forecast" / m.group(1) / f"group{m.group(2)}.h5").get("info") or {}
         return {k: float(info[k]) for k in ("train_time_s", "rollout_time_s") if k in info}
+    m = re.fullmatch(r"forecast_(\w+)", name)
+    attrs = _attrs(folder / "forecast" / f"{m.group(1)}.h5") if m else {}
+    if attrs.get("jobs") == "per_method":  # the merge job ran every group: their sums
+        out: dict[str, float] = {}
+        for info in (attrs.get("flags") or {}).values():
+            for k in ("train_time_s", "rollout_time_s"):
+                if k in info:
+                    out[k] = out.get(k, 0.0) + float(info[k])
+        return out
     return {}
 
 

@@ -1,4 +1,5 @@
-"""Forecast stage: one job per dynamic motion group and method, then a merge.
+"""Forecast stage: one job per dynamic motion group and method, then a merge
+(forecast.jobs: per_method: every group of a method inside its merge job).
 
 forecast/{method}/group{k}.h5 (stage "forecast_group"): the poses of group k's
 Gaussians at every forecast time step, predicted from the group's observed
@@ -12,7 +13,7 @@ Schema of forecast/{method}.h5:
   timesteps (T_fc,)        scene time-grid indices (= split.forecast_timesteps)
   means (N, T_fc, 3), quats (N, T_fc, 4)   per fg Gaussian, wxyz, unit
   group_id (N,)
-attrs: method, groupwise, num_groups_trained, flags (per job), params.
+attrs: method, groupwise, jobs (forecast.jobs), num_groups_trained, flags (per job), params.
 
 No forecast job opens the scene: the future (ground truth included) is read
 only by the evaluation stage, which also computes the quick 3D check.
@@ -20,6 +21,7 @@ only by the evaluation stage, which also computes the quick 3D check.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
@@ -30,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from ..artefact import config_digest, read_artefact, write_artefact
+from ..devices import torch_threads
 from ..errors import MogafError, input_error
 from ..representation import Model4D, load_model, quat_sign_continuity
 from ..split import read_split
@@ -74,12 +77,27 @@ def dynamic_members(group_id: np.ndarray, group_static: np.ndarray) -> np.ndarra
 
 # Methods with nothing to train (params.INLINE_METHODS) run inside the merge
 # job: a Snakemake job of their own would take longer to start than to run.
+# forecast.jobs: per_method runs every method so: one process (torch's import,
+# the inputs) per method instead of one per group, the same forecasts.
+JOB_LAYOUTS = ("per_group", "per_method")
 
 
-def method_jobs(method: str, jobs: list[str]) -> list[str]:
+def job_layout(params: Mapping[str, Any]) -> str:
+    """forecast.jobs of a forecast section (per_group when absent)."""
+    return _checked_layout(params.get("jobs", "per_group"))
+
+
+def _checked_layout(layout: str) -> str:
+    if layout not in JOB_LAYOUTS:
+        raise MogafError(f"forecast.jobs must be one of {', '.join(JOB_LAYOUTS)}, got {layout!r}")
+    return layout
+
+
+def method_jobs(method: str, jobs: list[str], layout: str = "per_group") -> list[str]:
     """Of the forecast jobs (forecast_jobs), those `method` runs as separate
-    forecast_group jobs: all of them, or none for INLINE_METHODS."""
-    return [] if method in INLINE_METHODS else list(jobs)
+    forecast_group jobs: all of them, or none for INLINE_METHODS and under
+    layout per_method (its merge job runs them)."""
+    return [] if method in INLINE_METHODS or _checked_layout(layout) == "per_method" else list(jobs)
 
 
 def _job_names(group_id: np.ndarray, group_static: np.ndarray, groupwise: bool) -> list[str]:
@@ -233,8 +251,14 @@ def run_forecast_merge(
     *,
     method: str,
     seed: int = 0,
+    device: str = "cpu",
+    threads: int | None = None,
 ) -> Path:
-    """Merge the group jobs' poses into forecast/{method}.h5 (INLINE_METHODS: computed here, group by group)."""
+    """Merge the group jobs' poses into forecast/{method}.h5. INLINE_METHODS,
+    and every method under forecast.jobs: per_method, are computed here, group
+    by group (a trained method on `device`, with `threads` torch threads as a
+    forecast_group job would be)."""
+    layout = job_layout(params)
     model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
     group_rigid = group_rigid_flags(groups_h5)
     n, T = len(model.fg), int(split.forecast_timesteps.size)
@@ -257,19 +281,32 @@ def run_forecast_merge(
         means[members] = art["means"]
         quats[members] = art["quats"]
         flags[str(art.attrs.get("job"))] = art.attrs.get("info", {})
-    if method in INLINE_METHODS:
+    trained = len(parts)
+    if method in INLINE_METHODS or layout == "per_method":
         if parts:
-            raise MogafError(f"forecast {method}: computed in the merge job, it takes no group files")
+            raise MogafError(f"forecast {method}: computed in the merge job ({layout}), it takes no group files")
         settings = load_settings(method, method_params(params, method))  # once for every job of the merge
-        for job in _job_names(group_id, group_static, bool(params.get("groupwise", True))):
-            members = job_members(job, group_id, group_static, groups_h5)
-            poses, info, _ = forecast_job(
-                model, members, T, settings, method, job, seed, job_rigid_hint(job, group_rigid)
-            )
-            means[members] = poses[..., :3]
-            quats[members] = poses[..., 3:]
-            covered[members] = True
-            flags[job] = info
+        jobs = _job_names(group_id, group_static, bool(params.get("groupwise", True)))
+        untrained = method in INLINE_METHODS
+        trained = 0 if untrained else len(jobs)
+        with contextlib.nullcontext() if untrained else torch_threads(threads):
+            for job in jobs:
+                members = job_members(job, group_id, group_static, groups_h5)
+                poses, info, _ = forecast_job(
+                    model,
+                    members,
+                    T,
+                    settings,
+                    method,
+                    job,
+                    seed,
+                    job_rigid_hint(job, group_rigid),
+                    "cpu" if untrained else device,
+                )
+                means[members] = poses[..., :3]
+                quats[members] = poses[..., 3:]
+                covered[members] = True
+                flags[job] = info
     missing = dynamic_members(group_id, group_static)
     missing = missing[~covered[missing]]
     if missing.size:
@@ -279,7 +316,8 @@ def run_forecast_merge(
     attrs: dict[str, Any] = {
         "method": method,
         "groupwise": bool(params.get("groupwise", True)),
-        "num_groups_trained": len(parts),
+        "jobs": layout,
+        "num_groups_trained": trained,
         "flags": flags,
         "params": mparams,
         "coherence": structure,
@@ -289,7 +327,14 @@ def run_forecast_merge(
         MERGE_STAGE,
         {"timesteps": split.forecast_timesteps, "means": means, "quats": quats, "group_id": group_id},
         config_digest=config_digest(
-            {"method": method, "params": mparams, "seed": int(seed), "parts": sorted(Path(p).name for p in parts)}
+            {
+                "method": method,
+                "params": mparams,
+                "seed": int(seed),
+                "parts": sorted(Path(p).name for p in parts),
+                # per_method: the device it ran on, as a forecast_group job's digest has it
+                **({"jobs": layout, "device": device} if layout == "per_method" else {}),
+            }
         ),
         attrs=attrs,
     )

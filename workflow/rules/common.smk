@@ -396,11 +396,30 @@ def forecast_params(wildcards):
     return out
 
 
+def forecast_merge_params(wildcards):
+    """forecast_params and forecast.jobs: the merge job computes a method's
+    groups itself under per_method (no group job reads it)."""
+    return {**forecast_params(wildcards), "jobs": _forecast_layout(wildcards)}
+
+
+def _forecast_layout(wildcards):
+    return scene_cfg(wildcards)["forecast"].get("jobs", "per_group")
+
+
+def forecast_merge_gpus(wildcards):
+    """A GPU for a merge job that trains (per_method, a trained method, device cuda)."""
+    from mogaf.forecast.params import INLINE_METHODS
+
+    trains = _forecast_layout(wildcards) == "per_method" and wildcards.method not in INLINE_METHODS
+    return 1 if trains and device(wildcards) == "cuda" else 0
+
+
 def _forecast_jobs(wildcards, method):
     from mogaf.forecast.stage import forecast_jobs, method_jobs
 
     groupwise = scene_cfg(wildcards)["forecast"]["groupwise"]
-    return method_jobs(method, forecast_jobs(checkpoint_output("group", wildcards), groupwise=groupwise))
+    jobs = forecast_jobs(checkpoint_output("group", wildcards), groupwise=groupwise)
+    return method_jobs(method, jobs, _forecast_layout(wildcards))
 
 
 def forecast_part_files(wildcards):

@@ -1,9 +1,9 @@
 # Group-wise motion forecasting (paper Sec. 4.3): one job per dynamic group and
 # trained method (one job "all" when forecast.groupwise is off), merged into
 # forecast/{method}.h5. Static groups keep their last pose; constant velocity
-# and frozen train nothing and are computed in the merge job. Their params are
-# only what one method's forecast depends on (forecast_params), not the whole
-# forecast section.
+# and frozen train nothing and are computed in the merge job, as every method
+# is under forecast.jobs: per_method. Their params are only what one method's
+# forecast depends on (forecast_params), not the whole forecast section.
 
 
 rule forecast_group:
@@ -44,8 +44,14 @@ rule forecast:
     priority: PRIORITY["forecast"]
     conda:
         "../../envs/mogaf.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=30,
+        gpu=forecast_merge_gpus,
     params:
-        forecast=forecast_params,
+        forecast=forecast_merge_params,
         seed=seed,
+        device=device,
     script:
         "../scripts/run_stage.py"
