@@ -277,7 +277,7 @@ STAGES: tuple[StageSpec, ...] = (
             _in("model", "recon"),
             # after the checkpoint: rigid.h5 only when there are rigid groups
             _in("groups", "group", checkpoint=True),
-            _in("rigid", "rigid_init", required=False, only_if=("mogaf.grouping.stage:has_rigid_groups", "groups")),
+            _in("rigid", "rigid_init", required=False, only_if=("mogaf.grouping.core:has_rigid_groups", "groups")),
             PRIORS,
             SCENE,
             SPLIT,

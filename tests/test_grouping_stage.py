@@ -13,7 +13,7 @@ from sklearn.metrics import adjusted_rand_score
 
 from mogaf.artefact import read_artefact, write_artefact
 from mogaf.errors import MogafError
-from mogaf.grouping.core import Groups
+from mogaf.grouping.core import Groups, has_rigid_groups
 from mogaf.grouping.metrics import (
     adjusted_rand_index,
     assigned_iou,
@@ -24,7 +24,6 @@ from mogaf.grouping.metrics import (
 from mogaf.grouping.params import DEFAULT_PARAMS
 from mogaf.grouping.quality import read_grouping_quality, run_grouping_quality_stage
 from mogaf.grouping.stage import (
-    has_rigid_groups,
     load_groups,
     read_rigid_init,
     run_group_stage,

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import inspect
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -205,3 +207,19 @@ def test_stage_sections_and_method_names_reach_the_schema_from_their_tables():
     forecast = schema["properties"]["forecast"]
     assert forecast["properties"]["methods"]["items"]["enum"] == [m.name for m in METHOD_TABLE]
     assert set(forecast["properties"]) >= {m.name for m in METHOD_TABLE if not m.section}
+
+
+def test_the_dags_predicates_load_without_torch():
+    """Snakemake's own process calls the inputs' `only_if` predicates while it
+    builds the DAG: their modules must not import torch (a second or two and
+    hundreds of MB in the scheduler, on every run and every dry run)."""
+    code = (
+        "import sys, mogaf.registry as r\n"
+        "names = [i.only_if[0] for s in r.STAGES for i in s.inputs if i.only_if]\n"
+        "assert names, 'no predicate'\n"
+        "[r.load(n) for n in names]\n"
+        "print('torch' in sys.modules)"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "False"

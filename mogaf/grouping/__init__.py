@@ -3,7 +3,7 @@
 Modules
 - params:    DEFAULT_PARAMS (paper values, Gaga defaults, own choices), resolve_params,
              RIGID_INIT_DEFAULTS.
-- core:      MaskFrames, Groups, front-Gaussian seeding (mask_gaussians).
+- core:      MaskFrames, Groups, front-Gaussian seeding (mask_gaussians), has_rigid_groups.
 - ours:      supplementary Algorithm 3 (seeding, feature-space region growing).
 - gaga4d:    supplementary Algorithm 2 (projection-overlap memory bank, theta_ov).
 - voting:    KNN voting for unassigned Gaussians.
@@ -12,7 +12,7 @@ Modules
 - quality:   run_grouping_quality_stage -> grouping_quality.h5, read_grouping_quality.
 - api:       group_gaussians (both methods, flags, compaction).
 - stage:     run_group_stage -> groups.h5, run_rigid_init_stage -> rigid.h5,
-             has_rigid_groups, load_groups, read_rigid_init.
+             load_groups, read_rigid_init.
 """
 
 from .params import DEFAULT_PARAMS, METHODS, RIGID_INIT_DEFAULTS, resolve_params

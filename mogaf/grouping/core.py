@@ -1,4 +1,5 @@
-"""Shared pieces of the grouping stage: containers and seeding (parameters: mogaf.grouping.params).
+"""Shared pieces of the grouping stage: containers, seeding and the one
+groups.h5 question the workflow asks (parameters: mogaf.grouping.params).
 
 Paper references: main paper Sec. "Motion-aware Gaussian Grouping"
 (Algorithm 1), supplementary "Details of Gaussian Grouping" (Algorithm 2:
@@ -8,13 +9,25 @@ supplementary "Implementation Details / Motion-aware Gaussian Grouping".
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from ..artefact import open_artefact
 from ..camera import project
 from ..errors import MogafError
+
+GROUP_STAGE = "group"
+
+
+def has_rigid_groups(groups_h5: str | os.PathLike) -> bool:
+    """Whether the rigid_init stage has anything to do. The workflow asks it
+    while building the DAG, so it lives here, away from torch's import."""
+    with open_artefact(groups_h5, GROUP_STAGE) as fh:
+        rigid = np.asarray(fh["group_rigid"][()])
+    return bool(np.any(rigid == 1))
 
 
 @dataclass

@@ -44,13 +44,12 @@ from ..rigid import rigid_fit_residual, weighted_procrustes
 from ..scene import SCENE_STAGE, Instances
 from ..settings import as_dict, load
 from .api import group_gaussians
-from .core import Groups, MaskFrames, frames_in_time_order
+from .core import GROUP_STAGE, Groups, MaskFrames, frames_in_time_order
 from .ours import keyframe_order
 from .params import RigidInitSettings, _typed_params, load_settings, resolve_params
 
 log = logging.getLogger("mogaf.grouping")
 
-GROUP_STAGE = "group"
 RIGID_STAGE = "rigid_init"
 PRIORS_STAGE = "priors"
 
@@ -109,13 +108,6 @@ def load_groups(path: str | os.PathLike) -> Groups:
     if g.group_id.size and (g.group_id.min() < 0 or g.group_id.max() >= K):
         raise input_error(path, f"group_id outside [0, {K})")
     return g
-
-
-def has_rigid_groups(groups_h5: str | os.PathLike) -> bool:
-    """Whether the rigid_init stage has anything to do (for the workflow)."""
-    with open_artefact(groups_h5, GROUP_STAGE) as fh:
-        rigid = np.asarray(fh["group_rigid"][()])
-    return bool(np.any(rigid == 1))
 
 
 # ---------------------------------------------------------------- group stage

@@ -19,9 +19,11 @@ SCHEMA = Path(workflow.basedir) / "config" / "schema.yaml"
 ABLATION_SCHEMA = Path(workflow.basedir) / "config" / "ablations.schema.yaml"
 
 
+@functools.cache
 def _config_layers():
     """The config as Snakemake merged it, lowest precedence first: the
-    Snakefile's configfile, the --configfile files in order, --config."""
+    Snakefile's configfile, the --configfile files in order, --config.
+    Read once: every ablation variant's check names them."""
     given = [str(f) for f in (workflow.config_settings.configfiles or [])]
     files = [str(f) for f in workflow.configfiles if str(f) not in given] + given
     # one file given twice (the Snakefile's config/config.yaml and --configfile
@@ -31,21 +33,27 @@ def _config_layers():
     layers = file_layers(files)
     if workflow.config_settings.config:
         layers.append(("--config", workflow.config_settings.config))
-    return layers
+    return tuple(layers)
+
+
+@functools.cache
+def _schema(path):
+    """A schema file, read (and its stage sections generated) once per workflow."""
+    return load_config_schema(path)
 
 
 def _validate(cfg, schema, layers):
     """The schema check as one line naming the config file and the key
     (Snakemake's own `validate` prints the schema it failed, a page of it)."""
     try:
-        error = config_error(cfg, load_config_schema(schema), layers)
+        error = config_error(cfg, _schema(schema), layers)
     except MogafError as exc:
         raise WorkflowError(str(exc))
     if error is not None:
         raise WorkflowError(str(error))
 
 
-_validate(config, SCHEMA, _config_layers())
+_validate(config, SCHEMA, list(_config_layers()))
 # config/config.yaml holds only what a user changes: every other stage setting
 # takes its default from the stage's settings dataclass (mogaf.settings).
 config.update(mcfg.with_defaults(config))
@@ -102,7 +110,7 @@ def _load_ablations():
         # A variant's merged config must satisfy the same schema.
         overrides = data["variants"][name].get("overrides") or {}
         variant = mcfg.variant_config(config, data["variants"], name)
-        _validate(variant, SCHEMA, _config_layers() + [(f"{path}: variant '{name}'", overrides)])
+        _validate(variant, SCHEMA, [*_config_layers(), (f"{path}: variant '{name}'", overrides)])
         _check_relations(variant, f"{path}: variant '{name}': ")
     return data
 
