@@ -200,6 +200,7 @@ def _sections(stage: str, config: Mapping[str, Any]) -> tuple[str, ...]:
             "device",
             "forecast.input",
             "forecast.groupwise",
+            "forecast.jobs",
             "forecast.common",
             f"forecast.{param_section(method)}",
         )

@@ -392,7 +392,7 @@ def forecast_merge(
     params: Mapping[str, Any],
     method: str,
     seed: int = 0,
-    device: str = "cpu",
+    device: str | None = None,
     job_threads: int | None = None,
 ) -> Path:
     from .forecast.stage import run_forecast_merge  # local: a stage's package (and torch) loads only when it runs

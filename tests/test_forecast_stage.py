@@ -345,27 +345,47 @@ def test_merge_trained_method_covers_every_dynamic_gaussian(inputs, mogaf_parts,
     assert sorted(covered.tolist()) == list(range(N_PER, N))
 
 
-def test_merge_per_method_is_the_group_jobs_forecast(inputs, mogaf_parts, tmp_path):
+def test_merge_per_method_is_the_group_jobs_forecast(inputs, mogaf_parts, tmp_path, monkeypatch):
     """forecast.jobs: per_method trains every group inside the merge job: the
-    same poses, bit for bit, as the group jobs merged (their seeds, settings
-    and threads), and it takes no group files."""
+    same poses, bit for bit, as the group jobs merged (their seeds and
+    settings), each group on the job's thread count whatever the process's,
+    and it takes no group files."""
+    import torch
+
+    from mogaf.forecast import stage as forecast_stage
+
     params = {"groupwise": True, **MOGAF_FAST}
     per_group = read_artefact(_merge(inputs, tmp_path / "pg.h5", mogaf_parts, "mogaf", params, seed=7), "forecast")
-    out = run_forecast_merge(
-        str(inputs["model"]),
-        str(inputs["groups"]),
-        str(inputs["split"]),
-        [],
-        str(tmp_path / "pm.h5"),
-        {**params, "jobs": "per_method"},
-        method="mogaf",
-        seed=7,
-        threads=1,
-    )
+    threads_seen = []
+    fit = forecast_stage.fit_and_rollout
+
+    def recording(*args, **kwargs):
+        threads_seen.append(torch.get_num_threads())
+        return fit(*args, **kwargs)
+
+    monkeypatch.setattr(forecast_stage, "fit_and_rollout", recording)
+    before = torch.get_num_threads()
+    torch.set_num_threads(3)
+    try:
+        out = run_forecast_merge(
+            str(inputs["model"]),
+            str(inputs["groups"]),
+            str(inputs["split"]),
+            [],
+            str(tmp_path / "pm.h5"),
+            {**params, "jobs": "per_method"},
+            method="mogaf",
+            seed=7,
+            threads=1,
+        )
+        assert torch.get_num_threads() == 3  # restored
+    finally:
+        torch.set_num_threads(before)
+    assert threads_seen == [1, 1]
     per_method = read_artefact(out, "forecast")
     for key in ("means", "quats", "group_id", "timesteps"):
         np.testing.assert_array_equal(per_method[key], per_group[key])
-    assert per_method.attrs["jobs"] == "per_method" and per_group.attrs["jobs"] == "per_group"
+    assert per_method.attrs["job_layout"] == "per_method" and per_group.attrs["job_layout"] == "per_group"
     assert per_method.attrs["num_groups_trained"] == 2
     assert set(per_method.attrs["flags"]) == {str(RIGID), str(NONRIGID)}
     with pytest.raises(MogafError, match=r"computed in the merge job \(per_method\), it takes no group files"):

@@ -1,6 +1,7 @@
 """End to end: the whole DAG on a tiny synthetic scene (.test/config.yaml).
 
-One uninterrupted run, then a second run in a fresh folder that is killed
+One uninterrupted run (forecasts per group), then a second run in a fresh
+folder (forecasts per method, .test/per_method.yaml) that is killed
 (SIGKILL to Snakemake and its jobs) while reconstruction trains, unlocked and
 simply rerun. Checks: every method's metrics, nothing written outside
 results/, .snakemake/ and the cache folder (HOME is an empty folder that
@@ -31,11 +32,9 @@ from support.paths import REPO
 pytestmark = pytest.mark.long
 
 SNAKEFILE = str(REPO / "Snakefile")
-CONFIGS = [
-    str(REPO / "config" / "config.yaml"),
-    str(REPO / ".test" / "config.yaml"),
-    str(REPO / ".test" / "per_method.yaml"),
-]
+CONFIGS = [str(REPO / "config" / "config.yaml"), str(REPO / ".test" / "config.yaml")]
+# the second run forecasts in one job per method (forecast.jobs: per_method), the first per group
+PER_METHOD = str(REPO / ".test" / "per_method.yaml")
 RATIO = Path("results/synthetic/tiny/ratio0.6")
 METHODS = ["mogaf", "mogaf_paper", "gcn", "ode", "constant_velocity", "frozen"]
 
@@ -61,12 +60,24 @@ def _prepare(work: Path) -> None:
             )
 
 
-def _command() -> list[str]:
-    return [sys.executable, "-m", "snakemake", "-s", SNAKEFILE, "--cores", "2", "demo", "--configfile", *CONFIGS]
+def _command(*layers: str) -> list[str]:
+    return [
+        sys.executable,
+        "-m",
+        "snakemake",
+        "-s",
+        SNAKEFILE,
+        "--cores",
+        "2",
+        "demo",
+        "--configfile",
+        *CONFIGS,
+        *layers,
+    ]
 
 
-def _run(work: Path, timeout: int = 600) -> subprocess.CompletedProcess:
-    res = subprocess.run(_command(), cwd=work, env=_env(work), capture_output=True, text=True, timeout=timeout)
+def _run(work: Path, *layers: str, timeout: int = 600) -> subprocess.CompletedProcess:
+    res = subprocess.run(_command(*layers), cwd=work, env=_env(work), capture_output=True, text=True, timeout=timeout)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-6000:]
     return res
 
@@ -85,7 +96,7 @@ def runs(tmp_path_factory):
     second = tmp_path_factory.mktemp("run2")
     _prepare(second)
     proc = subprocess.Popen(
-        _command(),
+        _command(PER_METHOD),
         cwd=second,
         env=_env(second),
         stdout=subprocess.DEVNULL,
@@ -102,10 +113,10 @@ def runs(tmp_path_factory):
     after_kill = _files(second)
     # A killed Snakemake leaves its lock behind: --unlock, then a plain rerun.
     unlock = subprocess.run(
-        _command() + ["--unlock"], cwd=second, env=_env(second), capture_output=True, text=True, timeout=120
+        _command(PER_METHOD) + ["--unlock"], cwd=second, env=_env(second), capture_output=True, text=True, timeout=120
     )
     assert unlock.returncode == 0, unlock.stderr[-3000:]
-    rerun = _run(second)
+    rerun = _run(second, PER_METHOD)
     return {
         "first": first,
         "second": second,
@@ -181,18 +192,22 @@ def test_artefacts_record_their_lineage(runs):
     assert forecast.inputs["refine"] == (lineage["refined.h5"].digest,)
 
 
-def test_per_method_layout_trains_in_the_merge_jobs(runs):
-    """forecast.jobs: per_method (.test/per_method.yaml): no forecast_group job
-    ran; each trained method's merge job trained its one job ('all')."""
+def test_both_job_layouts_ran(runs):
+    """The first run forecast per group (forecast_group jobs, merged), the
+    second per method (.test/per_method.yaml: no forecast_group job, each
+    trained method's merge job trained its one job 'all'); their metrics.json
+    are the same to the byte (test_rerun_after_kill_is_byte_identical)."""
     from mogaf.artefact import read_attrs
 
-    ratio = runs["first"] / RATIO
-    assert not list((ratio / "logs").glob("forecast_*_group*.log"))
-    assert not list((ratio / "forecast").glob("*/group*.h5"))
+    first, second = runs["first"] / RATIO, runs["second"] / RATIO
+    assert len(list((first / "forecast").glob("*/groupall.h5"))) == 4
+    assert not list((second / "logs").glob("forecast_*_group*.log"))
+    assert not list((second / "forecast").glob("*/group*.h5"))
     for method in ("mogaf", "gcn"):
-        attrs = read_attrs(ratio / "forecast" / f"{method}.h5")
-        assert attrs["jobs"] == "per_method" and attrs["num_groups_trained"] == 1, attrs
+        attrs = read_attrs(second / "forecast" / f"{method}.h5")
+        assert attrs["job_layout"] == "per_method" and attrs["num_groups_trained"] == 1, attrs
         assert set(attrs["flags"]) == {"all"}
+        assert read_attrs(first / "forecast" / f"{method}.h5")["job_layout"] == "per_group"
 
 
 def test_writes_only_results_snakemake_and_cache(runs):
@@ -220,6 +235,7 @@ def test_killed_run_leaves_no_partial_artefact_and_resumes(runs):
 
 
 def test_rerun_after_kill_is_byte_identical(runs):
+    # also across the job layouts: the second run forecast per method
     a = (runs["first"] / RATIO / "metrics.json").read_bytes()
     b = (runs["second"] / RATIO / "metrics.json").read_bytes()
     assert a == b

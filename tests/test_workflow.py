@@ -204,6 +204,29 @@ def test_rigid_init_runs_only_with_rigid_groups(tmp_path, rigid, expect):
     assert "recon" not in counts and "group" not in counts  # existing artefacts are reused
 
 
+@pytest.mark.parametrize("layout", ["per_group", "per_method"])
+def test_forecast_jobs_layout_decides_the_forecast_jobs(tmp_path, layout):
+    """forecast.jobs: per_group, a job per dynamic group and trained method;
+    per_method, none: the merge job trains (and asks for the GPU on cuda)."""
+    _groups_tree(tmp_path, [1, 0])
+    layer = tmp_path / "layout.yaml"
+    layer.write_text(f"forecast: {{jobs: {layout}}}\ndevice: cuda\n")
+    res = snakemake(
+        ["-n", "results/synthetic/default/ratio0.6/metrics.json"], tmp_path, configfiles=(CONFIG, str(layer))
+    )
+    assert res.returncode == 0, res.stderr[-3000:]
+    counts = job_counts(res.stdout)
+    trained = ("mogaf", "mogaf_paper", "gcn", "ode")
+    assert counts.get("forecast_group", 0) == (2 * len(trained) if layout == "per_group" else 0)
+    assert counts["forecast"] == 6
+    gpus = {
+        b.split("output:", 1)[1].split()[0].rsplit("/", 1)[1]: "gpu=1" in b for b in job_blocks(res.stdout, "forecast")
+    }
+    assert gpus == {
+        f"{m}.h5": layout == "per_method" and m in trained for m in (*trained, "constant_velocity", "frozen")
+    }
+
+
 def test_the_scene_family_runs_every_scene_at_both_ratios_into_one_table(tmp_path):
     family = str(REPO / "config" / "family.yaml")
     res = snakemake(["-n", "scenes"], tmp_path, configfiles=(CONFIG, str(REPO / "config" / "demo.yaml"), family))

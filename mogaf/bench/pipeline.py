@@ -125,7 +125,7 @@ def _detail(folder: Path, name: str) -> dict[str, float]:
         return {k: float(info[k]) for k in ("train_time_s", "rollout_time_s") if k in info}
     m = re.fullmatch(r"forecast_(\w+)", name)
     attrs = _attrs(folder / "forecast" / f"{m.group(1)}.h5") if m else {}
-    if attrs.get("jobs") == "per_method":  # the merge job ran every group: their sums
+    if attrs.get("job_layout") == "per_method":  # the merge job ran every group: their sums
         out: dict[str, float] = {}
         for info in (attrs.get("flags") or {}).values():
             for k in ("train_time_s", "rollout_time_s"):

@@ -13,7 +13,7 @@ Schema of forecast/{method}.h5:
   timesteps (T_fc,)        scene time-grid indices (= split.forecast_timesteps)
   means (N, T_fc, 3), quats (N, T_fc, 4)   per fg Gaussian, wxyz, unit
   group_id (N,)
-attrs: method, groupwise, jobs (forecast.jobs), num_groups_trained, flags (per job), params.
+attrs: method, groupwise, job_layout (forecast.jobs), num_groups_trained, flags (per job), params.
 
 No forecast job opens the scene: the future (ground truth included) is read
 only by the evaluation stage, which also computes the quick 3D check.
@@ -251,14 +251,16 @@ def run_forecast_merge(
     *,
     method: str,
     seed: int = 0,
-    device: str = "cpu",
+    device: str | None = None,
     threads: int | None = None,
 ) -> Path:
     """Merge the group jobs' poses into forecast/{method}.h5. INLINE_METHODS,
     and every method under forecast.jobs: per_method, are computed here, group
-    by group (a trained method on `device`, with `threads` torch threads as a
-    forecast_group job would be)."""
+    by group (a trained method on `device`, else params' `device`, else the
+    CPU, with `threads` torch threads as a forecast_group job would be)."""
     layout = job_layout(params)
+    if device is None:
+        device = str(params.get("device", "cpu"))
     model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
     group_rigid = group_rigid_flags(groups_h5)
     n, T = len(model.fg), int(split.forecast_timesteps.size)
@@ -316,7 +318,7 @@ def run_forecast_merge(
     attrs: dict[str, Any] = {
         "method": method,
         "groupwise": bool(params.get("groupwise", True)),
-        "jobs": layout,
+        "job_layout": layout,
         "num_groups_trained": trained,
         "flags": flags,
         "params": mparams,
@@ -332,8 +334,12 @@ def run_forecast_merge(
                 "params": mparams,
                 "seed": int(seed),
                 "parts": sorted(Path(p).name for p in parts),
-                # per_method: the device it ran on, as a forecast_group job's digest has it
-                **({"jobs": layout, "device": device} if layout == "per_method" else {}),
+                # trained here: the devices it ran on ("auto" resolved), as a forecast_group job's digest has them
+                **(
+                    {"job_layout": layout, "devices": sorted({str(f.get("device")) for f in flags.values()})}
+                    if trained and not parts
+                    else {}
+                ),
             }
         ),
         attrs=attrs,

@@ -405,9 +405,15 @@ def forecast_params(wildcards):
 
 
 def forecast_merge_params(wildcards):
-    """forecast_params and forecast.jobs: the merge job computes a method's
-    groups itself under per_method (no group job reads it)."""
-    return {**forecast_params(wildcards), "jobs": _forecast_layout(wildcards)}
+    """forecast_params; for a trained method under forecast.jobs: per_method
+    also the layout and the device, as the merge job trains its groups (under
+    per_group the params stay what they were: nothing reruns)."""
+    from mogaf.forecast.params import INLINE_METHODS
+
+    out = forecast_params(wildcards)
+    if _forecast_layout(wildcards) == "per_method" and wildcards.method not in INLINE_METHODS:
+        out.update(jobs="per_method", device=device(wildcards))
+    return out
 
 
 def _forecast_layout(wildcards):

@@ -52,6 +52,5 @@ rule forecast:
     params:
         forecast=forecast_merge_params,
         seed=seed,
-        device=device,
     script:
         "../scripts/run_stage.py"
