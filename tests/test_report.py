@@ -499,12 +499,12 @@ def test_load_metrics_rejects_foreign_json(tmp_path):
 # The demo's numbers, as the README gives them (make demo, results/synthetic/default/ratio0.6/metrics.json,
 # rounded as printed): method -> (PSNR, LPIPS, mPSNR, tracking EPE); GCN and ODE at config/demo.yaml's budgets.
 DEMO = {
-    "gcn": (16.69, 0.2477, 20.51, 0.475),
-    "ode": (16.59, 0.3226, 19.45, 1.601),
-    "mogaf": (17.65, 0.1944, 22.92, 0.104),
-    "mogaf_paper": (17.13, 0.2379, 21.52, 0.198),
-    "constant_velocity": (17.39, 0.2135, 22.07, 0.158),
-    "frozen": (17.55, 0.2102, 22.47, 0.156),
+    "gcn": (16.72, 0.2584, 20.78, 0.433),
+    "ode": (16.44, 0.3182, 19.63, 1.603),
+    "mogaf": (17.45, 0.1988, 23.48, 0.094),
+    "mogaf_paper": (16.93, 0.2440, 21.70, 0.196),
+    "constant_velocity": (17.16, 0.2252, 22.30, 0.165),
+    "frozen": (17.27, 0.2219, 22.55, 0.156),
 }
 DEMO_FILE = "results/synthetic/default/ratio0.6/metrics.json"
 
@@ -540,8 +540,8 @@ def test_glance_table_marks_the_best_and_the_shortened_budgets(tmp_path, monkeyp
         METHOD_LABELS["constant_velocity"],
         METHOD_LABELS["frozen"],
     ]
-    assert rows[2][1:] == ["**17.65**", "**0.1944**", "**22.92**", "**0.104**"]  # higher PSNR, lower LPIPS / EPE
-    assert rows[5][1:] == ["17.55", "0.2102", "22.47", "0.156"]
+    assert rows[2][1:] == ["**17.45**", "**0.1988**", "**23.48**", "**0.094**"]  # higher PSNR, lower LPIPS / EPE
+    assert rows[5][1:] == ["17.27", "0.2219", "22.55", "0.156"]
     assert lines[-1].startswith("Methods marked * ran off their papers' settings")
 
 

@@ -420,12 +420,26 @@ def _forecast_layout(wildcards):
     return scene_cfg(wildcards)["forecast"].get("jobs", "per_group")
 
 
-def forecast_merge_gpus(wildcards):
-    """A GPU for a merge job that trains (per_method, a trained method, device cuda)."""
+def _merge_trains(wildcards):
     from mogaf.forecast.params import INLINE_METHODS
 
-    trains = _forecast_layout(wildcards) == "per_method" and wildcards.method not in INLINE_METHODS
-    return 1 if trains and device(wildcards) == "cuda" else 0
+    return _forecast_layout(wildcards) == "per_method" and wildcards.method not in INLINE_METHODS
+
+
+def forecast_merge_gpus(wildcards):
+    """A GPU for a merge job that trains (per_method, a trained method, device cuda)."""
+    return 1 if _merge_trains(wildcards) and device(wildcards) == "cuda" else 0
+
+
+def forecast_merge_mem_mb(wildcards, attempt):
+    """A merge job's memory: a group job's where it trains (demo: <= 3.4 GB, the
+    latent ODE), else a merge's (demo: 0.4 GB); doubled on each retry."""
+    return (10000 if _merge_trains(wildcards) else 1500) * 2 ** (attempt - 1)
+
+
+def forecast_merge_runtime(wildcards, attempt):
+    """A merge job's minutes: every group in turn where it trains (demo: <= 107 s)."""
+    return (30 if _merge_trains(wildcards) else 10) * 2 ** (attempt - 1)
 
 
 def _forecast_jobs(wildcards, method):

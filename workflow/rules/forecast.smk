@@ -46,8 +46,8 @@ rule forecast:
         "../../envs/mogaf.yaml"
     threads: 1
     resources:
-        mem_mb=4000,
-        runtime=30,
+        mem_mb=forecast_merge_mem_mb,
+        runtime=forecast_merge_runtime,
         gpu=forecast_merge_gpus,
     params:
         forecast=forecast_merge_params,
