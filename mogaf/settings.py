@@ -307,7 +307,7 @@ def _config_properties(given: Mapping[str, Any]) -> dict[str, Any]:
     """The config schema's top level plus what its tables give: each stage's
     section (from its spec), and the forecast method names and sections (the
     method table), so that neither is written in config/schema.yaml."""
-    from .forecast.params import METHOD_TABLE
+    from .forecast.params import JOB_LAYOUTS, METHOD_TABLE
 
     properties = dict(given)
     for path, (_, name) in SECTIONS.items():
@@ -316,6 +316,7 @@ def _config_properties(given: Mapping[str, Any]) -> dict[str, Any]:
     forecast = dict(properties["forecast"])
     fields = dict(forecast["properties"])
     fields["methods"] = {**fields["methods"], "items": {"type": "string", "enum": [m.name for m in METHOD_TABLE]}}
+    fields["jobs"] = {"type": "string", "enum": list(JOB_LAYOUTS)}
     for m in METHOD_TABLE:  # each method's section (none of its own for one reading another's)
         if not m.section:
             definition = SECTIONS[f"forecast.{m.name}"][1] if m.settings is not None else "no_params"

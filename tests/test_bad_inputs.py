@@ -561,6 +561,18 @@ def test_conflicting_forecaster_settings_are_refused_before_any_job(tmp_path):
     assert f"{ablations}: variant 'margin': forecast.mogaf.structured: backtest_margin applies" in out
 
 
+def test_an_unknown_forecast_job_layout_is_one_line_naming_its_file(tmp_path):
+    """forecast.jobs takes the layouts mogaf.forecast.params.JOB_LAYOUTS lists
+    (the schema's enum is generated from them), refused before any job runs."""
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("forecast: {jobs: per_gaussian}\n")
+    res = _snakemake(["-n", "-c1", "--configfile", str(CONFIG), str(cfg)], tmp_path)
+    out = res.stdout + res.stderr
+    assert res.returncode == 1
+    assert f"{cfg}: forecast.jobs: 'per_gaussian' is not one of ['per_group', 'per_method']" in out
+    assert not (tmp_path / "results").exists()
+
+
 def test_a_forecaster_setting_without_effect_is_a_warning_naming_its_file(tmp_path):
     """Not an error (a sweep's variants switch the setting that makes it act):
     one warning line per value, naming the file that sets it, and the

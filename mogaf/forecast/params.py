@@ -287,6 +287,9 @@ FIXED_PARAMS: dict[str, dict[str, Any]] = {m.name: dict(m.fixed) for m in METHOD
 UNREAD_PARAMS: dict[str, tuple[str, ...]] = {m.name: m.unread for m in METHOD_TABLE if m.unread}
 INLINE_METHODS: tuple[str, ...] = tuple(m.name for m in METHOD_TABLE if m.inline)
 TRAINED_METHODS: tuple[str, ...] = tuple(m.name for m in METHOD_TABLE if not m.inline)
+# forecast.jobs: a Snakemake job per group and trained method, or one per method
+# (mogaf.forecast.stage.merge_computes); the config schema's enum comes from here
+JOB_LAYOUTS: tuple[str, ...] = ("per_group", "per_method")
 METHOD_LABELS: dict[str, str] = {m.name: m.label for m in METHOD_TABLE}
 METHOD_ORDER: list[str] = [m.name for m in sorted(METHOD_TABLE, key=lambda m: m.table_rank)]
 

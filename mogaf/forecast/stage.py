@@ -37,7 +37,7 @@ from ..errors import MogafError, input_error
 from ..representation import Model4D, load_model, quat_sign_continuity
 from ..split import read_split
 from .coherence import coherence
-from .params import INLINE_METHODS, param_section, section_params
+from .params import INLINE_METHODS, JOB_LAYOUTS, param_section, section_params
 from .registry import fit_and_rollout, load_settings
 
 log = logging.getLogger(__name__)
@@ -79,7 +79,6 @@ def dynamic_members(group_id: np.ndarray, group_static: np.ndarray) -> np.ndarra
 # job: a Snakemake job of their own would take longer to start than to run.
 # forecast.jobs: per_method runs every method so: one process (torch's import,
 # the inputs) per method instead of one per group, the same forecasts.
-JOB_LAYOUTS = ("per_group", "per_method")
 
 
 def job_layout(params: Mapping[str, Any]) -> str:
@@ -93,11 +92,16 @@ def _checked_layout(layout: str) -> str:
     return layout
 
 
+def merge_computes(method: str, layout: str) -> bool:
+    """Whether `method`'s merge job computes its groups itself: INLINE_METHODS
+    always, every method under layout per_method."""
+    return method in INLINE_METHODS or _checked_layout(layout) == "per_method"
+
+
 def method_jobs(method: str, jobs: list[str], layout: str = "per_group") -> list[str]:
     """Of the forecast jobs (forecast_jobs), those `method` runs as separate
-    forecast_group jobs: all of them, or none for INLINE_METHODS and under
-    layout per_method (its merge job runs them)."""
-    return [] if method in INLINE_METHODS or _checked_layout(layout) == "per_method" else list(jobs)
+    forecast_group jobs: all of them, or none where its merge job computes them."""
+    return [] if merge_computes(method, layout) else list(jobs)
 
 
 def _job_names(group_id: np.ndarray, group_static: np.ndarray, groupwise: bool) -> list[str]:
@@ -284,7 +288,7 @@ def run_forecast_merge(
         quats[members] = art["quats"]
         flags[str(art.attrs.get("job"))] = art.attrs.get("info", {})
     trained = len(parts)
-    if method in INLINE_METHODS or layout == "per_method":
+    if merge_computes(method, layout):
         if parts:
             raise MogafError(f"forecast {method}: computed in the merge job ({layout}), it takes no group files")
         settings = load_settings(method, method_params(params, method))  # once for every job of the merge

@@ -405,25 +405,27 @@ def forecast_params(wildcards):
 
 
 def forecast_merge_params(wildcards):
-    """forecast_params; for a trained method under forecast.jobs: per_method
-    also the layout and the device, as the merge job trains its groups (under
-    per_group the params stay what they were: nothing reruns)."""
-    from mogaf.forecast.params import INLINE_METHODS
-
+    """forecast_params; for a merge job that trains (_merge_trains) also the
+    layout and the device (under per_group the params stay what they were:
+    nothing reruns)."""
     out = forecast_params(wildcards)
-    if _forecast_layout(wildcards) == "per_method" and wildcards.method not in INLINE_METHODS:
+    if _merge_trains(wildcards):
         out.update(jobs="per_method", device=device(wildcards))
     return out
 
 
 def _forecast_layout(wildcards):
-    return scene_cfg(wildcards)["forecast"].get("jobs", "per_group")
+    from mogaf.forecast.stage import job_layout
+
+    return job_layout(scene_cfg(wildcards)["forecast"])
 
 
 def _merge_trains(wildcards):
-    from mogaf.forecast.params import INLINE_METHODS
+    """Whether the method's merge job trains its groups (forecast.jobs: per_method, a trained method)."""
+    from mogaf.forecast.params import TRAINED_METHODS
+    from mogaf.forecast.stage import merge_computes
 
-    return _forecast_layout(wildcards) == "per_method" and wildcards.method not in INLINE_METHODS
+    return wildcards.method in TRAINED_METHODS and merge_computes(wildcards.method, _forecast_layout(wildcards))
 
 
 def forecast_merge_gpus(wildcards):
