@@ -106,6 +106,8 @@ def torch_determinism(seed: int, num_threads: int | None, device: Any = None) ->
     that one: forking every visible GPU would open a context on each)."""
     import torch
 
+    from mogaf.optim import use_deterministic_algorithms
+
     old_threads = torch.get_num_threads()
     old_det = torch.are_deterministic_algorithms_enabled()
     old_warn = torch.is_deterministic_algorithms_warn_only_enabled()
@@ -115,11 +117,11 @@ def torch_determinism(seed: int, num_threads: int | None, device: Any = None) ->
         torch.manual_seed(int(seed))
         if num_threads:
             torch.set_num_threads(int(num_threads))
-        torch.use_deterministic_algorithms(True, warn_only=True)
+        use_deterministic_algorithms(True, warn_only=True)
         try:
             yield
         finally:
-            torch.use_deterministic_algorithms(old_det, warn_only=old_warn)
+            use_deterministic_algorithms(old_det, warn_only=old_warn)
             torch.set_num_threads(old_threads)
 
 

@@ -46,6 +46,8 @@ class ChannelForecaster:
     def fit(self, series: np.ndarray, floor: np.ndarray) -> ChannelForecaster:
         import torch
 
+        from mogaf.optim import Adam
+
         net, own = self.run.net, self.run.own
         S, T = series.shape
         sizes = window_sizes(T, int(own.context), int(own.horizon))
@@ -78,7 +80,7 @@ class ChannelForecaster:
             Y = torch.from_numpy(yn).float().to(dev)
             K = torch.from_numpy(steps_ahead).float().to(dev)
             n = X.shape[0]
-            opt = torch.optim.Adam(model.parameters(), lr=net.lr, weight_decay=own.weight_decay)
+            opt = Adam(model.parameters(), lr=net.lr, weight_decay=own.weight_decay)
             sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=net.iterations, eta_min=net.lr_min)
             bs = min(int(net.batch_size), n)
             model.train()

@@ -159,6 +159,8 @@ class GCNForecaster(Forecaster):
     def _fit(self, obs: np.ndarray) -> None:
         import torch
 
+        from mogaf.optim import Adam
+
         p = self.settings
         # each setting's own bounds are checked by its settings class (mogaf.forecast.baseline_params)
         g, t, _ = obs.shape
@@ -196,7 +198,7 @@ class GCNForecaster(Forecaster):
             RI = torch.from_numpy(rin).float().permute(0, 3, 2, 1).to(dev)
             XG = torch.from_numpy(xgt).float().to(dev)  # (n, out, K, 3)
             RG = torch.from_numpy(rgt).float().to(dev)
-            opt = torch.optim.Adam(model.parameters(), lr=p.lr, eps=p.adam_eps)
+            opt = Adam(model.parameters(), lr=p.lr, eps=p.adam_eps)
             # drop_last as upstream; with fewer windows than a batch, one batch of all.
             bs = min(p.batch_size, n_win)
             epochs = epochs_for(p.epochs, p.steps, n_win // bs)

@@ -171,6 +171,8 @@ class LatentODEForecaster(Forecaster):
     def _fit(self, obs: np.ndarray) -> None:
         import torch
 
+        from mogaf.optim import Adam
+
         p = self.settings
         # each setting's own bounds are checked by its settings class (mogaf.forecast.baseline_params)
         if p.d_model % p.nhead:
@@ -201,7 +203,7 @@ class LatentODEForecaster(Forecaster):
             TI = torch.from_numpy(tgt_idx).to(dev)
             TM = torch.from_numpy(tgt_mask).to(dev)
             times = (torch.arange(extrap + 1, dtype=torch.float32) * dt).to(dev)  # last obs frame, then targets
-            opt = torch.optim.Adam(model.parameters(), lr=p.lr)
+            opt = Adam(model.parameters(), lr=p.lr)
             per_epoch = math.ceil(n_win * min(g, p.max_gaussians_per_epoch) / p.batch_size)
             epochs = epochs_for(p.epochs, p.steps, per_epoch)
             sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(epochs, 1), eta_min=p.lr_min)

@@ -88,6 +88,8 @@ class MoGaFForecaster(Forecaster):
     def _fit(self, obs: np.ndarray) -> None:
         import torch
 
+        from mogaf.optim import Adam
+
         p = self.settings.net
         g, t, _ = obs.shape
         window = t - 1
@@ -109,7 +111,7 @@ class MoGaFForecaster(Forecaster):
             normalized_loss = p.loss_space == "normalized"
             mu1 = torch.from_numpy(obs[:, window - 1, :3]).float().to(dev)
             mu2 = torch.from_numpy(obs[:, window - 2, :3]).float().to(dev)
-            opt = torch.optim.Adam(model.parameters(), lr=p.lr, weight_decay=p.weight_decay)
+            opt = Adam(model.parameters(), lr=p.lr, weight_decay=p.weight_decay)
             sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=p.iterations, eta_min=p.lr_min)
             bs = min(batch_for_window(p.batch_size, p.batch_tokens, window), g)
             model.train()

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from ..errors import MogafError
+from ..optim import Adam
 from ..representation import blend_bases, matrix_to_rot6d
 from .data import TrainData
 from .init_common import (
@@ -204,7 +205,7 @@ def fit_bases_to_tracks(
     target = torch.tensor(xyz, dtype=torch.float32)  # (P, F, 3)
     w = torch.tensor(ok, dtype=torch.float32)[..., None]
     ft = torch.tensor(frame_tidx, dtype=torch.int64)
-    opt = torch.optim.Adam(
+    opt = Adam(
         [
             {"params": [r], "lr": 1e-2},
             {"params": [t], "lr": 3e-2 * scale},

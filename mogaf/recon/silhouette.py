@@ -27,6 +27,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..optim import Adam
 from ..representation import blend_bases
 from .data import TrainData
 from .interpolation import gap_interpolation
@@ -163,7 +164,7 @@ def fit_bases_to_silhouettes(
     tidx = torch.tensor(data.tidx, dtype=torch.int64)
     T = data.num_timesteps
     c0 = int(tidx[cano])
-    opt = torch.optim.Adam([{"params": [r], "lr": 1e-2}, {"params": [t], "lr": 1e-2 * scale}])
+    opt = Adam([{"params": [r], "lr": 1e-2}, {"params": [t], "lr": 1e-2 * scale}])
     ones = torch.ones(m.shape[0])
     grow = max(1, int(0.7 * iters))
     hist = []

@@ -30,6 +30,7 @@ import torch
 
 from ..camera import camera_centers
 from ..devices import resolve_device
+from ..optim import Adam
 from ..progress import Progress
 from ..rendering import rasterize
 from ..timing import KERNELS, PhaseClock
@@ -102,8 +103,7 @@ class Trainer(TrainerSchedule, FrameLosses):
             for k in ("motion.rot6d", "motion.transl"):
                 self.base_lr[k] *= params.lr_motion_identity_boost
         self.optimizers = {
-            name: torch.optim.Adam([p], lr=self.base_lr[name], eps=1e-15)
-            for name, p in self.model.named_tensors().items()
+            name: Adam([p], lr=self.base_lr[name], eps=1e-15) for name, p in self.model.named_tensors().items()
         }
         self.stats = DensityStats(self.model.num_gaussians)
         if state is not None:

@@ -14,6 +14,7 @@ import torch
 
 from ..grouping.core import Groups
 from ..grouping.stage import rigid_init
+from ..optim import Adam
 from ..recon.data import TrainData
 from ..recon.init_common import InitResult
 from ..recon.trainer import Trainer
@@ -102,7 +103,7 @@ class RefineTrainer(Trainer):
                     ("rigid.transl", self.rigid_transl, p.lr_transls * self.scale * p.lr_boost),
                 ):
                     self.base_lr[name] = lr
-                    self.optimizers[name] = torch.optim.Adam([prm], lr=lr, eps=1e-15)
+                    self.optimizers[name] = Adam([prm], lr=lr, eps=1e-15)
                     if state is not None and name in state["optimizers"]:
                         self.optimizers[name].load_state_dict(state["optimizers"][name])
             else:
