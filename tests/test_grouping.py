@@ -404,3 +404,16 @@ def test_still_members_of_a_jittering_body_and_a_swinging_part():
     assert not still_members(pos, neighbours=16, ratio=3.0, min_fraction=0.35).any()  # the moving part is too small
     pos[:, :, 2] += np.linspace(0.0, 1.0, T)  # everything swings: one class
     assert not still_members(pos, neighbours=16, ratio=3.0, min_fraction=0.1).any()
+
+
+@pytest.mark.parametrize("shape", [(500, 10), (40, 3), (6, 8)])
+def test_principal_components_equal_scikit_learns_pca_to_the_bit(shape):
+    from sklearn.decomposition import PCA
+
+    from mogaf.grouping.ours import principal_components
+
+    x = np.random.default_rng(sum(shape)).normal(size=shape) ** 3  # skewed: a few dominant directions
+    reference = PCA(n_components=min(shape), svd_solver="full")
+    scores, ratios = principal_components(x)
+    assert np.array_equal(scores, reference.fit_transform(x))
+    assert np.array_equal(ratios, reference.explained_variance_ratio_)
