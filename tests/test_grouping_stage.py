@@ -380,17 +380,27 @@ def test_a_segment_label_past_the_named_segments_is_one_line(toy_files, tmp_path
     np.testing.assert_array_equal(load_segments(scene_h5, np.array([1])).label, segments.label[[1]])
 
 
-def test_rigid_init_refine_and_grouping_quality_do_not_import_scikit_learn():
+def test_the_grouping_stages_do_not_import_scikit_learn():
     """scikit-learn (with the SciPy and pandas parts it pulls, one to two
-    seconds per process) is the group stage's PCA alone: the rigid_init and
-    refine jobs import this package for other names, and grouping_quality
-    computes its adjusted Rand index itself."""
+    seconds per process) is not needed by grouping: the motion features' PCA
+    is mogaf's own (grouping.ours.principal_components), rigid_init and
+    refine import this package for other names, and grouping_quality computes
+    its adjusted Rand index itself."""
     import subprocess
     import sys
 
+    from support.paths import REPO
+
     code = (
-        "import sys, mogaf.grouping.stage, mogaf.refine.stage, mogaf.grouping.quality; "
+        "import sys; sys.path.insert(0, 'tests')\n"
+        "import mogaf.grouping.stage, mogaf.refine.stage, mogaf.grouping.quality\n"
+        "from mogaf.grouping.api import group_gaussians\n"
+        "from support.toy_grouping import two_object_scene\n"
+        "sc = two_object_scene(seed=0)\n"
+        "groups = group_gaussians(sc.model, sc.masks, sc.frames, sc.instances, {'method': 'ours'})\n"
+        "assert groups.num_groups == 2\n"
         "print(sorted(m for m in ('sklearn', 'pandas') if m in sys.modules))"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.strip() == "[]"
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.strip() == "[]"
