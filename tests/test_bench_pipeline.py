@@ -91,3 +91,33 @@ def test_jobs_carry_their_own_time_and_breakdown(results):
 def test_a_folder_without_benchmarks_is_one_clear_error(tmp_path, capsys):
     assert pipeline.main(["--results", str(tmp_path)]) == 2
     assert "no benchmarks/ folder" in capsys.readouterr().err
+
+
+def test_schedule_bound_is_the_longer_of_the_critical_path_and_the_cpu_per_core(results):
+    jobs = pipeline.collect(results)
+    bound = pipeline.schedule_bound(jobs, cores=2)
+    # priors 1 -> recon 50 -> group 4 -> rigid_init 3 -> refine 30 -> the GCN's group job 14 and merge 3 -> evaluate 18
+    assert bound["critical_path"] == [
+        ("priors", ""),
+        ("recon", ""),
+        ("group", ""),
+        ("rigid_init", ""),
+        ("refine", ""),
+        ("forecast_gcn_group0", ""),
+        ("forecast_gcn", ""),
+        ("evaluate", ""),
+    ]
+    assert bound["critical_path_s"] == pytest.approx(123.0)
+    # CPU from the logs where they say it (recon 47, refine 27.5), else Snakemake's samples; the sweep's recon too
+    cpu = 47.0 + 27.5 + sum(c for _, _, c in JOBS) + 19.0
+    assert bound["cpu_per_core_s"] == pytest.approx(cpu / 2)
+    assert bound["bound_s"] == pytest.approx(max(123.0, cpu / 2))
+    one_core = pipeline.schedule_bound(jobs, cores=1)
+    assert one_core["bound_s"] == pytest.approx(cpu) and cpu > 123.0
+
+
+def test_a_sweep_waits_for_the_runs_shared_jobs(results):
+    """The sweep's recon has no priors job of its own: it waits for the run's."""
+    jobs = pipeline.collect(results)
+    sweep_recon = next(j for j in jobs if j.sweep and j.name == "recon")
+    assert [(j.name, j.sweep) for j in pipeline._needs(sweep_recon, jobs)] == [("priors", "")]

@@ -13,8 +13,11 @@ stands for the CPU time), the training loops' phase breakdown
 (`time_breakdown_s` of recon.h5 / refined.h5: rasterizer forward and
 backward, the rest of the autograd backward, losses, optimiser, density
 control) and the forecasters' fit / rollout times. Prints three tables: the
-budgets, every job, and the training loops' breakdown. Budgets are for an
-idle 2-core machine; `--run` also times the whole Snakemake run.
+budgets, every job, and the training loops' breakdown, then the shortest
+wall time any schedule of these jobs could reach on the given cores (the
+longest chain of jobs that wait for each other, and the CPU time shared
+over the cores): what speeding up one job can win. Budgets are for an idle
+2-core machine; `--run` also times the whole Snakemake run.
 """
 
 from __future__ import annotations
@@ -52,6 +55,21 @@ BUDGETS: list[tuple[str, str, float, str]] = [
     ("MoGaF forecast job", rf"forecast_({'|'.join(MOGAF_METHODS)})(_group\w+)?", 10.0, "each"),
     ("baseline forecast job", rf"forecast_({'|'.join(BASELINE_METHODS)})(_group\w+)?", 15.0, "each"),
     ("evaluate", r"evaluate", 20.0, "each"),
+]
+
+# What each job waits for (patterns over job names of the same run; a sweep
+# without a job of its own, e.g. priors, waits for the run's). Forecast merge
+# jobs also wait for their own per-group jobs.
+NEEDS: list[tuple[str, tuple[str, ...]]] = [
+    (r"priors", (r"ingest",)),
+    (r"recon", (r"priors",)),
+    (r"group", (r"recon",)),
+    (r"rigid_init", (r"group",)),
+    (r"refine", (r"group", r"rigid_init")),
+    (r"grouping_quality", (r"group",)),
+    (r"reconstruction_quality_\w+", (r"recon", r"refine")),
+    (r"forecast_\w+", (r"group", r"rigid_init", r"refine")),
+    (r"evaluate", (r"forecast_\w+", r"grouping_quality", r"reconstruction_quality_\w+")),
 ]
 
 FINISHED = re.compile(r"finished in ([0-9.]+) s(?:, process CPU ([0-9.]+) s)?")
@@ -177,6 +195,67 @@ def budget_rows(jobs: list[Job], snakemake_s: float | None) -> list[dict[str, An
     return rows
 
 
+def _needs(job: Job, jobs: list[Job]) -> list[Job]:
+    patterns = next((deps for pattern, deps in NEEDS if re.fullmatch(pattern, job.name)), ())
+    own = [j for j in jobs if j.sweep == job.sweep]
+    needed = []
+    for dep in patterns:
+        match = [j for j in own if re.fullmatch(dep, j.name)] or [
+            j for j in jobs if not j.sweep and re.fullmatch(dep, j.name)
+        ]
+        needed += [j for j in match if j is not job]
+    if job.name.startswith("forecast_") and "_group" not in job.name:  # a merge waits for its group jobs
+        needed += [j for j in own if j.name.startswith(job.name + "_group")]
+    if "_group" in job.name:  # a group job does not wait for another group's
+        needed = [j for j in needed if not j.name.startswith("forecast_")]
+    return needed
+
+
+def schedule_bound(jobs: list[Job], cores: int) -> dict[str, Any]:
+    """The shortest wall time any schedule of these jobs (their measured wall
+    and CPU times) could reach on `cores` cores: the longer of the critical
+    path (the longest chain of jobs that wait for each other, NEEDS) and the
+    jobs' CPU time shared over the cores."""
+    finish: dict[int, float] = {}
+    before: dict[int, Job | None] = {}
+
+    def end(job: Job) -> float:
+        key = id(job)
+        if key not in finish:
+            finish[key] = float("nan")  # a cycle would show as nan
+            deps = _needs(job, jobs)
+            last = max(deps, key=end, default=None)
+            before[key] = last
+            finish[key] = job.wall_s + (end(last) if last is not None else 0.0)
+        return finish[key]
+
+    tail = max(jobs, key=end)
+    chain = [tail]
+    while before[id(chain[-1])] is not None:
+        chain.append(before[id(chain[-1])])
+    cpu = sum(j.cpu_s if j.cpu_s is not None else j.wall_s for j in jobs)
+    critical = end(tail)
+    return {
+        "cores": cores,
+        "critical_path_s": critical,
+        "critical_path": [(j.name, j.sweep) for j in reversed(chain)],
+        "cpu_per_core_s": cpu / cores,
+        "bound_s": max(critical, cpu / cores),
+    }
+
+
+def schedule_line(bound: dict[str, Any], snakemake_s: float | None) -> str:
+    """`schedule_bound`'s result as a sentence (and the run's own wall time, if known)."""
+    chain = " -> ".join(f"{name} ({sweep})" if sweep else name for name, sweep in bound["critical_path"])
+    cores = bound["cores"]
+    return (
+        f"No schedule of these jobs on {cores} cores takes less than {bound['bound_s']:.0f} s: "
+        f"the critical path takes {bound['critical_path_s']:.0f} s ({chain}), "
+        f"the CPU time over {cores} cores {bound['cpu_per_core_s']:.0f} s"
+        + ("" if snakemake_s is None else f"; the run took {snakemake_s:.0f} s")
+    )
+
+
 def _s(v: float | None) -> str:
     return "" if v is None else f"{v:.1f}"
 
@@ -254,11 +333,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     rows = budget_rows(jobs, total)
     print(render(jobs, rows))
+    bound = schedule_bound(jobs, args.cores)
+    print("\n" + schedule_line(bound, total))
     imports = import_seconds()
     print("\nA fresh process here: " + ", ".join(f"{k} {v:.2f} s" for k, v in imports.items()))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         payload = {"results": str(args.results), "snakemake_s": total, "budgets": rows,
-                   "imports_s": imports, "jobs": [asdict(j) for j in jobs]}  # fmt: skip
+                   "schedule": bound, "imports_s": imports, "jobs": [asdict(j) for j in jobs]}  # fmt: skip
         args.json.write_text(json.dumps(payload, indent=1) + "\n")
     return 0

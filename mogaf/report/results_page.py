@@ -293,7 +293,7 @@ def variants_section(main: Sequence[Path], variants: Sequence[Path]) -> str:
 
 def pipeline_section(path: Path) -> str:
     """The tables of `python -m mogaf.bench pipeline` from its --json rows."""
-    from ..bench.pipeline import Job, render
+    from ..bench.pipeline import Job, render, schedule_line
 
     doc = _load_json(path)
     try:
@@ -304,6 +304,8 @@ def pipeline_section(path: Path) -> str:
         raise input_error(path, f"is not `python -m mogaf.bench pipeline --json` output ({exc})") from None
     imports = doc.get("imports_s") or {}
     tail = ["", "A fresh process there: " + ", ".join(f"{k} {v:.2f} s" for k, v in imports.items())] if imports else []
+    if doc.get("schedule"):
+        tail += ["", schedule_line(doc["schedule"], doc.get("snakemake_s"))]
     return "\n\n".join(
         [
             f"## Where a pipeline run's time goes: `{_posix(path)}`",
