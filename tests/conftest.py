@@ -46,14 +46,20 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Put the `long` modules first, then deselect `slow` tests unless the user
-    asked for them (--run-slow, or a -m expression naming slow).
+    """Put the `long` modules first, longest first, then deselect `slow` tests
+    unless the user asked for them (--run-slow, or a -m expression naming slow).
 
     xdist (--dist loadfile) hands out test files in collection order: a
-    minutes-long module collected late keeps one worker busy after the other
-    has run out of files, so the long ones start first (longest first
-    balances the workers)."""
-    items.sort(key=lambda item: item.get_closest_marker("long") is None)  # stable: the order within stays
+    long module collected late keeps one worker busy after the other has run
+    out of files, so the long ones start first, in the order of the seconds
+    their marker gives (`pytest.mark.long(seconds=...)`, measured with two
+    workers): longest first balances the workers."""
+
+    def seconds(item: pytest.Item) -> float:
+        marker = item.get_closest_marker("long")
+        return float(marker.kwargs.get("seconds", 60.0)) if marker is not None else 0.0
+
+    items.sort(key=lambda item: -seconds(item))  # stable: the order within stays
     if config.getoption("--run-slow") or "slow" in (config.getoption("markexpr") or ""):
         return
     slow = [item for item in items if item.get_closest_marker("slow") is not None]

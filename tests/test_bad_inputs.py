@@ -37,6 +37,9 @@ from support.fake_datasets import fake_dnerf, write_png
 from support.fake_datasets import write_json as write_dataset_json
 from support.paths import REPO
 
+# about 28 s with two workers: collected early (tests/conftest.py)
+pytestmark = pytest.mark.long(seconds=28)
+
 CONFIG = REPO / "config" / "config.yaml"
 SCHEMA = load_config_schema(REPO / "config" / "schema.yaml")
 

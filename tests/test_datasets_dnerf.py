@@ -19,6 +19,9 @@ from mogaf.scene import SPLIT_CODES, load_scene, save_scene
 from support.fake_datasets import MARKER, fake_dnerf, write_json, write_ply
 from support.paths import shared_path
 
+# about 20 s with two workers: collected early (tests/conftest.py)
+pytestmark = pytest.mark.long(seconds=20)
+
 MUJOCO = ("scene1_close_proximity", "scene3_collision", "scene4_occlusion", "scene5_rapid_motion", "scene7_deformation")
 
 

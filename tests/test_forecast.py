@@ -14,6 +14,9 @@ from mogaf.forecast.registry import defaults, fit_and_rollout, load_settings, ma
 from mogaf.forecast.synthetic import rigid_box, rigid_motion
 from support.forecast_params import FAST
 
+# about 60 s with two workers: collected early (tests/conftest.py)
+pytestmark = pytest.mark.long(seconds=60)
+
 
 def _rigid_rotation(g: int, t: int, omega: float, seed: int = 0, screw: float = 0.0) -> np.ndarray:
     """Rigid body rotating by omega per frame about a tilted axis through an

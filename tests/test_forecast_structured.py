@@ -33,6 +33,9 @@ from mogaf.forecast.trajectory import (
     still_gaussians,
 )
 
+# about 45 s with two workers: collected early (tests/conftest.py)
+pytestmark = pytest.mark.long(seconds=45)
+
 # Small budgets: behaviour, not converged accuracy.
 QUICK = {"iterations": 60, "batch_size": 32}
 # The default candidates, named where a test depends on them.

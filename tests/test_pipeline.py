@@ -29,7 +29,7 @@ import pytest
 from support.paths import REPO
 
 # minutes of work in one module fixture: collected first (tests/conftest.py)
-pytestmark = pytest.mark.long
+pytestmark = pytest.mark.long(seconds=120)
 
 SNAKEFILE = str(REPO / "Snakefile")
 CONFIGS = [str(REPO / "config" / "config.yaml"), str(REPO / ".test" / "config.yaml")]

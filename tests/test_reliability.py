@@ -19,6 +19,9 @@ import pytest
 from mogaf.recon.stage import run_recon_stage
 from support.tiny_scene import TINY_PARAMS, assert_same_arrays, make_tiny_scene
 
+# about 15 s with two workers: collected early (tests/conftest.py)
+pytestmark = pytest.mark.long(seconds=15)
+
 PARAMS = {**TINY_PARAMS, "iterations": 150, "checkpoint_every": 5}
 
 CHILD = """

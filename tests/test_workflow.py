@@ -17,6 +17,9 @@ import yaml
 
 from support.paths import REPO
 
+# about 35 s with two workers: collected early (tests/conftest.py)
+pytestmark = pytest.mark.long(seconds=35)
+
 SNAKEFILE = str(REPO / "Snakefile")
 CONFIG = str(REPO / "config" / "config.yaml")
 PAPER = str(REPO / "config" / "paper.yaml")
