@@ -13,25 +13,22 @@ eager kernels read.
 
 from __future__ import annotations
 
+import inspect
 import sys
 
 import torch
 
 
-def _undecorated(fn):
-    """The function a torch decorator wrapped (functools.wraps keeps it as
-    __wrapped__); the decorated one where a torch release stops exposing it."""
-    return getattr(fn, "__wrapped__", fn)
-
-
 class Adam(torch.optim.Adam):
-    """torch.optim.Adam whose methods skip the decorators that import torch._dynamo."""
+    """torch.optim.Adam whose methods skip the decorators that import torch._dynamo
+    (inspect.unwrap: the functions torch's decorators wrapped, whatever wrapped
+    them since, e.g. the profiling hook of an Adam made before this class)."""
 
-    add_param_group = _undecorated(torch.optim.Optimizer.add_param_group)
-    zero_grad = _undecorated(torch.optim.Optimizer.zero_grad)
-    state_dict = _undecorated(torch.optim.Optimizer.state_dict)
-    load_state_dict = _undecorated(torch.optim.Optimizer.load_state_dict)
-    _step = _undecorated(torch.optim.Adam.step)
+    add_param_group = inspect.unwrap(torch.optim.Optimizer.add_param_group)
+    zero_grad = inspect.unwrap(torch.optim.Optimizer.zero_grad)
+    state_dict = inspect.unwrap(torch.optim.Optimizer.state_dict)
+    load_state_dict = inspect.unwrap(torch.optim.Optimizer.load_state_dict)
+    _step = inspect.unwrap(torch.optim.Adam.step)
 
     def step(self, closure=None):
         # the decorator's one other effect: the update runs without autograd
