@@ -206,8 +206,6 @@ def _needs(job: Job, jobs: list[Job]) -> list[Job]:
         needed += [j for j in match if j is not job]
     if job.name.startswith("forecast_") and "_group" not in job.name:  # a merge waits for its group jobs
         needed += [j for j in own if j.name.startswith(job.name + "_group")]
-    if "_group" in job.name:  # a group job does not wait for another group's
-        needed = [j for j in needed if not j.name.startswith("forecast_")]
     return needed
 
 
