@@ -276,6 +276,34 @@ def test_ode_learns_per_gaussian_trajectories_given_steps():
     assert spread > 0.75 * true_spread, (spread, true_spread)
 
 
+def test_ode_encoder_reads_the_last_token_as_the_full_stack_does():
+    """The latent ODE's encoder runs its last layer for the last token only (the
+    one z0 reads): in eval mode, and in training without dropout (values and
+    gradients), it must equal nn.TransformerEncoder's full output there. The
+    slow reference is torch's own stack; a wrong residual, norm or key set
+    differs at 1e-1."""
+    import torch
+
+    from mogaf.forecast.ode import _build_model
+
+    p = load_settings("ode", {"d_model": 32, "nhead": 4, "num_encoder_layers": 3, "encoder_dropout": 0.0})
+    torch.manual_seed(0)
+    model = _build_model(p, obs_len=9).double()
+    obs = torch.randn(5, 9, 7, dtype=torch.float64)
+
+    def full(x):
+        return model.to_z0(model.encoder(model.value_embedding(x) + model.pos)[:, -1])
+
+    for train in (False, True):
+        model.train(train)
+        xa, xb = obs.clone().requires_grad_(), obs.clone().requires_grad_()
+        za, zb = model.encode(xa), full(xb)
+        torch.testing.assert_close(za, zb, rtol=1e-12, atol=1e-12)
+        (za**2).sum().backward()
+        (zb**2).sum().backward()
+        torch.testing.assert_close(xa.grad, xb.grad, rtol=1e-10, atol=1e-12)
+
+
 @pytest.mark.parametrize("method", ["gcn", "ode"])
 def test_step_budget_gives_the_baselines_the_same_steps_on_short_and_long_groups(method):
     """`steps: N` trains a baseline for the fewest whole epochs giving at least

@@ -125,10 +125,28 @@ def _build_model(p: dict[str, Any], obs_len: int):
             nn.init.zeros_(self.decoder[-1].bias)
 
         def encode(self, obs):
-            h = self.encoder(self.value_embedding(obs) + self.pos)
-            return self.to_z0(h[:, -1])
+            """z0 from the last token of the encoder's output. Only that token
+            is read, so the last layer runs its attention query, feed-forward
+            and norms for it alone (keys and values still see every token):
+            the same function as the full stack, at about three quarters of its
+            cost with four layers."""
+            h = self.value_embedding(obs) + self.pos
+            *first, last = self.encoder.layers
+            for layer in first:
+                h = layer(h)
+            return self.to_z0(_last_token_layer(last, h))
 
     return LatentODE()
+
+
+def _last_token_layer(layer, h):
+    """A post-norm nn.TransformerEncoderLayer's output at the last position
+    only, (B, L, d) -> (B, d); dropout as the layer's own forward applies it."""
+    x = h[:, -1:]
+    a = layer.self_attn(x, h, h, need_weights=False)[0]
+    x = layer.norm1(x + layer.dropout1(a))
+    f = layer.linear2(layer.dropout(layer.activation(layer.linear1(x))))
+    return layer.norm2(x + layer.dropout2(f))[:, 0]
 
 
 def _solve(model, z0, times, p: dict[str, Any]):
