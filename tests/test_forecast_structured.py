@@ -19,7 +19,7 @@ from mogaf.forecast.candidates import (
 )
 from mogaf.forecast.channel_net import window_sizes
 from mogaf.forecast.coherence import coherence, rigid_distance_change
-from mogaf.forecast.group_motion import GroupMotion
+from mogaf.forecast.group_motion import GroupMotion, damped_steps, time_warped
 from mogaf.forecast.params import STRUCTURED_CANDIDATES, inert_settings
 from mogaf.forecast.registry import fit_and_rollout, make_forecaster
 from mogaf.forecast.structured import StructuredMoGaF, origin_frames
@@ -810,6 +810,54 @@ def test_linear_trend_is_exact_on_uniform_motion_and_steadier_than_the_last_step
     trend_err = epe(_fit_structured(bad, settings, 0, True, 10)[0].rollout(10))
     velocity_err = epe(fit_and_rollout("constant_velocity", bad, 10).poses)
     assert trend_err < 0.25 * velocity_err
+
+
+def test_damped_steps_and_time_warp_give_a_damped_trend():
+    """Read at damped steps, a uniform motion becomes Gardner and McKenzie's
+    damped trend (each step's displacement phi times the previous one's);
+    undamped steps give the trajectory back, and quaternions stay unit."""
+    np.testing.assert_array_equal(damped_steps(5, 1.0), [1, 2, 3, 4, 5])
+    steps = damped_steps(6, 0.8)
+    np.testing.assert_allclose(np.diff(np.concatenate([[0.0], steps])), 0.8 ** np.arange(6), rtol=1e-15)
+    start = np.array([[0.0, 1.0, 2.0, 1.0, 0.0, 0.0, 0.0]])
+    k = np.arange(1, 7, dtype=np.float64)
+    turn = quat.from_axis_angle(np.broadcast_to([0.0, 0.0, 1.0], (6, 3)), 0.1 * k)
+    traj = np.concatenate([start[:, None, :3] + k[None, :, None] * [0.1, 0.0, -0.2], turn[None]], -1)
+    np.testing.assert_allclose(time_warped(traj, start, damped_steps(6, 1.0)), traj, atol=1e-15)
+    warped = time_warped(traj, start, steps)
+    np.testing.assert_allclose(warped[0, :, :3], start[:, :3] + steps[:, None] * [0.1, 0.0, -0.2], atol=1e-14)
+    np.testing.assert_allclose(np.linalg.norm(warped[..., 3:], axis=-1), 1.0, atol=1e-14)
+    angle = quat.angle_between(warped[0, :, 3:], np.array([1.0, 0.0, 0.0, 0.0]))
+    np.testing.assert_allclose(angle, 0.1 * steps, atol=1e-4)  # nlerp between steps 0.1 rad apart
+
+
+def test_damping_slows_a_forecast_and_keeps_rigid_groups_rigid_and_still_parts_still():
+    """structured.damping (speed halving every damping x T frames): a moving
+    box's centre covers the damped trend's share of the undamped forecast's
+    ground (uniform motion); beside a resting part, the body stays rigid and
+    the part still; 0 is the undamped forecast to the bit."""
+    box = rigid_box(64, 30)
+    lin = {**QUICK, "structured": {"candidates": ["linear_trend"]}}
+
+    def forecast(obs, **structured):
+        section = {**lin, "structured": {**lin["structured"], **structured}}
+        return fit_and_rollout("mogaf", obs, 15, section, seed=0, rigid=True).poses
+
+    plain, damped = forecast(box), forecast(box, damping=0.5)
+    np.testing.assert_array_equal(forecast(box, damping=0.0), plain)
+    centre = box[:, -1, :3].mean(0)
+    ground = np.linalg.norm(damped[:, -1, :3].mean(0) - centre)
+    full = np.linalg.norm(plain[:, -1, :3].mean(0) - centre)
+    share = damped_steps(15, 0.5 ** (1 / 15))[-1] / 15  # half-life 0.5 x 30 observed frames
+    assert ground == pytest.approx(share * full, rel=0.02) and share < 0.75
+
+    rng = np.random.default_rng(2)
+    rest = np.repeat(
+        np.concatenate([rng.uniform(-1, 1, (16, 1, 3)) + 2.0, np.tile([1.0, 0, 0, 0], (16, 1, 1))], -1), 30, axis=1
+    )
+    poses = forecast(np.concatenate([box, rest]), damping=0.5)
+    assert _pairwise_change(poses[:64], box[:, -1]) < 1e-9
+    np.testing.assert_array_equal(poses[64:], np.repeat(rest[:, -1:], 15, axis=1))
 
 
 def test_drift_check_discounts_a_refit_that_learns_the_last_frames_artefact():

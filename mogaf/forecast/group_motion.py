@@ -33,9 +33,13 @@ class GroupMotion:
         rigid: bool,
         still_factor: float,
         decomposition: tuple[np.ndarray, np.ndarray, float] | None = None,
+        damping: float = 0.0,
     ) -> None:
-        """`decomposition`: rigid_decomposition(obs[..., :3]) when already computed."""
+        """`decomposition`: rigid_decomposition(obs[..., :3]) when already computed.
+        `damping` (structured.damping): the forecast's speed halves every
+        damping x T frames (T observed); 0 = undamped."""
         self.obs = obs
+        self.damping = damping
         self.rigid = rigid
         self.last = obs[:, -1]
         pos = obs[..., :3]
@@ -105,9 +109,17 @@ class GroupMotion:
         rot = integrate_rotvec(self.last[self.moving, 3:], rv_last, f[..., 3:])
         return np.concatenate([f[..., :3], rot], axis=-1)
 
+    def start(self) -> np.ndarray:
+        """The trajectory's pose at the last observed frame (its step 0)."""
+        return self.frozen_trajectory(1)[..., 0, :]
+
     def members(self, trajectory: np.ndarray) -> np.ndarray:
-        """Member poses (G, n, 7) of a trajectory; still members keep their last pose."""
+        """Member poses (G, n, 7) of a trajectory (damped, if `damping`); still
+        members keep their last pose."""
         n = trajectory.shape[-2]
+        if self.damping > 0 and len(self.moving):
+            half_life = self.damping * self.obs.shape[1]
+            trajectory = time_warped(trajectory, self.start(), damped_steps(n, 0.5 ** (1.0 / half_life)))
         out = np.repeat(self.last[:, None, :], n, axis=1)
         if not len(self.moving):
             return out
@@ -120,3 +132,26 @@ class GroupMotion:
         else:
             out[self.moving] = trajectory
         return out
+
+
+def damped_steps(n: int, phi: float) -> np.ndarray:
+    """(n,) the forecast step each of n steps is read at when the speed falls
+    by phi per step: 1, 1 + phi, 1 + phi + phi^2, ... (Gardner and
+    McKenzie's damped trend, for any trajectory)."""
+    return np.cumsum(phi ** np.arange(n, dtype=np.float64))
+
+
+def time_warped(trajectory: np.ndarray, start: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    """A trajectory (..., n, 7) read at fractional steps (n,) in [0, n], step 0
+    being `start` (..., 7): positions interpolated linearly, quaternions
+    normalised-linearly on one hemisphere."""
+    full = np.concatenate([start[..., None, :], trajectory], axis=-2)
+    n = trajectory.shape[-2]
+    i0 = np.clip(np.floor(steps).astype(np.int64), 0, n)
+    i1 = np.minimum(i0 + 1, n)
+    f = (steps - i0)[:, None]
+    a, b = full[..., i0, :], full[..., i1, :]
+    out = np.empty_like(trajectory)
+    out[..., :3] = (1.0 - f) * a[..., :3] + f * b[..., :3]
+    out[..., 3:] = quat.normalize((1.0 - f) * a[..., 3:] + f * quat.align_to(b[..., 3:], a[..., 3:]))
+    return out

@@ -113,6 +113,13 @@ class StructuredSettings:
         "keeps a shift, a small turn and a stretch (docs/forecasting.md, variant coherent_forecast)",
         minimum=0,
     )
+    damping: float = setting(
+        0.0,
+        "the forecast's speed halves every damping x T frames (T observed; Gardner and McKenzie's damped trend, "
+        "applied to whatever the candidates forecast, backtest included); 0 = undamped. Trust in any extrapolation "
+        "falls with its length against what was observed (docs/forecasting.md, variant damped_forecast)",
+        minimum=0,
+    )
     drift_check: bool = setting(
         True,
         "the learned candidate's backtest error is combined (root sum of squares) with its refit drift: the mean "

@@ -111,7 +111,7 @@ def group_motion(obs: np.ndarray, own: StructuredSettings, rigid_hint: bool | No
         "rigid_residual_rel": rel,
         "rigid_source": "groups" if rigid_hint is not None and rel is not None else "residual",
     }
-    return GroupMotion(obs, rigid, own.still_factor, decomposition), info
+    return GroupMotion(obs, rigid, own.still_factor, decomposition, own.damping), info
 
 
 def backtest_frames(length: int, own: StructuredSettings, horizon: int) -> int | None:
@@ -173,7 +173,7 @@ def backtest(
     reads a shorter context (window_sizes) than the one refitted on all T
     frames, which keeps its own."""
     own, T = run.own, obs.shape[1]
-    past = GroupMotion(obs[:, : T - h], motion.rigid, own.still_factor)
+    past = GroupMotion(obs[:, : T - h], motion.rigid, own.still_factor, damping=own.damping)
     # combine: weighted, non-rigid: every moving member scored over its nearest
     # moving members (still ones are forecast still by every candidate); with
     # as many neighbours as moving members, the group's own weighting, exactly
@@ -218,7 +218,7 @@ def _later_origin(
     drift over its first n steps. Scores and drift are recorded in bt.info
     (`..._last{n}`)."""
     own, T = run.own, obs.shape[1]
-    past = GroupMotion(obs[:, : T - n], motion.rigid, own.still_factor)
+    past = GroupMotion(obs[:, : T - n], motion.rigid, own.still_factor, damping=own.damping)
     out = OriginScores(n, {}, {})
     for name in candidates:
         if name == "learned" and (learned_net is None or not past.series.shape[0]):
