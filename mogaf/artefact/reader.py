@@ -231,6 +231,30 @@ def open_artefact(
         fh.close()
 
 
+def row_spans(rows: np.ndarray, max_gap: int) -> list[tuple[int, int]]:
+    """[start, stop) spans covering sorted unique `rows`, a gap of at most
+    `max_gap` rows left inside a span."""
+    if rows.size == 0:
+        return []
+    cut = np.flatnonzero(np.diff(rows) > max_gap + 1) + 1
+    starts = rows[np.concatenate([[0], cut])]
+    stops = rows[np.concatenate([cut - 1, [rows.size - 1]])] + 1
+    return [(int(a), int(b)) for a, b in zip(starts, stops, strict=True)]
+
+
+def _read_sorted_rows(ds: h5py.Dataset, rows: np.ndarray) -> np.ndarray:
+    """ds[rows] for sorted unique rows, read as slices: h5py's list selection
+    is an order of magnitude slower than a slice (0.49 s against 0.03 s for 72
+    of the demo's 180 images). Gaps up to one chunk's rows are read through,
+    as their chunks are decompressed anyway."""
+    if rows.size == 0:
+        return np.empty((0,) + ds.shape[1:], ds.dtype)
+    spans = row_spans(rows, ds.chunks[0] if ds.chunks else 1)
+    block = np.concatenate([ds[a:b] for a, b in spans])
+    covered = np.concatenate([np.arange(a, b) for a, b in spans])
+    return block if covered.size == rows.size else block[np.searchsorted(covered, rows)]
+
+
 def read_rows(fh: h5py.File, key: str, rows: np.ndarray) -> np.ndarray:
     """Read only `rows` (first axis) of dataset `key`, checking finiteness."""
     path = Path(fh.filename)
@@ -244,7 +268,7 @@ def read_rows(fh: h5py.File, key: str, rows: np.ndarray) -> np.ndarray:
         order = np.argsort(rows, kind="stable")
         sorted_rows = rows[order]
         unique_rows, inverse = np.unique(sorted_rows, return_inverse=True)
-        block = ds[unique_rows] if unique_rows.size else np.empty((0,) + ds.shape[1:], ds.dtype)
+        block = _read_sorted_rows(ds, unique_rows)
     except (OSError, RuntimeError) as exc:
         raise _unreadable(path, key, ds, exc) from None
     out = np.empty((rows.size,) + ds.shape[1:], dtype=ds.dtype)
