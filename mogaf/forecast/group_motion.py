@@ -117,12 +117,12 @@ class GroupMotion:
         """Member poses (G, n, 7) of a trajectory (damped, if `damping`); still
         members keep their last pose."""
         n = trajectory.shape[-2]
-        if self.damping > 0 and len(self.moving):
-            half_life = self.damping * self.obs.shape[1]
-            trajectory = time_warped(trajectory, self.start(), damped_steps(n, 0.5 ** (1.0 / half_life)))
         out = np.repeat(self.last[:, None, :], n, axis=1)
         if not len(self.moving):
             return out
+        if self.damping > 0:
+            half_life = self.damping * self.obs.shape[1]
+            trajectory = time_warped(trajectory, self.start(), damped_steps(n, 0.5 ** (1.0 / half_life)))
         if self.rigid:
             members = self.last[self.moving]
             rel = members[:, :3] - self.centroids[-1]

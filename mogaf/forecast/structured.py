@@ -111,7 +111,7 @@ def group_motion(obs: np.ndarray, own: StructuredSettings, rigid_hint: bool | No
         "rigid_residual_rel": rel,
         "rigid_source": "groups" if rigid_hint is not None and rel is not None else "residual",
     }
-    return GroupMotion(obs, rigid, own.still_factor, decomposition, own.damping), info
+    return GroupMotion(obs, rigid, own.still_factor, decomposition, damping=own.damping), info
 
 
 def backtest_frames(length: int, own: StructuredSettings, horizon: int) -> int | None:
