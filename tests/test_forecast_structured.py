@@ -697,6 +697,12 @@ def _changed(section: dict, change: dict, key: str) -> dict:
     "base, control, change, key",
     [
         ({"structured": {"candidates": WITH_VELOCITY}}, {}, {"trend_window": 12}, "structured.trend_window"),
+        (
+            {},
+            {"structured": {"candidates": ["frozen", "damped_trend", "learned"]}},
+            {"trend_half_life": 2.0},
+            "structured.trend_half_life",
+        ),
         ({"structured": {"combine": "select"}}, {}, {"backtest_neighbors": 4}, "structured.backtest_neighbors"),
         ({"structured": {"combine": "select"}}, {}, {"backtest_origins": 3}, "structured.backtest_origins"),
         ({"structured": {"gate": False}}, {}, {"drift_check": False}, "structured.drift_check"),
@@ -858,6 +864,46 @@ def test_damping_slows_a_forecast_and_keeps_rigid_groups_rigid_and_still_parts_s
     poses = forecast(np.concatenate([box, rest]), damping=0.5)
     assert _pairwise_change(poses[:64], box[:, -1]) < 1e-9
     np.testing.assert_array_equal(poses[64:], np.repeat(rest[:, -1:], 15, axis=1))
+
+
+def _sliding_box(g: int, t: int, speed_of_step) -> np.ndarray:
+    """A box sliding along x, its step k's length speed_of_step(k)."""
+    from mogaf.forecast.synthetic import rigid_motion
+
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-0.2, 0.2, (g, 3))
+    q0 = quat.canonical_sign(quat.normalize(rng.normal(size=(g, 4))))
+    path = np.concatenate([[0.0], np.cumsum(speed_of_step(np.arange(1, t, dtype=np.float64)))])
+    identity = np.tile([1.0, 0.0, 0.0, 0.0], (t, 1))
+    return rigid_motion(pts, q0, np.zeros(3), identity, path[:, None] * np.array([1.0, 0.0, 0.0]))
+
+
+def test_damped_trend_candidate_slows_the_line_and_wins_the_backtest_only_where_motion_slows():
+    """damped_trend is linear_trend's line read at damped steps (speed halving
+    every trend_half_life steps), rigid groups staying rigid. In the backtest
+    it beats the line and frozen on a box whose speed decays, and loses to the
+    line on a box at constant speed."""
+    lin = {**QUICK, "structured": {"candidates": ["linear_trend"]}}
+    damped = {**QUICK, "structured": {"candidates": ["damped_trend"], "trend_half_life": 4.0}}
+    box = _uniform_box(64, 30)
+    line = fit_and_rollout("mogaf", box, 12, lin, seed=0, rigid=True).poses
+    slow = fit_and_rollout("mogaf", box, 12, damped, seed=0, rigid=True).poses
+    centre = box[:, -1, :3].mean(0)
+    share = damped_steps(12, 0.5 ** (1 / 4.0)) / np.arange(1, 13)
+    ground = np.linalg.norm(slow[:, :, :3].mean(0) - centre, axis=-1)
+    full = np.linalg.norm(line[:, :, :3].mean(0) - centre, axis=-1)
+    np.testing.assert_allclose(ground, share * full, rtol=0.03)
+    assert _pairwise_change(slow, box[:, -1]) < 1e-9
+
+    weighed = {**QUICK, "structured": {"candidates": ["frozen", "linear_trend", "damped_trend"]}}
+    decaying = _sliding_box(48, 40, lambda k: 0.05 * 0.9**k)
+    steady = _sliding_box(48, 40, lambda k: np.full_like(k, 0.02))
+    on_decay = fit_and_rollout("mogaf", decaying, 8, weighed, seed=0, rigid=True).info
+    on_steady = fit_and_rollout("mogaf", steady, 8, weighed, seed=0, rigid=True).info
+    assert on_decay["choice"] == "damped_trend", on_decay
+    assert on_decay["backtest_epe_damped_trend"] < 0.8 * on_decay["backtest_epe_linear_trend"]
+    assert on_steady["choice"] == "linear_trend", on_steady
+    assert on_steady["backtest_epe_linear_trend"] < 0.1 * on_steady["backtest_epe_damped_trend"]
 
 
 def test_drift_check_discounts_a_refit_that_learns_the_last_frames_artefact():

@@ -1,5 +1,5 @@
 """The structured MoGaF forecaster's candidates (frozen, constant_velocity,
-linear_trend, constant_acceleration, learned), fitted on a GroupMotion, and
+linear_trend, damped_trend, constant_acceleration, learned), fitted on a GroupMotion, and
 what the backtest weighs them with: member distances, inverse-squared-error
 weights, nearest moving members and the blend of their forecasts."""
 
@@ -13,7 +13,7 @@ import numpy as np
 from mogaf.errors import MogafError
 from mogaf.forecast import quat
 from mogaf.forecast.channel_net import ChannelForecaster
-from mogaf.forecast.group_motion import GroupMotion
+from mogaf.forecast.group_motion import GroupMotion, damped_steps, time_warped
 from mogaf.forecast.mogaf_settings import MogafRun
 
 
@@ -146,7 +146,7 @@ class FittedCandidate:
         device: Any = "cpu",
         model: ChannelForecaster | None = None,
     ) -> None:
-        self.name, self.motion = name, motion
+        self.name, self.motion, self.run = name, motion, run
         self.polynomial = (
             (POLYNOMIAL_CANDIDATES[name][0], int(getattr(run.own, POLYNOMIAL_CANDIDATES[name][1])))
             if name in POLYNOMIAL_CANDIDATES
@@ -172,6 +172,10 @@ class FittedCandidate:
         if self.polynomial is not None:
             degree, window = self.polynomial
             return m.polynomial_trajectory(n, window, degree)
+        if self.name == "damped_trend":
+            line = m.polynomial_trajectory(n, int(self.run.own.trend_window), 1)
+            phi = 0.5 ** (1.0 / float(self.run.own.trend_half_life))
+            return time_warped(line, m.start(), damped_steps(n, phi))
         if self.name == "constant_velocity" or self.model is None:
             return m.constant_velocity_trajectory(n)
         return m.series_trajectory(self.model.rollout(m.series, m.floor, n))

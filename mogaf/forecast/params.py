@@ -18,7 +18,14 @@ from ..settings import as_dict, defaults, load, section_schema, setting
 from .baseline_params import GCNSettings, ODESettings
 
 # The structured mode's candidates, simplest first: a tie goes to the simpler.
-STRUCTURED_CANDIDATES = ("frozen", "constant_velocity", "linear_trend", "constant_acceleration", "learned")
+STRUCTURED_CANDIDATES = (
+    "frozen",
+    "constant_velocity",
+    "linear_trend",
+    "damped_trend",
+    "constant_acceleration",
+    "learned",
+)
 
 
 @dataclass(frozen=True)
@@ -78,7 +85,8 @@ class StructuredSettings:
         ["frozen", "linear_trend", "learned"],
         "what the backtest weighs (or selects among): any of frozen, constant_velocity (the last step's velocity; "
         "a rigid group's last twist), linear_trend (each series' least-squares line through its last `trend_window` "
-        "values), constant_acceleration (each series' least-squares parabola through its last `context` values) and "
+        "values), damped_trend (that line, its speed halving every `trend_half_life` steps), constant_acceleration "
+        "(each series' least-squares parabola through its last `context` values) and "
         "learned, at least one. The default takes linear_trend over constant_velocity, as a reconstruction's last "
         "step is its least constrained, and leaves out constant_acceleration, whose parabola contacts bend off "
         "within the forecast (docs/forecasting.md)",
@@ -90,10 +98,19 @@ class StructuredSettings:
     )
     trend_window: int = setting(
         8,
-        "values the linear_trend candidate fits its line through (2 = constant velocity per series). Enough that the "
+        "values the linear_trend and damped_trend candidates fit their line through (2 = constant velocity per "
+        "series). Enough that the "
         "reconstruction's least accurate last frames move the line little, few enough to follow recent changes of "
         "motion (docs/forecasting.md)",
         minimum=2,
+    )
+    trend_half_life: float = setting(
+        8.0,
+        "forecast steps over which the damped_trend candidate's speed halves (Gardner and McKenzie's damped trend: "
+        "step k is read at 1 + phi + ... + phi^(k-1)). As many as the line is fitted through (trend_window): the "
+        "trend is trusted about as far ahead as it was measured, and within a backtest window, so the backtest can "
+        "tell a motion that goes on from one that slows (docs/forecasting.md, variant damped_candidate)",
+        exclusive_minimum=0,
     )
     backtest_neighbors: int = setting(
         32,
@@ -314,6 +331,7 @@ BACKTEST_ONLY = (
     "backtest_neighbors",
     "drift_check",
     "trend_window",
+    "trend_half_life",
 )
 # forecast.mogaf.structured settings only the learned candidate reads
 # (`context` also sizes constant_acceleration's parabola).
@@ -340,8 +358,10 @@ def _unread_by_mogaf(net: MogafSettings, own: StructuredSettings, changed: Mappi
     why = dict.fromkeys(PAPER_ONLY, "only the paper mode reads it (mode is structured)")
     if not own.gate:
         why.update({f"structured.{k}": "gate is false (no backtest)" for k in BACKTEST_ONLY})
-    if "linear_trend" not in own.candidates:
-        why.setdefault("structured.trend_window", "candidates has no linear_trend")
+    if not {"linear_trend", "damped_trend"} & set(own.candidates):
+        why.setdefault("structured.trend_window", "candidates has neither linear_trend nor damped_trend")
+    if "damped_trend" not in own.candidates:
+        why.setdefault("structured.trend_half_life", "candidates has no damped_trend")
     if own.combine == "select":
         why.setdefault("structured.backtest_neighbors", "combine is select, which decides per group")
         why.setdefault("structured.backtest_origins", "combine is select, which scores one window")
