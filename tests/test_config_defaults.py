@@ -178,6 +178,22 @@ def test_layered_configs_and_ablation_variants_validate():
         validate(mcfg.variant_config(base, variants, name))
 
 
+def test_the_paper_config_keeps_the_papers_grouping_and_the_variant_restores_it():
+    """The default holds an unlabelled group's resting members apart; the
+    paper's config (and the variant joined_still) keep them in the group, as
+    the paper does, so its pipeline is the paper's method."""
+    import mogaf.config as mcfg
+    from mogaf.grouping.params import load_settings
+
+    base = load_config()
+    paper = mcfg.deep_merge(base, mcfg.load_yaml(REPO / "config" / "paper.yaml"))
+    variants = mcfg.load_yaml(REPO / "config" / "ablations.yaml")["variants"]
+    joined = mcfg.variant_config(base, variants, "joined_still")
+    assert load_settings(base["grouping"]).split_still_members == "unlabelled"
+    assert load_settings(paper["grouping"]).split_still_members == "never"
+    assert load_settings(joined["grouping"]).split_still_members == "never"
+
+
 def test_demo_seeds_layer_adds_scenes_and_leaves_the_demo_as_it_is():
     """config/demo_seeds.yaml over the demo's config adds the seeded scenes and
     their grid and changes no other setting, so the demo scene's jobs read the

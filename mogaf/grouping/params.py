@@ -96,9 +96,11 @@ class GroupingSettings:
     # A still body with one moving part (a chest and its lid) under one mask:
     # its still members become a static group of their own (rigidity.split_still_members).
     split_still_members: Literal["never", "unlabelled", "not_rigid"] = setting(
-        "never",
-        'not in the paper: "unlabelled" splits groups whose mask carries no rigid flag (a foreground-only '
-        'mask), "not_rigid" also those labelled non-rigid',
+        "unlabelled",
+        'not in the paper (its setting: never, config/paper.yaml): "unlabelled" splits groups whose mask carries '
+        'no rigid flag (a foreground-only mask, no mask), "not_rigid" also those labelled non-rigid. On the scene '
+        "family's scenes without masks it separates resting parts and objects the grouping had merged "
+        "(docs/forecasting.md)",
     )
     split_neighbors: int = setting(16, "a member's motion is averaged over this many nearest members", minimum=1)
     split_motion_ratio: float = setting(
