@@ -1,7 +1,8 @@
 """The structured MoGaF forecaster's candidates (frozen, constant_velocity,
-linear_trend, damped_trend, constant_acceleration, learned), fitted on a GroupMotion, and
-what the backtest weighs them with: member distances, inverse-squared-error
-weights, nearest moving members and the blend of their forecasts."""
+linear_trend, damped_trend, constant_acceleration, learned), fitted on a
+GroupMotion, and what the backtest weighs them with: member distances,
+inverse-squared-error weights, nearest moving members and the blend of their
+forecasts."""
 
 from __future__ import annotations
 

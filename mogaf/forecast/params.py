@@ -86,8 +86,8 @@ class StructuredSettings:
         "what the backtest weighs (or selects among): any of frozen, constant_velocity (the last step's velocity; "
         "a rigid group's last twist), linear_trend (each series' least-squares line through its last `trend_window` "
         "values), damped_trend (that line, its speed halving every `trend_half_life` steps), constant_acceleration "
-        "(each series' least-squares parabola through its last `context` values) and "
-        "learned, at least one. The default takes linear_trend over constant_velocity, as a reconstruction's last "
+        "(each series' least-squares parabola through its last `context` values) and learned, at least one. The "
+        "default takes linear_trend over constant_velocity, as a reconstruction's last "
         "step is its least constrained, and leaves out constant_acceleration, whose parabola contacts bend off "
         "within the forecast (docs/forecasting.md)",
         schema={
@@ -99,9 +99,8 @@ class StructuredSettings:
     trend_window: int = setting(
         8,
         "values the linear_trend and damped_trend candidates fit their line through (2 = constant velocity per "
-        "series). Enough that the "
-        "reconstruction's least accurate last frames move the line little, few enough to follow recent changes of "
-        "motion (docs/forecasting.md)",
+        "series). Enough that the reconstruction's least accurate last frames move the line little, few enough to "
+        "follow recent changes of motion (docs/forecasting.md)",
         minimum=2,
     )
     trend_half_life: float = setting(
