@@ -105,9 +105,9 @@ class StructuredSettings:
     )
     trend_half_life: float = setting(
         8.0,
-        "forecast steps over which the damped_trend candidate's speed halves (Gardner and McKenzie's damped trend: "
-        "step k is read at 1 + phi + ... + phi^(k-1)). As many as the line is fitted through (trend_window): the "
-        "trend is trusted about as far ahead as it was measured, and within a backtest window, so the backtest can "
+        "forecast steps over which the damped_trend candidate's speed halves (Gardner and McKenzie's damped trend). "
+        "As many as the line is fitted through (trend_window): the "
+        "trend is trusted about as far ahead as it was fitted, and within a backtest window, so the backtest can "
         "tell a motion that goes on from one that slows (docs/forecasting.md, variant damped_candidate)",
         exclusive_minimum=0,
     )
