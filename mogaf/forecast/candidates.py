@@ -14,7 +14,7 @@ import numpy as np
 from mogaf.errors import MogafError
 from mogaf.forecast import quat
 from mogaf.forecast.channel_net import ChannelForecaster
-from mogaf.forecast.group_motion import GroupMotion, damped_steps, time_warped
+from mogaf.forecast.group_motion import GroupMotion
 from mogaf.forecast.mogaf_settings import MogafRun
 
 
@@ -130,7 +130,13 @@ def neighbour_smoothed_poses(poses: np.ndarray, last: np.ndarray, neighbours: np
 
 
 # Least-squares polynomial candidates: (degree, the setting naming their window).
-POLYNOMIAL_CANDIDATES = {"linear_trend": (1, "trend_window"), "constant_acceleration": (2, "context")}
+POLYNOMIAL_CANDIDATES = {
+    "linear_trend": (1, "trend_window"),
+    "damped_trend": (1, "trend_window"),
+    "constant_acceleration": (2, "context"),
+}
+# Candidates whose polynomial slows down: the setting naming its speed's half-life in steps.
+DAMPED_CANDIDATES = {"damped_trend": "trend_half_life"}
 
 
 class FittedCandidate:
@@ -147,12 +153,13 @@ class FittedCandidate:
         device: Any = "cpu",
         model: ChannelForecaster | None = None,
     ) -> None:
-        self.name, self.motion, self.run = name, motion, run
+        self.name, self.motion = name, motion
         self.polynomial = (
             (POLYNOMIAL_CANDIDATES[name][0], int(getattr(run.own, POLYNOMIAL_CANDIDATES[name][1])))
             if name in POLYNOMIAL_CANDIDATES
             else None
         )
+        self.half_life = float(getattr(run.own, DAMPED_CANDIDATES[name])) if name in DAMPED_CANDIDATES else None
         self.info: dict[str, Any] = {}
         self.model = model
         if name == "learned" and model is None and motion.series.shape[0]:  # (no series: every Gaussian still)
@@ -172,11 +179,8 @@ class FittedCandidate:
             return m.frozen_trajectory(n)
         if self.polynomial is not None:
             degree, window = self.polynomial
-            return m.polynomial_trajectory(n, window, degree)
-        if self.name == "damped_trend":
-            line = m.polynomial_trajectory(n, int(self.run.own.trend_window), 1)
-            phi = 0.5 ** (1.0 / float(self.run.own.trend_half_life))
-            return time_warped(line, m.start(), damped_steps(n, phi))
+            fitted = m.polynomial_trajectory(n, window, degree)
+            return fitted if self.half_life is None else m.slowed(fitted, self.half_life)
         if self.name == "constant_velocity" or self.model is None:
             return m.constant_velocity_trajectory(n)
         return m.series_trajectory(self.model.rollout(m.series, m.floor, n))

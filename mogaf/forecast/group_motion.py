@@ -113,6 +113,12 @@ class GroupMotion:
         """The trajectory's pose at the last observed frame (its step 0)."""
         return self.frozen_trajectory(1)[..., 0, :]
 
+    def slowed(self, trajectory: np.ndarray, half_life: float) -> np.ndarray:
+        """The trajectory (this group's form, n steps) with its speed halving
+        every `half_life` steps: read at damped_steps from start()."""
+        n = trajectory.shape[-2]
+        return time_warped(trajectory, self.start(), damped_steps(n, 0.5 ** (1.0 / half_life)))
+
     def members(self, trajectory: np.ndarray) -> np.ndarray:
         """Member poses (G, n, 7) of a trajectory (damped, if `damping`); still
         members keep their last pose."""
@@ -121,8 +127,7 @@ class GroupMotion:
         if not len(self.moving):
             return out
         if self.damping > 0:
-            half_life = self.damping * self.obs.shape[1]
-            trajectory = time_warped(trajectory, self.start(), damped_steps(n, 0.5 ** (1.0 / half_life)))
+            trajectory = self.slowed(trajectory, self.damping * self.obs.shape[1])
         if self.rigid:
             members = self.last[self.moving]
             rel = members[:, :3] - self.centroids[-1]

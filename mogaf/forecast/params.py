@@ -87,9 +87,9 @@ class StructuredSettings:
         "a rigid group's last twist), linear_trend (each series' least-squares line through its last `trend_window` "
         "values), damped_trend (that line, its speed halving every `trend_half_life` steps), constant_acceleration "
         "(each series' least-squares parabola through its last `context` values) and learned, at least one. The "
-        "default takes linear_trend over constant_velocity, as a reconstruction's last "
-        "step is its least constrained, and leaves out constant_acceleration, whose parabola contacts bend off "
-        "within the forecast (docs/forecasting.md)",
+        "default takes linear_trend over constant_velocity, as a reconstruction's last step is its least "
+        "constrained, and leaves out constant_acceleration, whose parabola contacts bend off within the forecast "
+        "(docs/forecasting.md)",
         schema={
             "items": {"enum": list(STRUCTURED_CANDIDATES)},
             "minItems": 1,
@@ -106,9 +106,9 @@ class StructuredSettings:
     trend_half_life: float = setting(
         8.0,
         "forecast steps over which the damped_trend candidate's speed halves (Gardner and McKenzie's damped trend). "
-        "As many as the line is fitted through (trend_window): the "
-        "trend is trusted about as far ahead as it was fitted, and within a backtest window, so the backtest can "
-        "tell a motion that goes on from one that slows (docs/forecasting.md, variant damped_candidate)",
+        "As many as the line is fitted through (trend_window): the trend is trusted about as far ahead as it was "
+        "fitted, and within a backtest window, so the backtest can tell a motion that goes on from one that slows "
+        "(docs/forecasting.md, variant damped_candidate)",
         exclusive_minimum=0,
     )
     backtest_neighbors: int = setting(
