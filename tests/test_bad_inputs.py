@@ -1065,7 +1065,11 @@ def test_full_disk_writing_a_checkpoint_is_one_line(nearly_full_disk):
 
 def test_full_disk_writing_renders_and_videos_is_one_line(nearly_full_disk):
     from mogaf.artefact import atomic_folder
-    from mogaf.evaluate.images import _save_png, _write_video
+    from mogaf.evaluate.images import _save_png, _write_video, video_encoder
+
+    def in_background(tmp):
+        with video_encoder() as write_video:  # as the evaluation writes its videos
+            write_video(tmp / "m.mp4", frames, 10)
 
     rng = np.random.default_rng(0)
     frames = [rng.integers(0, 256, (96, 128, 3), dtype=np.uint8) for _ in range(12)]  # noise: ~400 KB encoded
@@ -1073,6 +1077,7 @@ def test_full_disk_writing_renders_and_videos_is_one_line(nearly_full_disk):
     for write in (
         lambda tmp: [_save_png(tmp / f"{i}.png", f / 255.0) for i, f in enumerate(frames)],
         lambda tmp: _write_video(tmp / "m.mp4", frames, 10),
+        in_background,
     ):
         with pytest.raises(MogafError) as err:
             with atomic_folder(out) as tmp:

@@ -155,6 +155,40 @@ def test_mssim_matches_partial_convolution_loops(rng):
     assert mssim(x, y, mask) != pytest.approx(ssim(x, y), abs=1e-3)
 
 
+@pytest.mark.parametrize("mask_kind", ["full", "soft", "holes"])
+def test_partial_blur_is_the_two_reference_passes_to_the_bit(rng, mask_kind):
+    """PartialBlur (the mask's window counts once, identity steps skipped) gives
+    what `_partial_blur` along the width, then the height, gives, bit for bit."""
+    from mogaf.metrics.image import PartialBlur, _partial_blur
+
+    z = rng.random((17, 23, 3))
+    m = {"full": np.ones((17, 23)), "soft": rng.random((17, 23)), "holes": (rng.random((17, 23)) > 0.5) * 1.0}[
+        mask_kind
+    ]
+    if mask_kind == "holes":
+        m[:, :12] = 0.0  # windows that hold no mask pixel
+    taps = gaussian_window(11, 1.5)
+    z1, m1 = _partial_blur(z, m, taps, axis=1)
+    expected, _ = _partial_blur(z1, m1, taps, axis=0)
+    assert np.array_equal(PartialBlur(m, taps)(z), expected)
+
+
+def test_cached_reference_statistics_give_the_cold_value_to_the_bit(rng):
+    """ssim keeps the ground truth's (second argument's) window statistics by
+    content: a cache hit gives the value a cold cache gives, to the bit."""
+    from mogaf.metrics.image import REFERENCE_STATISTICS
+
+    gt = rng.random((20, 24, 3))
+    mask = (rng.random((20, 24)) > 0.3).astype(np.float64)
+    REFERENCE_STATISTICS.clear()
+    for _ in range(3):
+        pred = rng.random((20, 24, 3))
+        cached = (ssim(pred, gt), mssim(pred, gt, mask))
+        REFERENCE_STATISTICS.clear()
+        assert cached == (ssim(pred, gt), mssim(pred, gt, mask))
+    assert len(REFERENCE_STATISTICS.entries) == 2  # one per mask: the full one and `mask`
+
+
 def test_mssim_full_mask_is_ssim_and_ignores_unmasked_pixels(rng):
     x = rng.random((20, 20, 3))
     y = np.clip(x + 0.1 * rng.standard_normal(x.shape), 0, 1)

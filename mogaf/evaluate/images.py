@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import contextlib
+from collections.abc import Callable, Iterator, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +33,8 @@ def _save_png(path: Path, img: np.ndarray) -> None:
     from ..datasets.images import to_uint8  # local: it imports cv2, which only PNG writing needs
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    encoded = iio.imwrite("<bytes>", to_uint8(np.asarray(img) * 255.0), extension=".png")
+    # zlib level 1: the same pixels, files about 8 % larger, written in less than half the time
+    encoded = iio.imwrite("<bytes>", to_uint8(np.asarray(img) * 255.0), extension=".png", compress_level=1)
     with open(path, "wb") as fh:  # a plain write: a full disk is an OSError with its errno
         fh.write(encoded)
 
@@ -108,3 +111,15 @@ def _write_video(path: Path, panels: list[np.ndarray], fps: int) -> None:
             path.unlink(missing_ok=True)  # a broken encoder: no half-written mp4 beside the gif
     # Without ffmpeg imageio would pick another plugin for ".mp4" (tifffile, which refuses fps).
     iio2.mimsave(path.with_suffix(".gif"), frames, format="GIF", duration=1.0 / max(fps, 1))
+
+
+@contextlib.contextmanager
+def video_encoder() -> Iterator[Callable[[Path, list[np.ndarray], int], None]]:
+    """`_write_video` on a thread of its own, so that ffmpeg encodes one video
+    while the caller goes on (the next method's renders and metrics). Leaving
+    the block waits for every video and raises the first one's error."""
+    pending = []
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        yield lambda path, panels, fps: pending.append(pool.submit(_write_video, path, panels, fps))
+        for video in pending:
+            video.result()

@@ -24,7 +24,7 @@ from ..report.tables import METHOD_ORDER, method_label
 from ..representation import load_model
 from ..split import load_frames, read_split
 from ..video import colour_legend, enlarge, enlargement, error_panel, labelled_row, text_scale, to_uint8
-from .images import _save_png, _write_video, render_forecast_views
+from .images import _save_png, render_forecast_views, video_encoder
 from .inputs import _check_forecast, forecast_summary, read_forecast, runtime_section
 from .params import load_settings
 from .tracking import tracking_section
@@ -102,7 +102,7 @@ def run_evaluate_stage(
     gt_tiles = [to_uint8(g) for g in gts]
     legend = colour_legend(frames.width * factor, p.video_error_max, text_scale(frames.width * factor))
     # renders and videos go to a temporary folder that replaces out_renders when complete
-    with atomic_folder(out_renders) as renders_tmp:
+    with atomic_folder(out_renders) as renders_tmp, video_encoder() as write_video:
         for method in methods:
             fc = read_forecast(forecasts[method])
             _check_forecast(fc, m4, sp)
@@ -139,7 +139,7 @@ def run_evaluate_stage(
                     )
                     for f in range(frames.num_frames)
                 ]
-                _write_video(renders_tmp / f"{method}.mp4", panels, int(p.video_fps))
+                write_video(renders_tmp / f"{method}.mp4", panels, int(p.video_fps))
                 side_by_side[method] = [enlarge(to_uint8(r), factor) for r in renders]
         if p.video and len(methods) > 1:
             # one video of every method beside the GT, in the tables' order
@@ -152,7 +152,7 @@ def run_evaluate_stage(
                 )
                 for f in range(frames.num_frames)
             ]
-            _write_video(renders_tmp / "all_methods.mp4", panels, int(p.video_fps))
+            write_video(renders_tmp / "all_methods.mp4", panels, int(p.video_fps))
         result["reconstruction"] = reconstruction
         result["grouping"] = grouping
         if p.runtime_in_metrics:

@@ -28,7 +28,6 @@ mLPIPS (DyCheck ``get_compute_lpips``, Shape-of-Motion ``mLPIPS``)
 from __future__ import annotations
 
 import functools
-import hashlib
 import os
 from pathlib import Path
 
@@ -36,6 +35,7 @@ import numpy as np
 
 from mogaf.devices import torch_threads
 from mogaf.errors import MogafError
+from mogaf.metrics.content_cache import ContentCache, content_key
 from mogaf.metrics.image import _as_numpy, _mask
 from mogaf.metrics.lpips_weights import (
     _CHANNELS,
@@ -193,7 +193,7 @@ def _to_batch(img, what: str):
     return (t.to(torch.float32) * 2.0 - 1.0).permute(0, 3, 1, 2).contiguous(), single
 
 
-class FeatureCache:
+class FeatureCache(ContentCache):
     """Unit features of reference images, by content, least recently used first out.
 
     An evaluation compares every method's render with the same ground-truth
@@ -203,31 +203,10 @@ class FeatureCache:
     its features inside a batch of two (one thread convolves image by image),
     so the distances are the same to the bit (tested)."""
 
-    def __init__(self, max_bytes: int = 256 << 20) -> None:
-        self.max_bytes = int(max_bytes)
-        self.entries: dict[tuple, list] = {}
-        self.bytes = 0
-
-    @staticmethod
-    def key(model, x) -> tuple:
-        data = x.detach().cpu().contiguous().numpy()
-        return (id(model), str(x.device), str(x.dtype), tuple(x.shape), hashlib.sha1(data.tobytes()).hexdigest())
-
     def features(self, model, x) -> list:
-        k = self.key(model, x)
-        hit = self.entries.pop(k, None)
-        if hit is None:
-            hit = model.unit_features(x)
-            self.bytes += sum(f.numel() * f.element_size() for f in hit)
-        self.entries[k] = hit  # most recently used last
-        while self.bytes > self.max_bytes and len(self.entries) > 1:
-            old = self.entries.pop(next(iter(self.entries)))
-            self.bytes -= sum(f.numel() * f.element_size() for f in old)
-        return hit
-
-    def clear(self) -> None:
-        self.entries.clear()
-        self.bytes = 0
+        data = x.detach().cpu().contiguous().numpy()
+        key = (id(model), str(x.device), *content_key(data))
+        return self.get(key, lambda: model.unit_features(x), lambda f: sum(t.numel() * t.element_size() for t in f))
 
 
 FEATURES = FeatureCache()

@@ -1,0 +1,53 @@
+"""Values computed from images, kept by the images' content.
+
+An evaluation compares every method's render with the same ground-truth
+images: what depends on a ground truth alone (its LPIPS features, its SSIM
+window statistics) is computed once and found again by content. Least
+recently used entries go first once the cache holds more than its bytes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+
+def content_key(*arrays: np.ndarray) -> tuple:
+    """Shape, dtype and SHA-1 of each array's bytes (C order)."""
+    key: list[Any] = []
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        key += [a.shape, a.dtype.str, hashlib.sha1(a.tobytes()).hexdigest()]
+    return tuple(key)
+
+
+class ContentCache:
+    """key -> value, least recently used first out past `max_bytes`
+    (the newest entry stays, whatever its size)."""
+
+    def __init__(self, max_bytes: int = 256 << 20) -> None:
+        self.max_bytes = int(max_bytes)
+        self.entries: dict[tuple, Any] = {}
+        self.sizes: dict[tuple, int] = {}
+        self.bytes = 0
+
+    def get(self, key: tuple, make: Callable[[], Any], nbytes: Callable[[Any], int]) -> Any:
+        hit = self.entries.pop(key, None)
+        if hit is None:
+            hit = make()
+            self.sizes[key] = int(nbytes(hit))
+            self.bytes += self.sizes[key]
+        self.entries[key] = hit  # most recently used last
+        while self.bytes > self.max_bytes and len(self.entries) > 1:
+            old = next(iter(self.entries))
+            del self.entries[old]
+            self.bytes -= self.sizes.pop(old)
+        return hit
+
+    def clear(self) -> None:
+        self.entries.clear()
+        self.sizes.clear()
+        self.bytes = 0
