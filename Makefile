@@ -43,13 +43,15 @@ setup: $(STAMP) $(LPIPS_CACHE)
 # torch is installed first and pinned, so no other package can pull a CUDA build;
 # pip installs it (pip also reads a machine's own wheel folders and constraints).
 # The rest, about a hundred packages, goes in with uv where it installs (seconds
-# rather than most of a minute), otherwise with pip: the same requirements.
+# rather than most of a minute), otherwise with pip: the same requirements,
+# compiled to bytecode as pip does (where PYTHONDONTWRITEBYTECODE is set, every
+# process would otherwise compile the imported packages again).
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet torch==2.13.0
 	if $(BIN)/python -m pip install --quiet uv; then \
-		$(BIN)/uv pip install --quiet --python $(BIN)/python -e '.[workflow,test]'; \
+		$(BIN)/uv pip install --quiet --compile-bytecode --python $(BIN)/python -e '.[workflow,test]'; \
 	else \
 		$(BIN)/python -m pip install --quiet -e '.[workflow,test]'; \
 	fi
