@@ -24,7 +24,6 @@ from typing import Any
 from . import config as mcfg
 from . import registry, stages
 from .errors import MogafError
-from .metrics.lpips import convert_lpips_sdist
 from .paths import use_cache_dir
 from .report.tables import main_table_paths
 from .schema import config_error, load_config_schema
@@ -214,6 +213,8 @@ SPECIAL: dict[str, Callable[[argparse.Namespace, dict[str, Any], dict[str, Any]]
 
 def _run(args: argparse.Namespace) -> int:
     if args.command == "lpips-convert":
+        from .metrics.lpips import convert_lpips_sdist  # local: the metrics (scipy.ndimage) cost every stage 0.25 s
+
         convert_lpips_sdist(args.sdist, args.out)
         return 0
     if args.command in ("evaluate", "tables"):
