@@ -191,7 +191,7 @@ class PartialBlur:
         self.taps = taps
         self.n = len(taps)
         self.passes = []
-        weights = m
+        weights = np.array(m, dtype=np.float64)  # a copy: kept, so the caller's mask may change
         for axis in (1, 0):
             cover = _valid_filter(weights, np.ones(self.n), axis)
             ok = cover != 0
