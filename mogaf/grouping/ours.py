@@ -140,6 +140,9 @@ def region_grow(
     """
     it = 0
     changed = True
+    # A group only gains members here, so an unchanged count is an unchanged set
+    # and its radius (a k-d tree over the members) stays what it was.
+    known: dict[int, tuple[int, float]] = {}
     while changed and it < max_iters:
         changed = False
         it += 1
@@ -147,7 +150,9 @@ def region_grow(
             members = np.flatnonzero(labels == k)
             if members.size == 0:
                 continue
-            eps = radius(members)
+            if known.get(k, (-1, 0.0))[0] != members.size:
+                known[k] = (members.size, radius(members))
+            eps = known[k][1]
             if not (eps > 0.0):
                 continue
             need = members[queried[members] < eps]
