@@ -164,7 +164,8 @@ def _valid_filter(z: np.ndarray, taps: np.ndarray, axis: int) -> np.ndarray:
 
 
 def _partial_blur(z: np.ndarray, m: np.ndarray, taps: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray]:
-    """One 1-D pass of the partial convolution (Liu et al. 2018, Sec. 3.1).
+    """One 1-D pass of the partial convolution (Liu et al. 2018, Sec. 3.1): the
+    plain reference `PartialBlur`, which ssim uses, is tested against.
 
     ``z``: (H, W, C), ``m``: (H, W). Returns the blurred values
     ``where(S_m != 0, G*(z m) * n / S_m, 0)`` and the new mask ``S_m != 0``,
