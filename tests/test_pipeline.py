@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from support.browser import BrowserError
 from support.paths import REPO
 
 # minutes of work in one module fixture: collected first (tests/conftest.py)
@@ -268,7 +269,9 @@ def _artefact_dir() -> Path:
 
 
 def _open_result(browser, report: Path, category: str, path: str) -> None:
-    """Load the report, click the category in its menu, then the result's view button (the eye)."""
+    """Load the report, click the category in its menu, then the result's view
+    button (the eye), and wait until the result is shown (a frame or an image
+    more than before)."""
     browser.open(report.as_uri())
     found = browser.evaluate(
         f"""(() => {{
@@ -279,17 +282,26 @@ def _open_result(browser, report: Path, category: str, path: str) -> None:
         }})()"""
     )
     assert found, f"no menu entry '{category}'"
-    time.sleep(0.3)
+    row = f"""Array.from(document.querySelectorAll('td')).find(e => e.textContent.trim() === {json.dumps(path)})"""
+    try:
+        browser.wait_until(f"!!({row})", timeout=15)
+    except BrowserError:
+        pytest.fail(f"no row for {path} under '{category}'")
+    shown = "document.querySelectorAll('iframe, img').length"
+    before = browser.evaluate(shown)
     clicked = browser.evaluate(
         f"""(() => {{
-          const cell = Array.from(document.querySelectorAll('td')).find(e => e.textContent.trim() === {json.dumps(path)});
+          const cell = {row};
           const eye = cell && cell.closest('tr').querySelector('a[iconname=eye]');
           if (eye) eye.click();
           return !!eye;
         }})()"""
     )
     assert clicked, f"no view button for {path} under '{category}'"
-    time.sleep(0.5)
+    try:
+        browser.wait_until(f"{shown} > {before}", timeout=15)
+    except BrowserError:
+        pytest.fail(f"{path} under '{category}': its view button showed nothing")
 
 
 def test_the_report_opens_in_a_browser_with_every_table_figure_and_video(runs):
@@ -344,7 +356,7 @@ def test_the_report_opens_in_a_browser_with_every_table_figure_and_video(runs):
         assert browser.problems() == []
         # the page a person looks at first: the forecast videos
         _open_result(browser, report, "Forecast videos", f"{RATIO}/report/videos/index.html")
-        time.sleep(1)
+        browser.evaluate(FRAME_CHECK, frame=browser.child_frames()[0][0])  # its videos loaded
         browser.screenshot(_artefact_dir() / "report_forecast_videos.png")
     finally:
         browser.close()

@@ -147,6 +147,24 @@ class Browser:
             raise BrowserError(f"script failed: {result['exceptionDetails'].get('text')} {result['result']}")
         return result["result"].get("value")
 
+    def wait_until(self, condition: str, timeout: float | None = None) -> Any:
+        """The first truthy value of the JavaScript expression `condition`, polled
+        in the page every 20 ms; BrowserError if it stays falsy for `timeout` s."""
+        ms = int(1000 * (self.timeout if timeout is None else timeout))
+        value = self.evaluate(
+            f"""new Promise(done => {{
+              const start = Date.now();
+              (function poll() {{
+                const value = ({condition});
+                if (value || Date.now() - start > {ms}) return done(value || null);
+                setTimeout(poll, 20);
+              }})();
+            }})"""
+        )
+        if not value:
+            raise BrowserError(f"still false after {ms} ms: {condition}")
+        return value
+
     def child_frames(self) -> list[tuple[str, str]]:
         """(frame id, url) of the page's child frames (iframes), each loaded."""
         tree = self.call("Page.getFrameTree", session=True)["frameTree"]
