@@ -317,6 +317,11 @@ def _config_properties(given: Mapping[str, Any]) -> dict[str, Any]:
     fields = dict(forecast["properties"])
     fields["methods"] = {**fields["methods"], "items": {"type": "string", "enum": [m.name for m in METHOD_TABLE]}}
     fields["jobs"] = {"type": "string", "enum": list(JOB_LAYOUTS)}
+    fields["start_first"] = {
+        "type": "array",
+        "uniqueItems": True,
+        "items": {"type": "string", "enum": [m.name for m in METHOD_TABLE]},
+    }
     for m in METHOD_TABLE:  # each method's section (none of its own for one reading another's)
         if not m.section:
             definition = SECTIONS[f"forecast.{m.name}"][1] if m.settings is not None else "no_params"

@@ -228,6 +228,17 @@ def test_forecast_jobs_layout_decides_the_forecast_jobs(tmp_path, layout):
     assert gpus == {
         f"{m}.h5": layout == "per_method" and m in trained for m in (*trained, "constant_velocity", "frozen")
     }
+    # where cores are short, the trained forecasts start in forecast.start_first's order
+    # (config.yaml: gcn, mogaf_paper, mogaf, ode), below the chain and above evaluation's inputs
+    training_rule, base = ("forecast_group", 2) if layout == "per_group" else ("forecast", 1)
+    priority = {}
+    for b in job_blocks(res.stdout, training_rule):
+        priority.setdefault(re.search(r"method=(\w+)", b)[1], set()).add(float(re.search(r"priority: ([\d.]+)", b)[1]))
+    assert all(len(p) == 1 for p in priority.values()), priority  # the same for every group of a method
+    ranked = sorted(trained, key=lambda m: -min(priority[m]))
+    assert ranked == ["gcn", "mogaf_paper", "mogaf", "ode"], priority
+    assert all(base < min(priority[m]) < base + 1 for m in trained), priority
+    assert all(priority.get(m, {base}) == {base} for m in ("constant_velocity", "frozen")), priority
 
 
 def test_the_scene_family_runs_every_scene_at_both_ratios_into_one_table(tmp_path):

@@ -9,7 +9,7 @@ Each forecaster's DEFAULTS is defaults(<its settings>).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -315,6 +315,18 @@ TRAINED_METHODS: tuple[str, ...] = tuple(m.name for m in METHOD_TABLE if not m.i
 JOB_LAYOUTS: tuple[str, ...] = ("per_group", "per_method")
 METHOD_LABELS: dict[str, str] = {m.name: m.label for m in METHOD_TABLE}
 METHOD_ORDER: list[str] = [m.name for m in sorted(METHOD_TABLE, key=lambda m: m.table_rank)]
+
+
+def job_priority(base: int, method: str, start_first: Sequence[str]) -> float:
+    """A forecast job's Snakemake priority: `base` (its rule's), plus a fraction
+    below 1 that is larger the earlier `method` comes in forecast.start_first
+    (0 for a method not listed), so where cores are short the listed methods'
+    jobs start first, in that order, and never before a job of a higher rule
+    priority. Scheduling only: no artefact depends on it."""
+    order = list(start_first)
+    if method not in order:
+        return float(base)
+    return base + (len(order) - order.index(method)) / (len(order) + 1)
 
 
 # forecast.mogaf settings only the paper mode reads: the structured mode has

@@ -216,12 +216,25 @@ def device(wildcards):
 # With more jobs ready than cores, Snakemake starts the higher priority first:
 # the chain every forecast waits for, then the trained forecasts (the longest
 # jobs: started late, they trail alone at the end), then the jobs only
-# evaluation reads. Rules not listed: 0.
+# evaluation reads. Rules not listed: 0. Among the forecast jobs of one rule,
+# forecast.start_first's methods go first, in its order (forecast_priority).
 PRIORITY = {
     **dict.fromkeys(["synthesize", "ingest", "split", "priors", "recon", "group", "rigid_init", "refine"], 3),
     "forecast_group": 2,
     **dict.fromkeys(["forecast", "grouping_quality", "reconstruction_quality"], 1),
 }
+
+
+def forecast_priority(rule):
+    """The priority of a forecast rule's job: PRIORITY[rule], raised below the
+    next integer by its method's place in forecast.start_first."""
+    from mogaf.forecast.params import job_priority
+
+    def priority(wildcards):
+        start_first = scene_cfg(wildcards)["forecast"].get("start_first", [])
+        return job_priority(PRIORITY[rule], wildcards.method, start_first)
+
+    return priority
 
 
 # ------------------------------------------------------------------ paths (patterns: mogaf.registry)

@@ -15,7 +15,7 @@ rule forecast_group:
         log_file("forecast_group"),
     benchmark:
         benchmark_tsv("forecast_group")
-    priority: PRIORITY["forecast_group"]
+    priority: forecast_priority("forecast_group")
     conda:
         "../../envs/mogaf.yaml"
     threads: 1
@@ -41,7 +41,7 @@ rule forecast:
         log_file("forecast"),
     benchmark:
         benchmark_tsv("forecast")
-    priority: PRIORITY["forecast"]
+    priority: forecast_priority("forecast")
     conda:
         "../../envs/mogaf.yaml"
     threads: 1
