@@ -191,6 +191,7 @@ STAGES: tuple[StageSpec, ...] = (
         output_argument="out_dir",
         scope="scene",
         cli="synthesize",
+        threads_argument=True,
     ),
     StageSpec(
         "ingest",

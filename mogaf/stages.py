@@ -343,12 +343,12 @@ def split_stage(scene: str, out: str, ratio: str | float) -> Path:
 
 
 # ------------------------------------------------------------------ dedicated wrappers
-def synthesize(out_dir: str, params: Mapping[str, Any]) -> Path:
+def synthesize(out_dir: str, params: Mapping[str, Any], job_threads: int | None = None) -> Path:
     from .synth.generate import generate_scene  # local: a stage's package (and torch) loads only when it runs
 
     check_outputs({"out": out_dir}, directories=("out",))
     _check_synthetic_target(out_dir)
-    return generate_scene(Path(out_dir), dict(params))
+    return generate_scene(Path(out_dir), dict(params), threads=job_threads or 1)
 
 
 def ingest(folder: str, out: str, layout: str, options: Mapping[str, Any], dataset: str, scene: str) -> Path:

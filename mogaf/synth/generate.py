@@ -53,6 +53,7 @@ import io
 import json
 import os
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -127,40 +128,67 @@ def _track_points(world: World, rng: np.random.Generator):
     return np.concatenate(trajs), np.concatenate(insts), np.concatenate(parts)
 
 
-def _render_all(world: World, root: Path, points3d: np.ndarray, points_inst: np.ndarray) -> dict[str, Any]:
-    renderer = Renderer(world)
-    T = len(world.taus)
+def _render_frame(
+    world: World, renderer: Renderer, root: Path, ti: int, points3d: np.ndarray, points_inst: np.ndarray
+) -> dict[str, Any]:
+    """Every camera's view of frame ti, written; its tracks, visibility and depth range."""
     H, W = world.height, world.width
     P = len(points3d)
-    tracks = np.zeros((world.num_cameras, P, T, 2))
-    visible = np.zeros((world.num_cameras, P, T), dtype=bool)
+    tracks = np.zeros((world.num_cameras, P, 2))
+    visible = np.zeros((world.num_cameras, P), dtype=bool)
     dmin, dmax = np.inf, 0.0
     bg_points = None
-    for ti in range(T):
-        train_w2c = world.camera_w2c(0, ti)
-        for cam in range(world.num_cameras):
-            name = frame_name(cam, ti)
-            view = renderer.render(cam, ti)
-            _write_png(root / "rgb" / "1x" / f"{name}.png", view.rgb)
-            _write_npy(root / "depth" / "1x" / f"{name}.npy", view.depth.astype(np.float32)[..., None])
-            _write_png(root / "mogaf_gt" / "instance" / "1x" / f"{name}.png", view.inst)
-            _write_png(root / "mogaf_gt" / "part" / "1x" / f"{name}.png", view.part)
-            dmin, dmax = min(dmin, float(view.depth.min())), max(dmax, float(view.depth.max()))
-            w2c = world.camera_w2c(cam, ti)
-            fg = np.where(view.inst > 0, 255, 0).astype(np.uint8)
-            _write_png(root / "flow3d_preprocessed" / "track_anything" / "1x" / f"{name}.png", fg)
-            if cam == 0:
-                if ti == 0:
-                    bg_points = _background_points(world, w2c, view.depth, view.inst)
-            else:
-                covis = _covisible(world, renderer, w2c, train_w2c, view.depth, ti)
-                _write_png(root / "covisible" / "1x" / "val" / f"{name}.png", np.where(covis, 255, 0).astype(np.uint8))
-            # ground-truth tracks: projection + ray-cast visibility
-            uv, z, t_hit, inst = renderer.first_hit(cam, ti, points3d[:, ti])
-            inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
-            visible[cam, :, ti] = inside & (inst == points_inst) & (np.abs(t_hit - z) <= VIS_TOL * (1.0 + z))
-            tracks[cam, :, ti] = uv
+    train_w2c = world.camera_w2c(0, ti)
+    for cam in range(world.num_cameras):
+        name = frame_name(cam, ti)
+        view = renderer.render(cam, ti)
+        _write_png(root / "rgb" / "1x" / f"{name}.png", view.rgb)
+        _write_npy(root / "depth" / "1x" / f"{name}.npy", view.depth.astype(np.float32)[..., None])
+        _write_png(root / "mogaf_gt" / "instance" / "1x" / f"{name}.png", view.inst)
+        _write_png(root / "mogaf_gt" / "part" / "1x" / f"{name}.png", view.part)
+        dmin, dmax = min(dmin, float(view.depth.min())), max(dmax, float(view.depth.max()))
+        w2c = world.camera_w2c(cam, ti)
+        fg = np.where(view.inst > 0, 255, 0).astype(np.uint8)
+        _write_png(root / "flow3d_preprocessed" / "track_anything" / "1x" / f"{name}.png", fg)
+        if cam == 0:
+            if ti == 0:
+                bg_points = _background_points(world, w2c, view.depth, view.inst)
+        else:
+            covis = _covisible(world, renderer, w2c, train_w2c, view.depth, ti)
+            _write_png(root / "covisible" / "1x" / "val" / f"{name}.png", np.where(covis, 255, 0).astype(np.uint8))
+        # ground-truth tracks: projection + ray-cast visibility
+        uv, z, t_hit, inst = renderer.first_hit(cam, ti, points3d[:, ti])
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        visible[cam] = inside & (inst == points_inst) & (np.abs(t_hit - z) <= VIS_TOL * (1.0 + z))
+        tracks[cam] = uv
     return {"tracks": tracks, "visible": visible, "depth_range": (dmin, dmax), "bg_points": bg_points}
+
+
+def _render_all(
+    world: World, root: Path, points3d: np.ndarray, points_inst: np.ndarray, threads: int = 1
+) -> dict[str, Any]:
+    """Every frame (_render_frame), on `threads` threads: a frame's views are
+    independent of the others' (each computed as alone), and numpy's array
+    operations release the interpreter lock, so threads overlap."""
+    renderer = Renderer(world)
+    for cam in range(1, world.num_cameras):  # the fixed cameras' static background, cached before the threads share it
+        renderer._static(cam, world.camera_w2c(cam, 0))
+    T = len(world.taus)
+
+    def frame(ti: int) -> dict[str, Any]:
+        return _render_frame(world, renderer, root, ti, points3d, points_inst)
+
+    if threads > 1:
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            frames = list(pool.map(frame, range(T)))
+    else:
+        frames = [frame(ti) for ti in range(T)]
+    return {
+        "tracks": np.stack([f["tracks"] for f in frames], axis=2),
+        "visible": np.stack([f["visible"] for f in frames], axis=2),
+        "depth_range": (min(f["depth_range"][0] for f in frames), max(f["depth_range"][1] for f in frames)),
+        "bg_points": frames[0]["bg_points"],
+    }
 
 
 def _background_points(world: World, w2c: np.ndarray, depth: np.ndarray, inst: np.ndarray) -> np.ndarray:
@@ -191,13 +219,13 @@ def _covisible(
     return ok.reshape(H, W)
 
 
-def _write_layout(root: Path, p: dict[str, Any]) -> None:
+def _write_layout(root: Path, p: dict[str, Any], threads: int = 1) -> None:
     world = build_world(p)
     s = world.params
     T = len(world.taus)
     rng = np.random.default_rng([int(s.seed), 777])
     points3d, points_inst, points_part = _track_points(world, rng)
-    out = _render_all(world, root, points3d, points_inst)
+    out = _render_all(world, root, points3d, points_inst, threads)
 
     names = {cam: [frame_name(cam, ti) for ti in range(T)] for cam in range(world.num_cameras)}
     for cam in range(world.num_cameras):
@@ -303,16 +331,17 @@ def _write_layout(root: Path, p: dict[str, Any]) -> None:
     )
 
 
-def generate_scene(out_dir: str | os.PathLike, params: Mapping[str, Any] | None = None) -> Path:
+def generate_scene(out_dir: str | os.PathLike, params: Mapping[str, Any] | None = None, threads: int = 1) -> Path:
     """Generate the synthetic scene described by `params` into `out_dir`.
 
     `params` may name a preset ("preset": "default" | "hard") and override any
     key of DEFAULT_PARAMS. The folder is built in a hidden temporary sibling
     and renamed into place at the end (an existing folder is replaced), so a
-    killed run never leaves a partial scene. Returns `out_dir`.
+    killed run never leaves a partial scene. `threads` frames render at once
+    (the same files). Returns `out_dir`.
     """
     p = resolve_params(params)
     out = Path(out_dir)
     with atomic_folder(out) as tmp:
-        _write_layout(tmp, p)
+        _write_layout(tmp, p, threads)
     return out

@@ -12,6 +12,8 @@ rule synthesize:
     priority: PRIORITY["synthesize"]
     conda:
         "../../envs/mogaf.yaml"
+    # frames render on two threads (the same files): every other job waits for it
+    threads: 2
     params:
         synthetic=lambda wildcards: config["synthetic"][wildcards.scene],
     script:
