@@ -340,6 +340,21 @@ def test_generation_is_atomic(tmp_path, monkeypatch):
     with pytest.raises(MogafError):
         generate_scene(tmp_path / "other", {"speed": "fast"})
     assert not (tmp_path / "other").exists()
+    # a frame that fails on a thread (a full disk at the fifth PNG): its one-line error, no folder
+    monkeypatch.undo()
+    written = []
+
+    def full_disk(path, img):
+        written.append(path)
+        if len(written) == 5:
+            raise OSError(28, "No space left on device")
+        return real_write_png(path, img)
+
+    real_write_png = gen._write_png
+    monkeypatch.setattr(gen, "_write_png", full_disk)
+    with pytest.raises(MogafError, match="no space left on device"):
+        generate_scene(tmp_path / "threads", SMALL, threads=2)
+    assert [p.name for p in tmp_path.iterdir()] == ["scene"]
 
 
 def test_reader_reports_missing_scene(tmp_path):

@@ -171,8 +171,7 @@ def _render_all(
     independent of the others' (each computed as alone), and numpy's array
     operations release the interpreter lock, so threads overlap."""
     renderer = Renderer(world)
-    for cam in range(1, world.num_cameras):  # the fixed cameras' static background, cached before the threads share it
-        renderer._static(cam, world.camera_w2c(cam, 0))
+    renderer.cache_fixed_cameras()
     T = len(world.taus)
 
     def frame(ti: int) -> dict[str, Any]:
@@ -180,7 +179,11 @@ def _render_all(
 
     if threads > 1:
         with ThreadPoolExecutor(max_workers=threads) as pool:
-            frames = list(pool.map(frame, range(T)))
+            try:
+                frames = list(pool.map(frame, range(T)))
+            except BaseException:  # a failed frame (a full disk): the frames not started are not rendered
+                pool.shutdown(cancel_futures=True)
+                raise
     else:
         frames = [frame(ti) for ti in range(T)]
     return {

@@ -147,6 +147,11 @@ class Renderer:
             self._static_cache[cam] = out
         return out
 
+    def cache_fixed_cameras(self) -> None:
+        """Compute every fixed camera's static background now (before threads share the cache)."""
+        for cam in range(1, self.world.num_cameras):
+            self._static(cam, self.world.camera_w2c(cam, 0))
+
     def render(self, cam: int, ti: int) -> ViewResult:
         world = self.world
         w2c = world.camera_w2c(cam, ti)
