@@ -99,7 +99,7 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", help="dataset name in the config (selects per-dataset overrides)")
     p.add_argument("--scene", help="scene name")
     p.add_argument("--variant", help="ablation variant of config/ablations.yaml")
-    p.add_argument("--threads", type=int, default=None, help="torch threads")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (synthesize: frames rendered at once)")
 
 
 def stage_options(spec: registry.StageSpec) -> dict[str, str]:
