@@ -307,7 +307,7 @@ def _config_properties(given: Mapping[str, Any]) -> dict[str, Any]:
     """The config schema's top level plus what its tables give: each stage's
     section (from its spec), and the forecast method names and sections (the
     method table), so that neither is written in config/schema.yaml."""
-    from .forecast.params import JOB_LAYOUTS, METHOD_TABLE
+    from .forecast.params import JOB_LAYOUTS, METHOD_TABLE, METHODS
 
     properties = dict(given)
     for path, (_, name) in SECTIONS.items():
@@ -315,13 +315,10 @@ def _config_properties(given: Mapping[str, Any]) -> dict[str, Any]:
             properties.setdefault(path, {"$ref": f"#/definitions/{name}"})
     forecast = dict(properties["forecast"])
     fields = dict(forecast["properties"])
-    fields["methods"] = {**fields["methods"], "items": {"type": "string", "enum": [m.name for m in METHOD_TABLE]}}
+    method_name = {"type": "string", "enum": list(METHODS)}
+    fields["methods"] = {**fields["methods"], "items": method_name}
     fields["jobs"] = {"type": "string", "enum": list(JOB_LAYOUTS)}
-    fields["start_first"] = {
-        "type": "array",
-        "uniqueItems": True,
-        "items": {"type": "string", "enum": [m.name for m in METHOD_TABLE]},
-    }
+    fields["start_first"] = {"type": "array", "uniqueItems": True, "items": method_name}
     for m in METHOD_TABLE:  # each method's section (none of its own for one reading another's)
         if not m.section:
             definition = SECTIONS[f"forecast.{m.name}"][1] if m.settings is not None else "no_params"

@@ -342,6 +342,7 @@ def test_generation_is_atomic(tmp_path, monkeypatch):
     assert not (tmp_path / "other").exists()
     # a frame that fails on a thread (a full disk at the fifth PNG): its one-line error, no folder
     monkeypatch.undo()
+    real_write_png = gen._write_png
     written = []
 
     def full_disk(path, img):
@@ -350,7 +351,6 @@ def test_generation_is_atomic(tmp_path, monkeypatch):
             raise OSError(28, "No space left on device")
         return real_write_png(path, img)
 
-    real_write_png = gen._write_png
     monkeypatch.setattr(gen, "_write_png", full_disk)
     with pytest.raises(MogafError, match="no space left on device"):
         generate_scene(tmp_path / "threads", SMALL, threads=2)
