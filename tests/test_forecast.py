@@ -243,6 +243,91 @@ def test_mogaf_fits_simple_motion(motion, fraction, method):
     assert epe < fraction * frozen, (epe, frozen)
 
 
+def _skip_without_flush_mode():
+    import torch
+
+    if not torch.set_flush_denormal(False):
+        pytest.skip("this CPU has no flush-to-zero mode (torch.set_flush_denormal returns False)")
+
+
+def test_flush_denormals_sets_and_restores_the_mode():
+    import torch
+
+    from mogaf.forecast.base import flush_denormals, flushing_denormals
+
+    _skip_without_flush_mode()
+    tiny = torch.tensor([1e-39])  # subnormal in float32
+    assert not flushing_denormals() and float(tiny * 1.0) > 0.0
+    with flush_denormals():
+        assert flushing_denormals() and float(tiny * 1.0) == 0.0
+        with flush_denormals():
+            pass
+        assert flushing_denormals()  # an inner block leaves the outer one's mode
+    assert not flushing_denormals() and float(tiny * 1.0) > 0.0
+    with flush_denormals("cuda"):  # another device's arithmetic: the CPU mode is not touched
+        assert not flushing_denormals()
+
+
+def test_flushing_subnormal_attention_weights_changes_no_bit_of_the_network():
+    """The paper forecaster trains and rolls out with subnormals flushed
+    (speed only: Intel CPUs take each through a slow path). With attention
+    sharp enough that tens of thousands of softmax weights are subnormal, the
+    network's output and every parameter's gradient are the same bits either way."""
+    import contextlib
+    import math
+
+    import torch
+
+    from mogaf.forecast.base import flush_denormals
+    from mogaf.forecast.transformer_net import _build_model
+
+    _skip_without_flush_mode()
+    net = load_settings("mogaf_paper", {}).net
+
+    def forward_backward(flush: bool):
+        torch.manual_seed(0)
+        model = _build_model(35, net)
+        with torch.no_grad():
+            model.layers[0].qkv.weight[: 2 * net.d_model] *= 10.0  # large query/key logits
+            for lin in (model.layers[0].proj, model.layers[0].ff2):  # zero-initialised: give them weight
+                lin.weight.normal_(0.0, 0.2)
+        model.eval()
+        x = torch.randn(64, 35, 7, generator=torch.Generator().manual_seed(1))
+        with flush_denormals() if flush else contextlib.nullcontext():
+            out = model(x)
+            out.square().sum().backward()
+        layer = model.layers[0]
+        with torch.no_grad():
+            h = layer.norm1(model.embed(x) + model.pos)
+            q, k, _ = layer.qkv(h).view(64, 35, 3, net.nhead, -1).permute(2, 0, 3, 1, 4)
+            w = torch.softmax(q @ k.transpose(-1, -2) / math.sqrt(q.shape[-1]), -1)
+        subnormal = int(((w > 0) & (w < torch.finfo(w.dtype).tiny)).sum())
+        return out.detach(), [p.grad for p in model.parameters() if p.grad is not None], subnormal
+
+    plain, plain_grads, subnormal = forward_backward(False)
+    flushed, flushed_grads, _ = forward_backward(True)
+    assert subnormal > 1000  # the case this is about does occur
+    assert torch.equal(plain, flushed)
+    assert len(plain_grads) == len(flushed_grads) > 10
+    assert all(torch.equal(a, b) for a, b in zip(plain_grads, flushed_grads, strict=True))
+
+
+def test_the_paper_forecaster_flushes_while_it_trains_and_leaves_the_callers_mode(monkeypatch):
+    import mogaf.forecast.transformer as transformer
+    from mogaf.forecast.base import flushing_denormals
+
+    _skip_without_flush_mode()
+    modes = []
+    step = transformer.optimiser_step
+    monkeypatch.setattr(
+        transformer, "optimiser_step", lambda *a, **k: (modes.append(flushing_denormals()), step(*a, **k))
+    )
+    fc = make_forecaster("mogaf_paper", {"iterations": 3, "batch_size": 16}).fit(rigid_box(20, 8))
+    assert modes == [True] * 3 and not flushing_denormals()
+    fc.rollout(2)
+    assert not flushing_denormals()
+
+
 def test_ode_learns_per_gaussian_trajectories_given_steps():
     """The latent ODE keeps each Gaussian's own trajectory, not only the group's
     mean: on 64 points circling at different radii, 120 optimiser steps of a

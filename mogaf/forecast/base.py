@@ -125,6 +125,37 @@ def torch_determinism(seed: int, num_threads: int | None, device: Any = None) ->
             torch.set_num_threads(old_threads)
 
 
+def flushing_denormals() -> bool:
+    """Whether this thread's CPU arithmetic reads and writes subnormal floats
+    as zero (torch.set_flush_denormal has no getter: a subnormal times one)."""
+    import torch
+
+    return float(torch.tensor([1e-39]) * 1.0) == 0.0
+
+
+@contextlib.contextmanager
+def flush_denormals(device: Any = None) -> Iterator[None]:
+    """Subnormal floats (|x| < 1.2e-38 in float32) read and written as zero by
+    this thread's CPU arithmetic inside the block (x86 FTZ/DAZ; a no-op where
+    the CPU has no such mode, and on CUDA). Attention on tiny heads produces
+    such values once its softmax sharpens, and Intel CPUs take each of them
+    through a microcode path about a hundred times slower; a value that small
+    changes no float32 sum it joins. The caller's mode is restored on exit."""
+    import torch
+
+    if (torch.device(device).type if device is not None else "cpu") != "cpu":
+        yield
+        return
+    before = flushing_denormals()
+    if before or not torch.set_flush_denormal(True):
+        yield
+        return
+    try:
+        yield
+    finally:
+        torch.set_flush_denormal(False)
+
+
 class Forecaster:
     """A forecaster of one group: settings loaded once (load_settings, or
     given already loaded), then fit(observed, rigid, horizon), then

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from mogaf.forecast import quat
-from mogaf.forecast.base import Forecaster, torch_determinism
+from mogaf.forecast.base import Forecaster, flush_denormals, torch_determinism
 from mogaf.forecast.mogaf_settings import MogafRun, load_run
 from mogaf.forecast.params import MOGAF_DEFAULTS
 from mogaf.forecast.structured import StructuredMoGaF
@@ -99,7 +99,7 @@ class MoGaFForecaster(Forecaster):
         xn, mean, std = instance_norm(xin, p.norm_eps)
 
         dev = self.device
-        with torch_determinism(self.seed, p.num_threads or None, dev):
+        with torch_determinism(self.seed, p.num_threads or None, dev), flush_denormals(dev):
             # the sampling generator stays on the CPU: the same draws on every device
             gen = torch.Generator().manual_seed(self.seed)
             model = _build_model(window, p).to(dev)  # built on the CPU: the same initial weights on every device
@@ -178,7 +178,7 @@ class MoGaFForecaster(Forecaster):
         p = self.settings.net
         win = self._obs[:, -self.window :].copy()
         out = np.empty((win.shape[0], n_steps, 7))
-        with torch_determinism(self.seed, p.num_threads or None, self.device):
+        with torch_determinism(self.seed, p.num_threads or None, self.device), flush_denormals(self.device):
             for k in range(n_steps):
                 nxt = self.predict_next(win)
                 out[:, k] = nxt
