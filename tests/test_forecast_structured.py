@@ -661,6 +661,34 @@ def test_the_structured_fit_fits_and_the_rollout_only_rolls_out():
     np.testing.assert_array_equal(fit_and_rollout("mogaf", obs, 6, QUICK, seed=0).poses, first)
 
 
+def test_the_refit_network_rolls_out_once_and_the_forecast_reuses_its_steps(monkeypatch):
+    """The drift check's refit rolls out the forecast's length at once (its
+    backtest window is shorter) and the forecast reads those kept steps: the
+    same poses as when every rollout is computed afresh, one rollout fewer."""
+    from mogaf.forecast.candidates import FittedCandidate
+    from mogaf.forecast.channel_net import ChannelForecaster
+
+    obs = waving_sheet(64, 30)
+    calls = []
+    rollout = ChannelForecaster.rollout
+
+    def counted(self, series, floor, n):
+        calls.append(n)
+        return rollout(self, series, floor, n)
+
+    monkeypatch.setattr(ChannelForecaster, "rollout", counted)
+    fc = make_forecaster("mogaf", QUICK, seed=0).fit(obs, rigid=False, horizon=20)
+    assert fc.info["backtest_frames"] < 20 and fc.info["backtest_weight_learned"] > 0.0  # the refit is in the forecast
+    kept = fc.rollout(20)
+    kept_calls, calls[:] = list(calls), []
+    monkeypatch.setattr(
+        FittedCandidate, "series_future", lambda self, n: self.model.rollout(self.motion.series, self.motion.floor, n)
+    )
+    fresh = make_forecaster("mogaf", QUICK, seed=0).fit(obs, rigid=False, horizon=20).rollout(20)
+    np.testing.assert_array_equal(kept, fresh)
+    assert len(kept_calls) == len(calls) - 1 and 20 in kept_calls and calls.count(20) == 1
+
+
 def test_bad_structured_settings_are_refused_by_name():
     """When the settings are loaded: before anything is fitted."""
     with pytest.raises(MogafError, match="mode"):

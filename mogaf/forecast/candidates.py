@@ -142,7 +142,11 @@ DAMPED_CANDIDATES = {"damped_trend": "trend_half_life"}
 class FittedCandidate:
     """A candidate fitted on a GroupMotion; rollout(n) gives member poses (G, n, 7).
     `model`: for learned, a network already fitted (on other frames) to use
-    instead of fitting one on `motion`."""
+    instead of fitting one on `motion`. `rollout_steps`: the learned network
+    rolls out at least this many steps when first asked and keeps them, so a
+    later rollout within them (the forecast after the drift check's shorter
+    one) reuses them: each block of the network's steps reads only the blocks
+    before it, so a prefix is the same values as a shorter rollout."""
 
     def __init__(
         self,
@@ -152,8 +156,11 @@ class FittedCandidate:
         seed: int,
         device: Any = "cpu",
         model: ChannelForecaster | None = None,
+        rollout_steps: int = 0,
     ) -> None:
         self.name, self.motion = name, motion
+        self.rollout_steps = int(rollout_steps)
+        self._series_future: np.ndarray | None = None
         self.polynomial = (
             (POLYNOMIAL_CANDIDATES[name][0], int(getattr(run.own, POLYNOMIAL_CANDIDATES[name][1])))
             if name in POLYNOMIAL_CANDIDATES
@@ -183,7 +190,14 @@ class FittedCandidate:
             return fitted if self.half_life is None else m.slowed(fitted, self.half_life)
         if self.name == "constant_velocity" or self.model is None:
             return m.constant_velocity_trajectory(n)
-        return m.series_trajectory(self.model.rollout(m.series, m.floor, n))
+        return m.series_trajectory(self.series_future(n))
+
+    def series_future(self, n: int) -> np.ndarray:
+        """The learned network's next n values of every series (S, n), from the kept rollout where it is long enough."""
+        if self._series_future is None or self._series_future.shape[1] < n:
+            m = self.motion
+            self._series_future = self.model.rollout(m.series, m.floor, max(n, self.rollout_steps))
+        return self._series_future[:, :n]
 
     def rollout(self, n: int) -> np.ndarray:
         if self.name == "frozen":  # exactly the last poses (carrying the identity would round them)

@@ -165,13 +165,21 @@ def origin_frames(h: int, origins: int) -> list[int]:
 
 
 def backtest(
-    obs: np.ndarray, motion: GroupMotion, candidates: list[str], run: MogafRun, seed: int, h: int, device: Any
+    obs: np.ndarray,
+    motion: GroupMotion,
+    candidates: list[str],
+    run: MogafRun,
+    seed: int,
+    h: int,
+    device: Any,
+    horizon: int = 0,
 ) -> Backtest:
     """Backtest on observed frames only: fit on the first T - h, score on the
     last h (and, backtest_origins > 1 under combine: weighted, from later
     origins too: _later_origin). On short observations the backtested network
     reads a shorter context (window_sizes) than the one refitted on all T
-    frames, which keeps its own."""
+    frames, which keeps its own. `horizon`: the forecast's length, which the
+    drift check's refit rolls out at once (kept for the forecast)."""
     own, T = run.own, obs.shape[1]
     past = GroupMotion(obs[:, : T - h], motion.rigid, own.still_factor, damping=own.damping)
     # combine: weighted, non-rigid: every moving member scored over its nearest
@@ -190,7 +198,7 @@ def backtest(
         if name == "learned":
             learned_net = fitted.model
     if own.drift_check and learned_net is not None and motion.series.shape[0] and np.isfinite(bt.scores["learned"]):
-        _drift_check(bt, motion, learned_net, run, seed, device, neighbours)
+        _drift_check(bt, motion, learned_net, run, seed, device, neighbours, horizon)
     _no_weight_where_non_finite(bt.scores, bt.member_scores)
     bt.info["backtest_frames"] = h
     origins = origin_frames(h, int(own.backtest_origins)) if own.combine == "weighted" else [h]
@@ -278,14 +286,21 @@ def _no_weight_where_non_finite(scores: dict[str, float], member_scores: dict[st
 
 
 def _drift_check(
-    bt: Backtest, motion: GroupMotion, learned_net: Any, run: MogafRun, seed: int, device: Any, neighbours: Any
+    bt: Backtest,
+    motion: GroupMotion,
+    learned_net: Any,
+    run: MogafRun,
+    seed: int,
+    device: Any,
+    neighbours: Any,
+    horizon: int = 0,
 ) -> None:
     """The backtest judged a network that never saw the last h frames; the one
     deployed is refitted on them. How far the two forecasts part is error the
     backtest could not see (a reconstruction's last frames are its least
     accurate, and a network can learn their artefacts as motion): the learned
     candidate's scores are combined with it (root sum of squares)."""
-    bt.refit_learned = FittedCandidate("learned", motion, run, seed, device)
+    bt.refit_learned = FittedCandidate("learned", motion, run, seed, device, rollout_steps=horizon)
     judged = FittedCandidate("learned", motion, run, seed, device, model=learned_net)
     bt.drift = member_distances(bt.refit_learned.rollout(bt.frames), judged.rollout(bt.frames))
     _with_drift(bt.scores, bt.member_scores, bt.drift, motion, neighbours)
@@ -409,7 +424,7 @@ class StructuredMoGaF(Forecaster):
         motion, info = group_motion(obs, own, self.rigid_hint)
         candidates = [c for c in STRUCTURED_CANDIDATES if c in own.candidates]  # in tie order
         h = backtest_frames(T, own, self.horizon)
-        bt = backtest(obs, motion, candidates, run, self.seed, h, device) if h is not None else None
+        bt = backtest(obs, motion, candidates, run, self.seed, h, device, self.horizon) if h is not None else None
         decision = weighting(bt, candidates, own, T)
         if bt is not None:
             info.update(bt.info)
