@@ -18,6 +18,7 @@ import torch
 from mogaf import stages
 from mogaf.artefact import stage_inputs, write_artefact
 from mogaf.errors import MogafError
+from mogaf.evaluate import images
 from mogaf.evaluate.images import render_forecast_views
 from mogaf.evaluate.inputs import read_forecast
 from mogaf.export.clouds import model_splats, posed_splats, render_splats
@@ -298,6 +299,47 @@ def test_forecast_files_render_as_the_evaluation_does(tmp_path, scene_files):
             np.testing.assert_allclose(np.clip(got, 0.0, 1.0), want[f], atol=2e-5)
             rendered += 1
     assert rendered == frames.num_frames  # every evaluation view
+
+
+def test_same_poses_as_before_finds_runs_of_equal_steps():
+    means = np.zeros((3, 5, 3))
+    means[:, 1] = 1.0  # moves at step 1, then stops there
+    means[:, 2:] = 1.0
+    quats = np.tile([1.0, 0.0, 0.0, 0.0], (3, 5, 1))
+    np.testing.assert_array_equal(images.same_poses_as_before(means, quats), [0, 1, 1, 1, 1])
+    quats[0, 3] = [0.0, 1.0, 0.0, 0.0]  # turns at step 3 (and back at 4)
+    np.testing.assert_array_equal(images.same_poses_as_before(means, quats), [0, 1, 1, 3, 4])
+
+
+def test_a_frozen_forecast_is_rendered_once_per_camera_as_every_frame_alone(tmp_path, scene_files, monkeypatch):
+    """Evaluation frames with the same camera and the same poses share one
+    render, which is the image each of them gives rendered alone; a moving
+    forecast renders every frame."""
+    inputs = _inputs(tmp_path, scene_files)
+    model = load_model(inputs["model"])
+    frames = load_frames(inputs["scene"], read_split(inputs["split"]), "evaluation")
+    moving = read_forecast(inputs["forecast"])
+    n = moving["timesteps"].size
+    frozen = {
+        **moving,
+        "means": np.repeat(moving["means"][:, :1], n, 1),
+        "quats": np.repeat(moving["quats"][:, :1], n, 1),
+    }
+    cameras = {(frames.K[f].tobytes(), frames.w2c[f].tobytes()) for f in range(frames.num_frames)}
+    assert len(cameras) < frames.num_frames  # fixed evaluation views, seen at several times
+    render = images.render_poses
+    calls = []
+    monkeypatch.setattr(images, "render_poses", lambda *a: (calls.append(1), render(*a))[1])
+    shared = render_forecast_views(model, frozen, frames, {})
+    assert len(calls) == len(cameras)
+    for f in range(frames.num_frames):
+        alone = render(
+            model, frozen["means"][:, 0], frozen["quats"][:, 0], frames.K[f], frames.w2c[f], frames.width, frames.height
+        )
+        np.testing.assert_array_equal(shared[f], np.clip(alone.features[..., :3].numpy().astype(np.float64), 0.0, 1.0))
+    calls.clear()
+    render_forecast_views(model, moving, frames, {})
+    assert len(calls) == frames.num_frames
 
 
 def test_steps_pick_the_forecast_files(tmp_path, scene_files):

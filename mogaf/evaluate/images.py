@@ -15,15 +15,37 @@ from ..rendering import render_poses
 from ..representation import Model4D
 
 
+def same_poses_as_before(means: np.ndarray, quats: np.ndarray) -> np.ndarray:
+    """(n,) for each forecast step of (G, n, 3) means and (G, n, 4) quats, the
+    first of the run of consecutive steps it belongs to whose poses are all
+    equal (a frozen forecast: step 0 throughout; a motion that stops: the step
+    it stopped at)."""
+    n = means.shape[1]
+    first = np.arange(n)
+    for k in range(1, n):
+        if np.array_equal(means[:, k], means[:, k - 1]) and np.array_equal(quats[:, k], quats[:, k - 1]):
+            first[k] = first[k - 1]
+    return first
+
+
 def render_forecast_views(model: Model4D, fc: dict[str, Any], frames, params: Mapping[str, Any]) -> list[np.ndarray]:
+    """The forecast rendered at every evaluation frame, float64 RGB in [0, 1].
+    A frame seen from the same camera as an earlier one, with the same poses
+    (a frozen forecast at a fixed view), is that render again: the renderer
+    is deterministic, so it is the same image."""
     index = {int(t): i for i, t in enumerate(fc["timesteps"])}
+    first = same_poses_as_before(fc["means"], fc["quats"])
+    rendered: dict[tuple, np.ndarray] = {}
     renders = []
     for f in range(frames.num_frames):
         i = index[int(frames.time_index[f])]
-        out = render_poses(
-            model, fc["means"][:, i], fc["quats"][:, i], frames.K[f], frames.w2c[f], frames.width, frames.height
-        )
-        renders.append(np.clip(out.features[..., :3].detach().cpu().numpy().astype(np.float64), 0.0, 1.0))
+        key = (int(first[i]), frames.K[f].tobytes(), frames.w2c[f].tobytes())
+        if key not in rendered:
+            out = render_poses(
+                model, fc["means"][:, i], fc["quats"][:, i], frames.K[f], frames.w2c[f], frames.width, frames.height
+            )
+            rendered[key] = np.clip(out.features[..., :3].detach().cpu().numpy().astype(np.float64), 0.0, 1.0)
+        renders.append(rendered[key].copy())
     return renders
 
 
