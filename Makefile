@@ -47,22 +47,23 @@ setup: $(STAMP) $(LPIPS_CACHE)
 # compiled to bytecode as pip does (where PYTHONDONTWRITEBYTECODE is set, every
 # process would otherwise compile the imported packages again).
 # torch's bytecode (thousands of files; pip writes it on one core) is written
-# last, on every core, while the CPU rasterizer's kernel compiles: one compiler
+# last, on every core. The CPU rasterizer's kernel compiles meanwhile, from the
+# start (its build needs neither torch nor any other package): one compiler
 # process, built once here rather than by the first jobs at once (a C++ compiler
-# is optional: without one this warns and goes on). A file that does not compile
-# (a package's test data) is left to Python, as pip would.
+# is optional: without one this says so and goes on). A file that does not
+# compile (a package's test data) is left to Python, as pip would.
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet --no-compile torch==2.13.0
-	if $(BIN)/python -m pip install --quiet uv; then \
+	MOGAF_CACHE_DIR=$(CURDIR)/.cache/mogaf $(BIN)/python -m mogaf.kernel_build & kernel=$$!; \
+	$(BIN)/python -m pip install --quiet --upgrade pip \
+	&& $(BIN)/python -m pip install --quiet --no-compile torch==2.13.0 \
+	&& if $(BIN)/python -m pip install --quiet uv; then \
 		$(BIN)/uv pip install --quiet --compile-bytecode --python $(BIN)/python -e '.[workflow,test]'; \
 	else \
 		$(BIN)/python -m pip install --quiet -e '.[workflow,test]'; \
-	fi
-	MOGAF_CACHE_DIR=$(CURDIR)/.cache/mogaf $(BIN)/python -c "from mogaf.render import cpu; cpu.load()" & kernel=$$!; \
-	$(BIN)/python -m compileall -qq -j 0 "$$($(BIN)/python -c 'import sysconfig; print(sysconfig.get_path("platlib"))')" || true; \
-	wait $$kernel
+	fi \
+	&& { $(BIN)/python -m compileall -qq -j 0 "$$($(BIN)/python -c 'import sysconfig; print(sysconfig.get_path("platlib"))')" || true; }; \
+	status=$$?; wait $$kernel; exit $$status
 	# The package's bytecode, written once: where PYTHONDONTWRITEBYTECODE is set
 	# (CI), every stage process would compile it again (about 0.15 s each).
 	$(BIN)/python -m compileall -q mogaf

@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -13,6 +14,7 @@ import torch
 from mogaf.errors import MogafError
 from mogaf.render import cpu, rasterize, resolve_backend
 from mogaf.render.projection import project_gaussians
+from support.paths import REPO
 
 F64 = torch.float64
 FAST = ["cpu", "torch"]
@@ -397,7 +399,7 @@ def test_kernel_build_failure_falls_back_with_one_warning(monkeypatch, tmp_path)
                 monkeypatch.setenv("PATH", str(tmp_path))  # no compiler at all
             else:
                 monkeypatch.setenv("PATH", os.environ["PATH"].split(os.pathsep, 1)[0] + os.pathsep + "/bin:/usr/bin")
-                monkeypatch.setattr(cpu, "_compiler", lambda: "/bin/false")
+                monkeypatch.setattr(cpu, "compiler", lambda: "/bin/false")
             scene = random_scene(0, 6, 8, 8, 3)
             with pytest.warns(RuntimeWarning, match="C\\+\\+ CPU kernel is unavailable"):
                 out = rasterize(*scene, 8, 8)
@@ -419,6 +421,37 @@ def test_import_is_cheap():
         "assert 'gsplat' not in sys.modules and not c._state['tried']\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_the_kernel_builds_without_torch_where_the_renderer_looks_for_it(tmp_path):
+    """`python -m mogaf.kernel_build` (make setup runs it while torch installs)
+    imports no torch, names the library cpu.load() opens, and without a
+    compiler says so and exits 0 (the torch compositor is the fallback)."""
+    from mogaf import kernel_build
+
+    env = {**os.environ, "MOGAF_CACHE_DIR": str(tmp_path)}
+    code = (
+        "import sys, mogaf.kernel_build as k; assert 'torch' not in sys.modules\n"
+        "print(k.library_path(k.compiler() or 'g++'))\n"
+    )
+    named = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True)
+    assert Path(named.stdout.strip()).parent == tmp_path / "kernels"
+    if cpu.available():  # the library this process opened is where the build puts it
+        assert any(kernel_build.library_path(kernel_build.compiler()) == Path(p) for p in _loaded_libraries())
+    bare = {**env, "CXX": "", "PATH": str(tmp_path)}  # no compiler to be found
+    out = subprocess.run(
+        [sys.executable, "-m", "mogaf.kernel_build"], env=bare, capture_output=True, text=True, cwd=REPO
+    )
+    assert out.returncode == 0 and "no C++ compiler" in out.stdout
+    assert not (tmp_path / "kernels").exists() or not any((tmp_path / "kernels").iterdir())
+
+
+def _loaded_libraries() -> list[str]:
+    """Shared objects mapped into this process (Linux)."""
+    maps = Path("/proc/self/maps")
+    if not maps.exists():
+        return []
+    return sorted({line.split()[-1] for line in maps.read_text().splitlines() if line.rstrip().endswith(".so")})
 
 
 def test_memory_scales_with_covered_pixels():

@@ -11,9 +11,8 @@ headers, so it compiles in ~10 s with `g++ -O3` (no -march=native: the cache may
 be shared between machines; on x86-64 GCC adds an AVX2 clone picked at load
 time, and -ffp-contract=off keeps the forward and backward passes bitwise
 consistent; no -ffast-math). Threads: torch.get_num_threads(). The shared object lives in
-`cache_dir("kernels")` under a name that hashes the source, the flags, the
-compiler and the machine type; it is built into a temporary file and renamed, so
-concurrent processes may build at once. Any failure (no compiler, compile error,
+`cache_dir("kernels")`, built by mogaf.kernel_build (torch-free: `make setup`
+builds it while torch installs). Any failure (no compiler, compile error,
 load error) gives one warning and `load()` returns None: callers fall back to the
 torch compositor. Nothing is built at import time.
 """
@@ -22,28 +21,16 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import hashlib
-import os
-import platform
-import shutil
-import subprocess
-import tempfile
 import threading
 import warnings
-from pathlib import Path
 
 import torch
 from torch.autograd.function import once_differentiable
 
 from mogaf.errors import MogafError
-from mogaf.paths import cache_dir
+from mogaf.kernel_build import ABI_VERSION, build, compiler, library_path
 from mogaf.timing import KERNELS
 
-SOURCE = Path(__file__).with_name("csrc") / "rasterize.cpp"
-ABI_VERSION = 6
-BASE_FLAGS = ["-O3", "-std=c++17", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-math-errno", "-Wno-psabi"]
-# Static libstdc++ keeps the .so loadable on machines sharing the cache; dropped if unavailable.
-STATIC_FLAGS = ["-static-libstdc++", "-static-libgcc"]
 DEFAULT_TILE = 32
 
 _lock = threading.Lock()
@@ -52,41 +39,6 @@ _state: dict = {"lib": None, "tried": False, "error": None}
 _P = ctypes.c_void_p
 _I = ctypes.c_int
 _L = ctypes.c_int64
-
-
-def _compiler() -> str | None:
-    for cand in (os.environ.get("CXX"), "g++", "c++", "clang++"):
-        if cand and shutil.which(cand):
-            return shutil.which(cand)
-    return None
-
-
-def library_path(cxx: str) -> Path:
-    h = hashlib.sha256()
-    h.update(SOURCE.read_bytes())
-    h.update(repr((BASE_FLAGS, STATIC_FLAGS, os.path.basename(cxx), platform.machine(), ABI_VERSION)).encode())
-    return cache_dir("kernels") / f"mogaf_raster_{h.hexdigest()[:16]}.so"
-
-
-def _build(cxx: str, target: Path) -> None:
-    errors = []
-    for extra in (STATIC_FLAGS, []):
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-        os.close(fd)
-        try:
-            cmd = [cxx, *BASE_FLAGS, *extra, str(SOURCE), "-o", tmp]
-            res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-            if res.returncode == 0:
-                os.chmod(tmp, 0o755)
-                os.replace(tmp, target)
-                return
-            lines = res.stderr.strip().splitlines()
-            first_error = [ln for ln in lines if "error" in ln.lower()][:1]
-            errors.append(first_error or lines[-1:] or ["(no output)"])
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-    raise RuntimeError(f"{os.path.basename(cxx)} failed: {errors[-1][0]}")
 
 
 def _declare(lib: ctypes.CDLL) -> None:
@@ -125,13 +77,13 @@ def load(warn: bool = True) -> ctypes.CDLL | None:
             return _state["lib"]
         lib = None
         try:
-            cxx = _compiler()
+            cxx = compiler()
             if cxx is None:
                 raise RuntimeError("no C++ compiler found (set CXX or install g++)")
             target = library_path(cxx)
             if not target.exists():
                 with KERNELS.phase("kernel_build"):
-                    _build(cxx, target)
+                    build(cxx, target)
             lib = ctypes.CDLL(str(target))
             _declare(lib)
             if lib.mogaf_raster_abi_version() != ABI_VERSION:
