@@ -668,7 +668,8 @@ def test_the_refit_network_rolls_out_once_and_the_forecast_reuses_its_steps(monk
     from mogaf.forecast.candidates import FittedCandidate
     from mogaf.forecast.channel_net import ChannelForecaster
 
-    obs = waving_sheet(64, 30)
+    obs = waving_sheet(32, 24)
+    quick = {**QUICK, "iterations": 20}
     calls = []
     rollout = ChannelForecaster.rollout
 
@@ -677,14 +678,14 @@ def test_the_refit_network_rolls_out_once_and_the_forecast_reuses_its_steps(monk
         return rollout(self, series, floor, n)
 
     monkeypatch.setattr(ChannelForecaster, "rollout", counted)
-    fc = make_forecaster("mogaf", QUICK, seed=0).fit(obs, rigid=False, horizon=20)
+    fc = make_forecaster("mogaf", quick, seed=0).fit(obs, rigid=False, horizon=20)
     assert fc.info["backtest_frames"] < 20 and fc.info["backtest_weight_learned"] > 0.0  # the refit is in the forecast
     kept = fc.rollout(20)
     kept_calls, calls[:] = list(calls), []
     monkeypatch.setattr(
         FittedCandidate, "series_future", lambda self, n: self.model.rollout(self.motion.series, self.motion.floor, n)
     )
-    fresh = make_forecaster("mogaf", QUICK, seed=0).fit(obs, rigid=False, horizon=20).rollout(20)
+    fresh = make_forecaster("mogaf", quick, seed=0).fit(obs, rigid=False, horizon=20).rollout(20)
     np.testing.assert_array_equal(kept, fresh)
     assert len(kept_calls) == len(calls) - 1 and 20 in kept_calls and calls.count(20) == 1
 
