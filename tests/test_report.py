@@ -499,12 +499,12 @@ def test_load_metrics_rejects_foreign_json(tmp_path):
 # The demo's numbers, as the README gives them (make demo, results/synthetic/default/ratio0.6/metrics.json,
 # rounded as printed): method -> (PSNR, LPIPS, mPSNR, tracking EPE); GCN and ODE at config/demo.yaml's budgets.
 DEMO = {
-    "gcn": (16.72, 0.2584, 20.78, 0.433),
-    "ode": (16.44, 0.3169, 19.64, 1.601),
-    "mogaf": (17.45, 0.1988, 23.48, 0.094),
-    "mogaf_paper": (16.93, 0.2440, 21.70, 0.196),
-    "constant_velocity": (17.16, 0.2252, 22.30, 0.165),
-    "frozen": (17.27, 0.2219, 22.55, 0.156),
+    "gcn": (15.80, 0.2771, 20.36, 0.466),
+    "ode": (15.85, 0.3252, 19.89, 1.599),
+    "mogaf": (16.58, 0.1929, 23.12, 0.095),
+    "mogaf_paper": (16.10, 0.2373, 21.27, 0.199),
+    "constant_velocity": (16.27, 0.2191, 21.88, 0.164),
+    "frozen": (16.42, 0.2127, 22.43, 0.156),
 }
 DEMO_FILE = "results/synthetic/default/ratio0.6/metrics.json"
 
@@ -540,8 +540,8 @@ def test_glance_table_marks_the_best_and_the_shortened_budgets(tmp_path, monkeyp
         METHOD_LABELS["constant_velocity"],
         METHOD_LABELS["frozen"],
     ]
-    assert rows[2][1:] == ["**17.45**", "**0.1988**", "**23.48**", "**0.094**"]  # higher PSNR, lower LPIPS / EPE
-    assert rows[5][1:] == ["17.27", "0.2219", "22.55", "0.156"]
+    assert rows[2][1:] == ["**16.58**", "**0.1929**", "**23.12**", "**0.095**"]  # higher PSNR, lower LPIPS / EPE
+    assert rows[5][1:] == ["16.42", "0.2127", "22.43", "0.156"]
     assert lines[-1].startswith("Methods marked * ran off their papers' settings")
 
 
