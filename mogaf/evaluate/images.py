@@ -40,12 +40,14 @@ def render_forecast_views(model: Model4D, fc: dict[str, Any], frames, params: Ma
     for f in range(frames.num_frames):
         i = index[int(frames.time_index[f])]
         key = (int(first[i]), frames.K[f].tobytes(), frames.w2c[f].tobytes())
-        if key not in rendered:
-            out = render_poses(
-                model, fc["means"][:, i], fc["quats"][:, i], frames.K[f], frames.w2c[f], frames.width, frames.height
-            )
-            rendered[key] = np.clip(out.features[..., :3].detach().cpu().numpy().astype(np.float64), 0.0, 1.0)
-        renders.append(rendered[key].copy())
+        if key in rendered:  # a copy: each frame's image is its own array
+            renders.append(rendered[key].copy())
+            continue
+        out = render_poses(
+            model, fc["means"][:, i], fc["quats"][:, i], frames.K[f], frames.w2c[f], frames.width, frames.height
+        )
+        rendered[key] = np.clip(out.features[..., :3].detach().cpu().numpy().astype(np.float64), 0.0, 1.0)
+        renders.append(rendered[key])
     return renders
 
 
