@@ -144,17 +144,15 @@ def flush_denormals(device: Any = None) -> Iterator[None]:
     paper's network). The caller's mode is restored on exit."""
     import torch
 
-    if (torch.device(device).type if device is not None else "cpu") != "cpu":
+    on_cpu = device is None or torch.device(device).type == "cpu"
+    # switched on here only where it was off and the CPU has the mode: only then switched off again
+    if on_cpu and not flushing_denormals() and torch.set_flush_denormal(True):
+        try:
+            yield
+        finally:
+            torch.set_flush_denormal(False)
+    else:
         yield
-        return
-    before = flushing_denormals()
-    if before or not torch.set_flush_denormal(True):
-        yield
-        return
-    try:
-        yield
-    finally:
-        torch.set_flush_denormal(False)
 
 
 class Forecaster:
