@@ -84,10 +84,11 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
 
 def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
     """Rotation matrices to wxyz quaternions with w >= 0 (roma's robust method)."""
-    import roma
     import torch
 
-    xyzw = roma.rotmat_to_unitquat(R)
+    from .eager_roma import load as load_roma
+
+    xyzw = load_roma().rotmat_to_unitquat(R)
     q = torch.cat([xyzw[..., 3:], xyzw[..., :3]], dim=-1)
     return torch.where(q[..., :1] < 0, -q, q)
 

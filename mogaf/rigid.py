@@ -96,9 +96,9 @@ def weighted_procrustes(src, dst, weights=None) -> tuple[torch.Tensor, torch.Ten
     scale = torch.sqrt((M * M).sum((-1, -2), keepdim=True) + _TINY)
     eye = torch.eye(3, dtype=torch.float64)
     Mn = M / scale + IDENTITY_BIAS * eye
-    import roma
+    from .eager_roma import load as load_roma
 
-    R = roma.special_procrustes(Mn.reshape(-1, 3, 3), gradient_eps=GRADIENT_EPS).reshape(batch + (3, 3))
+    R = load_roma().special_procrustes(Mn.reshape(-1, 3, 3), gradient_eps=GRADIENT_EPS).reshape(batch + (3, 3))
     t = cy - torch.einsum("...ij,...j->...i", R, cx)
     return R.to(out_dtype), t.to(out_dtype)
 

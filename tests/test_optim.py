@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -110,3 +111,67 @@ def test_training_imports_no_compiler():
     res = subprocess.run([sys.executable, "-c", TRAINING_WITHOUT_COMPILER], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr[-2000:]
     assert res.stdout.strip() == "none"
+
+
+# roma's three uses in the pipeline, with a gradient through the Procrustes
+# solve; prints a digest of every result and which compiler modules loaded.
+ROMA_USES = """
+import hashlib, sys
+if sys.argv[1] == "plain":
+    import roma  # roma's own import, which loads torch._dynamo
+import numpy as np
+import torch
+from mogaf.recon.init_tracks import rigid_fit
+from mogaf.representation import matrix_to_quat
+from mogaf.rigid import weighted_procrustes
+
+gen = torch.Generator().manual_seed(0)
+src = torch.randn(4, 30, 3, generator=gen, dtype=torch.float64)
+dst = (src + 0.05 * torch.randn(4, 30, 3, generator=gen, dtype=torch.float64)).requires_grad_(True)
+R, t = weighted_procrustes(src, dst)
+(R.sum() + t.sum()).backward()
+Rf, tf = rigid_fit(src[0].numpy(), dst[0].detach().numpy(), np.linspace(0.5, 1.5, 30))
+q = matrix_to_quat(R.detach().float())
+digest = hashlib.sha256()
+for a in (R.detach().numpy(), t.detach().numpy(), dst.grad.numpy(), Rf, tf, q.numpy()):
+    digest.update(np.ascontiguousarray(a).tobytes())
+loaded = sorted(m for m in ("torch._dynamo", "torch._inductor") if m in sys.modules)
+print(digest.hexdigest(), ",".join(loaded) or "none", "_dynamo" in vars(torch) and "torch._dynamo" not in sys.modules)
+"""
+
+
+def test_roma_without_the_compiler_gives_the_same_bits():
+    """The pipeline's roma (mogaf.eager_roma) loads no compiler, leaves no
+    stand-in on torch, and computes every result and gradient bit for bit as
+    roma imported the plain way."""
+    runs = {}
+    for how in ("eager", "plain"):
+        res = subprocess.run([sys.executable, "-c", ROMA_USES, how], capture_output=True, text=True, timeout=120)
+        assert res.returncode == 0, res.stderr[-2000:]
+        runs[how] = res.stdout.split()
+    assert runs["eager"][1:] == ["none", "False"]
+    assert "torch._dynamo" in runs["plain"][1].split(",")
+    assert runs["eager"][0] == runs["plain"][0]
+
+
+def test_a_roma_that_needs_more_of_the_compiler_is_imported_the_plain_way(tmp_path):
+    (tmp_path / "roma").mkdir()
+    (tmp_path / "roma" / "__init__.py").write_text(
+        "import torch\nfrom . import parts\nIS_COMPILING = torch._dynamo.is_compiling\n"
+    )
+    (tmp_path / "roma" / "parts.py").write_text("import torch\nEAGER = torch._dynamo.disable(len)\n")
+    code = (
+        "import sys, torch\nfrom mogaf.eager_roma import load\nroma = load()\n"
+        "print(roma.__file__ == sys.argv[1], roma.parts.EAGER is not len, 'torch._dynamo' in sys.modules,"
+        " type(torch._dynamo).__name__)"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code, str(tmp_path / "roma" / "__init__.py")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(tmp_path)},
+    )
+    assert res.returncode == 0, res.stderr[-2000:]
+    # the second, plain import ran: roma.parts holds the real compiler's wrapper, not the stand-in's function
+    assert res.stdout.split() == ["True", "True", "True", "module"]

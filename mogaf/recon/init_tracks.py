@@ -87,7 +87,9 @@ def procrustes_weights(cluster: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 def rigid_fit(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Weighted Kabsch: R, t minimising sum w |R x + t - y|^2 (roma)."""
-    import roma
+    from ..eager_roma import load as load_roma
+
+    roma = load_roma()
 
     R, t = roma.rigid_points_registration(
         torch.tensor(x, dtype=torch.float64),
