@@ -10,7 +10,8 @@ The kernel (csrc/rasterize.cpp) is plain C++17 with std::thread and no torch
 headers, so it compiles in ~10 s with `g++ -O3` (no -march=native: the cache may
 be shared between machines; on x86-64 GCC adds an AVX2 clone picked at load
 time, and -ffp-contract=off keeps the forward and backward passes bitwise
-consistent; no -ffast-math). Threads: torch.get_num_threads(). The shared object lives in
+consistent; no -ffast-math). Threads: mogaf.render.threads (torch's count, or the idle
+cores). The shared object lives in
 `cache_dir("kernels")`, built by mogaf.kernel_build (torch-free: `make setup`
 builds it while torch installs). Any failure (no compiler, compile error,
 load error) gives one warning and `load()` returns None: callers fall back to the
@@ -29,6 +30,7 @@ from torch.autograd.function import once_differentiable
 
 from mogaf.errors import MogafError
 from mogaf.kernel_build import ABI_VERSION, build, compiler, library_path
+from mogaf.render.threads import kernel_threads
 from mogaf.timing import KERNELS
 
 DEFAULT_TILE = 32
@@ -150,7 +152,7 @@ class _CPURaster(torch.autograd.Function):
         if bg is not None and bg.numel() != C:
             bg = bg.expand(C).contiguous()
         ntiles = ((width + tile - 1) // tile) * ((height + tile - 1) // tile)
-        nthreads = max(1, torch.get_num_threads())
+        nthreads = kernel_threads()
         splats = torch.empty(int(getattr(lib, f"mogaf_splat_bytes_{suf}")(M)), dtype=torch.uint8)
         order = torch.empty(M, dtype=torch.int32)
         offsets = torch.empty(ntiles + 1, dtype=torch.int64)
@@ -180,7 +182,7 @@ class _CPURaster(torch.autograd.Function):
         )  # fmt: skip
         _check(rc, "forward")
         ctx.save_for_backward(features, depths, bg, splats, offsets, isect, Tf, accD, last)
-        ctx.dims = (width, height, tile, nthreads, background is not None and background.requires_grad)
+        ctx.dims = (width, height, tile, background is not None and background.requires_grad)
         return feat, alpha, depth
 
     @staticmethod
@@ -188,7 +190,8 @@ class _CPURaster(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, g_feat, g_alpha, g_depth):
         features, depths, bg, splats, offsets, isect, Tf, accD, last = ctx.saved_tensors
-        width, height, tile, nthreads, bg_grad = ctx.dims
+        width, height, tile, bg_grad = ctx.dims
+        nthreads = kernel_threads()
         dtype = features.dtype
         suf = _suffix(dtype)
         M, C = features.shape
@@ -254,7 +257,7 @@ class _ProjectCPU(torch.autograd.Function):
         opacities = opacities.to(dtype).contiguous()
         cam = _camera(viewmat, K)
         N = means.shape[0]
-        nthreads = max(1, torch.get_num_threads())
+        nthreads = kernel_threads()
         means2d = torch.empty(N, 2, dtype=dtype)
         conics = torch.empty(N, 3, dtype=dtype)
         depths = torch.empty(N, dtype=dtype)
@@ -268,7 +271,7 @@ class _ProjectCPU(torch.autograd.Function):
         _check(rc, "projection")
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(means, quats, scales, cam, radii)
-        ctx.dims = (width, height, float(near), float(far), float(eps2d), nthreads, viewmat.dtype)
+        ctx.dims = (width, height, float(near), float(far), float(eps2d), viewmat.dtype)
         ctx.mark_non_differentiable(radii, visible)
         return means2d, conics, depths, radii, visible
 
@@ -277,7 +280,8 @@ class _ProjectCPU(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, g_means2d, g_conics, g_depths, _g_radii, _g_visible):
         means, quats, scales, cam, radii = ctx.saved_tensors
-        width, height, near, far, eps2d, nthreads, view_dtype = ctx.dims
+        width, height, near, far, eps2d, view_dtype = ctx.dims
+        nthreads = kernel_threads()
         dtype = means.dtype
         suf = _suffix(dtype)
         N = means.shape[0]

@@ -1,0 +1,107 @@
+"""How many threads a CPU kernel call uses: torch's count, or more where cores are idle.
+
+A stage asks Snakemake for one core and runs torch on one thread (a fixed
+reduction order). The C++ kernels give the same bits for any thread count
+(tests/test_render.py), so they may also use the cores that no other process
+is using: the reconstruction when it runs alone, refine and evaluate, which
+the demo runs with the second core idle. Where another job keeps that core
+busy, they stay at torch's count (a second thread there only time-slices).
+
+Idle is measured on Linux from /proc/stat, over this process's CPU set, every
+half second: the CPU time all processes spent minus this process's own.
+MOGAF_KERNEL_THREADS=n fixes the count instead (n = 0: torch's count).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+ENV = "MOGAF_KERNEL_THREADS"
+INTERVAL_S = 0.5
+# another process's use of a core below this fraction (the workflow's own
+# process, the system) still leaves that core to the kernel
+SLACK = 0.25
+
+
+def usable_cores(busy_s: float, own_cpu_s: float, wall_s: float, ncpus: int) -> int:
+    """Cores of `ncpus` that other processes left free over an interval of
+    `wall_s` seconds in which all processes used `busy_s` CPU seconds on them,
+    `own_cpu_s` of it this process's (at least 1)."""
+    if wall_s <= 0 or ncpus < 1:
+        return 1
+    others = max(0.0, busy_s - own_cpu_s) / wall_s
+    return max(1, min(ncpus, int(ncpus - others + SLACK)))
+
+
+def _busy_seconds(cpus: set[int]) -> float | None:
+    """CPU seconds spent (not idle, not waiting for I/O) on `cpus` since boot."""
+    try:
+        with open("/proc/stat", "rb") as f:
+            lines = f.read().split(b"\n")
+    except OSError:
+        return None
+    ticks = 0
+    seen = 0
+    for line in lines[1:]:
+        if not line.startswith(b"cpu"):
+            break
+        fields = line.split()
+        if int(fields[0][3:]) in cpus:
+            user, nice, system, idle, iowait, irq, softirq, steal = (int(x) for x in fields[1:9])
+            ticks += user + nice + system + irq + softirq + steal
+            seen += 1
+    if seen != len(cpus):
+        return None
+    return ticks / os.sysconf("SC_CLK_TCK")
+
+
+class _IdleCores:
+    """The usable core count, sampled at most every INTERVAL_S seconds."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.cpus = set(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else set()
+        self.sample: tuple[float, float, float] | None = None
+        self.usable = 1
+
+    def __call__(self) -> int:
+        if len(self.cpus) < 2:
+            return 1
+        with self.lock:
+            now = time.monotonic()
+            if self.sample is not None and now - self.sample[0] < INTERVAL_S:
+                return self.usable
+            busy = _busy_seconds(self.cpus)
+            if busy is None:
+                self.cpus = set()
+                return 1
+            own = time.process_time()
+            if self.sample is not None:
+                t0, busy0, own0 = self.sample
+                self.usable = usable_cores(busy - busy0, own - own0, now - t0, len(self.cpus))
+            self.sample = (now, busy, own)
+            return self.usable
+
+
+idle_cores = _IdleCores()
+
+
+def kernel_threads() -> int:
+    """Threads for the next kernel call (at least torch's thread count)."""
+    import torch
+
+    base = max(1, torch.get_num_threads())
+    fixed = os.environ.get(ENV, "").strip()
+    if fixed:
+        try:
+            n = int(fixed)
+        except ValueError:
+            n = -1
+        if n < 0:
+            from mogaf.errors import MogafError
+
+            raise MogafError(f"{ENV} must be a whole number >= 0, got {fixed!r}")
+        return n or base
+    return max(base, idle_cores())
