@@ -40,8 +40,9 @@ RATIO = Path("results/synthetic/tiny/ratio0.6")
 METHODS = ["mogaf", "mogaf_paper", "gcn", "ode", "constant_velocity", "frozen"]
 
 
-def _env(work: Path) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if k != "MOGAF_CACHE_DIR"}  # the config's cache_dir decides
+def _env(work: Path, **extra: str) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in ("MOGAF_CACHE_DIR", "MOGAF_CORES")}  # the config decides
+    env.update(extra)
     env.update(
         HOME=str(work / "home"),
         XDG_CACHE_HOME=str(work / "home" / ".cache"),
@@ -77,8 +78,10 @@ def _command(*layers: str) -> list[str]:
     ]
 
 
-def _run(work: Path, *layers: str, timeout: int = 600) -> subprocess.CompletedProcess:
-    res = subprocess.run(_command(*layers), cwd=work, env=_env(work), capture_output=True, text=True, timeout=timeout)
+def _run(work: Path, *layers: str, timeout: int = 600, **env: str) -> subprocess.CompletedProcess:
+    res = subprocess.run(
+        _command(*layers), cwd=work, env=_env(work, **env), capture_output=True, text=True, timeout=timeout
+    )
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-6000:]
     return res
 
@@ -92,7 +95,7 @@ def runs(tmp_path_factory):
     first = tmp_path_factory.mktemp("run1")
     _prepare(first)
     before = _files(first)
-    _run(first)
+    _run(first, MOGAF_CORES="1")  # the second run takes idle cores (mogaf.cores)
     # second run: killed during reconstruction, then rerun
     second = tmp_path_factory.mktemp("run2")
     _prepare(second)
@@ -240,6 +243,41 @@ def test_rerun_after_kill_is_byte_identical(runs):
     a = (runs["first"] / RATIO / "metrics.json").read_bytes()
     b = (runs["second"] / RATIO / "metrics.json").read_bytes()
     assert a == b
+
+
+def test_evaluating_forecasts_side_by_side_writes_the_same_files(runs, tmp_path, monkeypatch):
+    """The first run evaluated on one core; its forecasts evaluated again with
+    three measured at once (MOGAF_CORES=3) give the same metrics.json and
+    renders, byte for byte."""
+    import yaml
+
+    from mogaf.config import deep_merge, with_defaults
+    from mogaf.stages import evaluate
+
+    ratio = runs["first"] / RATIO
+    config = with_defaults(deep_merge(*(yaml.safe_load(Path(c).read_text()) for c in CONFIGS)))
+    monkeypatch.setenv("MOGAF_CACHE_DIR", str(runs["first"] / ".cache" / "mogaf"))  # the LPIPS weights
+    monkeypatch.setenv("MOGAF_CORES", "3")
+    evaluate(
+        scene=str(ratio.parent / "scene.h5"),
+        split=str(ratio / "split.h5"),
+        model=str(ratio / "refined.h5"),
+        groups=str(ratio / "groups.h5"),
+        reconstruction_quality=str(ratio / "reconstruction_quality" / "refined.h5"),
+        grouping_quality=str(ratio / "grouping_quality.h5"),
+        forecasts={m: str(ratio / "forecast" / f"{m}.h5") for m in METHODS},
+        benchmarks={},
+        out_metrics=str(tmp_path / "metrics.json"),
+        out_renders=str(tmp_path / "renders"),
+        params=config["evaluate"],
+        variant="default",
+        ids={"dataset": "synthetic", "scene": "tiny"},
+    )
+    assert (tmp_path / "metrics.json").read_bytes() == (ratio / "metrics.json").read_bytes()
+    renders = sorted(p for p in _files(ratio / "renders") if p.name != ".snakemake_timestamp")  # Snakemake's own
+    assert renders and sorted(_files(tmp_path / "renders")) == renders
+    for name in renders:
+        assert (tmp_path / "renders" / name).read_bytes() == (ratio / "renders" / name).read_bytes(), name
 
 
 # ---------------------------------------------------------------- the report, in a real browser

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -125,11 +126,11 @@ def test_cpu_independent_of_tile_size_and_threads():
 
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_kernel_threads_change_no_bit(monkeypatch, dtype):
-    """The kernels may use idle cores (mogaf.render.threads): every output and
+    """The kernels may use idle cores (mogaf.cores): every output and
     gradient is the same bits with 1, 2 and 3 threads, on a scene that every
     kernel splits between threads (a thread per 8,192 Gaussians projected or
     in view to bin, per 4,096 tile intersections to composite)."""
-    from mogaf.render.threads import ENV
+    from mogaf.cores import ENV
 
     scene = random_scene(12, 30000, 96, 72, 3, dtype=dtype, px_sigma=(0.5, 2.0))
     runs = []
@@ -143,37 +144,41 @@ def test_kernel_threads_change_no_bit(monkeypatch, dtype):
 
 
 def test_kernel_threads_follow_the_idle_cores_or_the_setting(monkeypatch):
-    from mogaf.render import threads
+    from mogaf import cores
 
     # over one second on 2 cores: others used 0.1 s (the core is free) or 0.9 s (taken)
-    assert threads.usable_cores(busy_s=1.1, own_cpu_s=1.0, wall_s=1.0, ncpus=2) == 2
-    assert threads.usable_cores(busy_s=1.9, own_cpu_s=1.0, wall_s=1.0, ncpus=2) == 1
+    assert cores.usable_cores(busy_s=1.1, own_cpu_s=1.0, wall_s=1.0, ncpus=2) == 2
+    assert cores.usable_cores(busy_s=1.9, own_cpu_s=1.0, wall_s=1.0, ncpus=2) == 1
     # this process's own second thread is not another process's load
-    assert threads.usable_cores(busy_s=2.0, own_cpu_s=2.0, wall_s=1.0, ncpus=2) == 2
-    assert threads.usable_cores(busy_s=5.0, own_cpu_s=0.5, wall_s=1.0, ncpus=4) == 1
-    assert threads.usable_cores(busy_s=1.5, own_cpu_s=1.0, wall_s=1.0, ncpus=4) == 3
-    assert threads.usable_cores(busy_s=0.0, own_cpu_s=0.0, wall_s=0.0, ncpus=2) == 1
-    monkeypatch.setattr(threads, "idle_cores", lambda: pytest.fail("the setting decides without sampling"))
-    monkeypatch.setenv(threads.ENV, "3")
-    assert threads.kernel_threads() == 3
-    monkeypatch.setenv(threads.ENV, "0")
-    monkeypatch.setattr(threads, "idle_cores", lambda: 1)
-    assert threads.kernel_threads() == max(1, torch.get_num_threads())
-    monkeypatch.setenv(threads.ENV, "two")
-    with pytest.raises(MogafError, match="MOGAF_KERNEL_THREADS must be a whole number"):
-        threads.kernel_threads()
-    monkeypatch.delenv(threads.ENV)
-    monkeypatch.setattr(threads, "idle_cores", lambda: 4)
-    assert threads.kernel_threads() == max(4, torch.get_num_threads())
+    assert cores.usable_cores(busy_s=2.0, own_cpu_s=2.0, wall_s=1.0, ncpus=2) == 2
+    assert cores.usable_cores(busy_s=5.0, own_cpu_s=0.5, wall_s=1.0, ncpus=4) == 1
+    assert cores.usable_cores(busy_s=1.5, own_cpu_s=1.0, wall_s=1.0, ncpus=4) == 3
+    assert cores.usable_cores(busy_s=0.0, own_cpu_s=0.0, wall_s=0.0, ncpus=2) == 1
+    torch_threads = max(1, torch.get_num_threads())
+    monkeypatch.setattr(cores, "idle_cores", lambda: pytest.fail("the setting decides without sampling"))
+    monkeypatch.setenv(cores.ENV, "3")
+    assert cores.cores() == 3 and cores.kernel_threads() == max(3, torch_threads)
+    with cores.shared_by(3):  # three threads of this process call the kernels at once
+        assert cores.kernel_threads() == torch_threads
+    assert cores.kernel_threads() == max(3, torch_threads)
+    for bad in ("two", "0", "-1"):
+        monkeypatch.setenv(cores.ENV, bad)
+        with pytest.raises(MogafError, match="MOGAF_CORES must be a whole number >= 1"):
+            cores.cores()
+    monkeypatch.delenv(cores.ENV)
+    monkeypatch.setattr(cores, "idle_cores", lambda: 4)
+    assert cores.cores() == 4 and cores.kernel_threads() == max(4, torch_threads)
 
 
 def test_idle_cores_sample_this_process_cpu_set():
-    from mogaf.render.threads import _busy_seconds, _IdleCores
+    from mogaf.cores import FIRST_INTERVAL_S, _busy_seconds, _IdleCores
 
     sampler = _IdleCores()
     if not sampler.cpus or _busy_seconds(sampler.cpus) is None:
         pytest.skip("no /proc/stat or CPU affinity here: the kernels use torch's thread count")
-    assert 1 <= sampler() <= max(1, len(sampler.cpus))
+    assert sampler() == 1 and sampler.usable is None  # one sample is no measurement yet
+    time.sleep(FIRST_INTERVAL_S * 1.5)  # a caller's first measurement comes sooner than the next ones
+    assert 1 <= sampler() <= len(sampler.cpus) and sampler.usable is not None
     assert _busy_seconds(sampler.cpus) >= 0.0
 
 

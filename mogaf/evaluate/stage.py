@@ -9,6 +9,7 @@ import logging
 import math
 import time
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +17,7 @@ import numpy as np
 
 from .. import __version__
 from ..artefact import atomic_folder, write_json
+from ..cores import cores, shared_by
 from ..grouping.quality import read_grouping_quality
 from ..metrics import image_metrics, mean_metrics, metrics_left_out
 from ..metrics.lpips import load_lpips_weights
@@ -68,6 +70,7 @@ def run_evaluate_stage(
     `grouping_quality`: grouping_quality.h5 of the grouping the forecasts used."""
     p = load_settings(params)
     start = time.perf_counter()
+    cores()  # the idle cores are measured from here to the first forecast
     if p.lpips:
         load_lpips_weights()  # fail before rendering anything when the weights are missing
     # the sections copied from their own stages: a bad file fails before any render
@@ -103,7 +106,10 @@ def run_evaluate_stage(
     legend = colour_legend(frames.width * factor, p.video_error_max, text_scale(frames.width * factor))
     # renders and videos go to a temporary folder that replaces out_renders when complete
     with atomic_folder(out_renders) as renders_tmp, video_encoder() as write_video:
-        for method in methods:
+
+        def measure(method: str) -> tuple[dict[str, Any], str | None, list[np.ndarray] | None]:
+            """The method's metrics section, its label and its tiles for all_methods.mp4 (videos on)."""
+            label = tiles = None
             fc = read_forecast(forecasts[method])
             _check_forecast(fc, m4, sp)
             renders = render_forecast_views(m4, fc, frames, p)
@@ -122,13 +128,11 @@ def run_evaluate_stage(
             section["forecast"] = forecast_summary(fc["attrs"])
             if epe_3d_quick is not None:
                 section["forecast"]["epe_3d_quick"] = epe_3d_quick
-            result["methods"][method] = section
             if p.save_renders:
                 for f in range(frames.num_frames):
                     _save_png(renders_tmp / method / f"{frames.frame_names[f]}.png", renders[f])
             if p.video:
                 label = method_label({"methods": {method: section}}, method)
-                labels[method] = label
                 panels = [
                     labelled_row(
                         [enlarge(gt_tiles[f], factor), enlarge(to_uint8(renders[f]), factor)]
@@ -140,7 +144,21 @@ def run_evaluate_stage(
                     for f in range(frames.num_frames)
                 ]
                 write_video(renders_tmp / f"{method}.mp4", panels, int(p.video_fps))
-                side_by_side[method] = [enlarge(to_uint8(r), factor) for r in renders]
+                tiles = [enlarge(to_uint8(r), factor) for r in renders]
+            return section, label, tiles
+
+        # Forecasts are measured side by side where cores are idle (the same
+        # values in any order); metrics.json lists them in the same order.
+        workers = max(1, min(len(methods), cores()))
+        if workers > 1:
+            log.info("measuring %d forecasts at a time on idle cores", workers)
+        with shared_by(workers), ThreadPoolExecutor(max_workers=workers) as pool:
+            measured = list(pool.map(measure, methods))
+        for method, (section, label, tiles) in zip(methods, measured):
+            result["methods"][method] = section
+            if label is not None:
+                labels[method] = label
+                side_by_side[method] = tiles
         if p.video and len(methods) > 1:
             # one video of every method beside the GT, in the tables' order
             order = sorted(methods, key=lambda m: METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER))

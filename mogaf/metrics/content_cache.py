@@ -4,11 +4,14 @@ An evaluation compares every method's render with the same ground-truth
 images: what depends on a ground truth alone (its LPIPS features, its SSIM
 window statistics) is computed once and found again by content. Least
 recently used entries go first once the cache holds more than its bytes.
+Threads may share a cache: a value two of them miss at once is computed by
+both (the same value) and kept once.
 """
 
 from __future__ import annotations
 
 import hashlib
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -33,21 +36,30 @@ class ContentCache:
         self.entries: dict[tuple, Any] = {}
         self.sizes: dict[tuple, int] = {}
         self.bytes = 0
+        self.lock = threading.Lock()
 
     def get(self, key: tuple, make: Callable[[], Any], nbytes: Callable[[Any], int]) -> Any:
-        hit = self.entries.pop(key, None)
-        if hit is None:
-            hit = make()
-            self.sizes[key] = int(nbytes(hit))
-            self.bytes += self.sizes[key]
-        self.entries[key] = hit  # most recently used last
-        while self.bytes > self.max_bytes and len(self.entries) > 1:
-            old = next(iter(self.entries))
-            del self.entries[old]
-            self.bytes -= self.sizes.pop(old)
-        return hit
+        with self.lock:
+            hit = self.entries.pop(key, None)
+            if hit is not None:
+                self.entries[key] = hit  # most recently used last
+                return hit
+        made = make()  # outside the lock: other threads look up and compute meanwhile
+        with self.lock:
+            hit = self.entries.pop(key, None)
+            if hit is None:
+                hit = made
+                self.sizes[key] = int(nbytes(hit))
+                self.bytes += self.sizes[key]
+            self.entries[key] = hit
+            while self.bytes > self.max_bytes and len(self.entries) > 1:
+                old = next(iter(self.entries))
+                del self.entries[old]
+                self.bytes -= self.sizes.pop(old)
+            return hit
 
     def clear(self) -> None:
-        self.entries.clear()
-        self.sizes.clear()
-        self.bytes = 0
+        with self.lock:
+            self.entries.clear()
+            self.sizes.clear()
+            self.bytes = 0

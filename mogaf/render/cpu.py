@@ -10,7 +10,7 @@ The kernel (csrc/rasterize.cpp) is plain C++17 with std::thread and no torch
 headers, so it compiles in ~10 s with `g++ -O3` (no -march=native: the cache may
 be shared between machines; on x86-64 GCC adds an AVX2 clone picked at load
 time, and -ffp-contract=off keeps the forward and backward passes bitwise
-consistent; no -ffast-math). Threads: mogaf.render.threads (torch's count, or the idle
+consistent; no -ffast-math). Threads: mogaf.cores (torch's count, or the idle
 cores). The shared object lives in
 `cache_dir("kernels")`, built by mogaf.kernel_build (torch-free: `make setup`
 builds it while torch installs). Any failure (no compiler, compile error,
@@ -28,9 +28,9 @@ import warnings
 import torch
 from torch.autograd.function import once_differentiable
 
+from mogaf.cores import kernel_threads
 from mogaf.errors import MogafError
 from mogaf.kernel_build import ABI_VERSION, build, compiler, library_path
-from mogaf.render.threads import kernel_threads
 from mogaf.timing import KERNELS
 
 DEFAULT_TILE = 32

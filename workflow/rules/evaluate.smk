@@ -15,8 +15,9 @@ rule evaluate:
         benchmark_tsv("evaluate")
     conda:
         "../../envs/mogaf.yaml"
-    # One core: the job uses about one, and a two-core job waits until both are
-    # free (a sweep's evaluation then missed a core idle during refinement).
+    # One core: a two-core job waits until both are free (a sweep's evaluation then
+    # missed a core idle during refinement). Forecasts are measured side by side on
+    # cores left idle (mogaf.cores; the same files).
     threads: 1
     params:
         evaluate=params_for("evaluate"),

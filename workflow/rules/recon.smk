@@ -16,7 +16,7 @@ rule recon:
         "../../envs/mogaf.yaml"
     # One torch thread (recon.threads): fixed float-reduction order, so artefacts are
     # bitwise reproducible; two such jobs share a 2-core machine. The rasterizer also
-    # takes a core left idle (mogaf.render.threads; same bits).
+    # takes a core left idle (mogaf.cores; same bits).
     threads: 1
     resources:
         mem_mb=8000,

@@ -1,25 +1,29 @@
-"""How many threads a CPU kernel call uses: torch's count, or more where cores are idle.
+"""How many cores a job's CPU kernels and evaluation use: its own, or more where cores are idle.
 
 A stage asks Snakemake for one core and runs torch on one thread (a fixed
-reduction order). The C++ kernels give the same bits for any thread count
-(tests/test_render.py), so they may also use the cores that no other process
-is using: the reconstruction when it runs alone, refine and evaluate, which
-the demo runs with the second core idle. Where another job keeps that core
-busy, they stay at torch's count (a second thread there only time-slices).
+reduction order). The C++ rasterizer gives the same bits for any thread
+count (tests/test_render.py), and evaluate's forecasts are measured one by
+one with the same results in any order, so both may also use the cores that
+no other process is using: the reconstruction when it runs alone, refine and
+evaluate, which the demo runs with the second core idle. Where another job
+keeps that core busy they stay on one (a second thread there only time-slices).
 
 Idle is measured on Linux from /proc/stat, over this process's CPU set, every
 half second: the CPU time all processes spent minus this process's own.
-MOGAF_KERNEL_THREADS=n fixes the count instead (n = 0: torch's count).
+MOGAF_CORES=n fixes the count instead (1: never more than the job's own).
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 import time
+from collections.abc import Iterator
 
-ENV = "MOGAF_KERNEL_THREADS"
+ENV = "MOGAF_CORES"
 INTERVAL_S = 0.5
+FIRST_INTERVAL_S = 0.1  # the first measurement, for a caller that sampled once at its start
 # another process's use of a core below this fraction (the workflow's own
 # process, the system) still leaves that core to the kernel
 SLACK = 0.25
@@ -64,15 +68,15 @@ class _IdleCores:
         self.lock = threading.Lock()
         self.cpus = set(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else set()
         self.sample: tuple[float, float, float] | None = None
-        self.usable = 1
+        self.usable: int | None = None
 
     def __call__(self) -> int:
         if len(self.cpus) < 2:
             return 1
         with self.lock:
             now = time.monotonic()
-            if self.sample is not None and now - self.sample[0] < INTERVAL_S:
-                return self.usable
+            if self.sample is not None and now - self.sample[0] < (INTERVAL_S if self.usable else FIRST_INTERVAL_S):
+                return self.usable or 1
             busy = _busy_seconds(self.cpus)
             if busy is None:
                 self.cpus = set()
@@ -82,26 +86,43 @@ class _IdleCores:
                 t0, busy0, own0 = self.sample
                 self.usable = usable_cores(busy - busy0, own - own0, now - t0, len(self.cpus))
             self.sample = (now, busy, own)
-            return self.usable
+            return self.usable or 1
 
 
 idle_cores = _IdleCores()
+_sharing = {"workers": 1}
+
+
+def cores() -> int:
+    """Cores this process may use now: MOGAF_CORES, else the idle ones (at least 1)."""
+    fixed = os.environ.get(ENV, "").strip()
+    if fixed:
+        try:
+            n = int(fixed)
+        except ValueError:
+            n = 0
+        if n < 1:
+            from mogaf.errors import MogafError
+
+            raise MogafError(f"{ENV} must be a whole number >= 1, got {fixed!r}")
+        return n
+    return idle_cores()
+
+
+@contextlib.contextmanager
+def shared_by(workers: int) -> Iterator[None]:
+    """Within the block `workers` threads of this process call the kernels at
+    once: each call gets its share of the cores."""
+    before = _sharing["workers"]
+    _sharing["workers"] = max(1, int(workers))
+    try:
+        yield
+    finally:
+        _sharing["workers"] = before
 
 
 def kernel_threads() -> int:
     """Threads for the next kernel call (at least torch's thread count)."""
     import torch
 
-    base = max(1, torch.get_num_threads())
-    fixed = os.environ.get(ENV, "").strip()
-    if fixed:
-        try:
-            n = int(fixed)
-        except ValueError:
-            n = -1
-        if n < 0:
-            from mogaf.errors import MogafError
-
-            raise MogafError(f"{ENV} must be a whole number >= 0, got {fixed!r}")
-        return n or base
-    return max(base, idle_cores())
+    return max(1, torch.get_num_threads(), cores() // _sharing["workers"])
