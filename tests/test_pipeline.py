@@ -256,7 +256,6 @@ def test_evaluating_forecasts_side_by_side_writes_the_same_files(runs, tmp_path,
 
     ratio = runs["first"] / RATIO
     config = with_defaults(deep_merge(*(yaml.safe_load(Path(c).read_text()) for c in CONFIGS)))
-    monkeypatch.setenv("MOGAF_CACHE_DIR", str(runs["first"] / ".cache" / "mogaf"))  # the LPIPS weights
     monkeypatch.setenv("MOGAF_CORES", "3")
     evaluate(
         scene=str(ratio.parent / "scene.h5"),
