@@ -9,13 +9,15 @@ evaluate, which the demo runs with the second core idle. Where another job
 keeps that core busy they stay on one (a second thread there only time-slices).
 
 Idle is measured on Linux from /proc/stat, over this process's CPU set, every
-half second: the CPU time all processes spent minus this process's own.
-MOGAF_CORES=n fixes the count instead (1: never more than the job's own).
+half second: the CPU time all processes spent minus this process's own, and
+never more than a cgroup CPU quota allows. MOGAF_CORES=n fixes the count
+instead (1: never more than the job's own).
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import threading
 import time
@@ -48,17 +50,57 @@ def _busy_seconds(cpus: set[int]) -> float | None:
         return None
     ticks = 0
     seen = 0
-    for line in lines[1:]:
-        if not line.startswith(b"cpu"):
-            break
-        fields = line.split()
-        if int(fields[0][3:]) in cpus:
-            user, nice, system, idle, iowait, irq, softirq, steal = (int(x) for x in fields[1:9])
-            ticks += user + nice + system + irq + softirq + steal
-            seen += 1
+    try:
+        for line in lines[1:]:
+            if not line.startswith(b"cpu"):
+                break
+            fields = line.split()
+            if int(fields[0][3:]) in cpus:
+                user, nice, system, idle, iowait, irq, softirq, steal = (int(x) for x in fields[1:9])
+                ticks += user + nice + system + irq + softirq + steal
+                seen += 1
+    except (ValueError, IndexError):  # a layout this reader does not know: no measurement
+        return None
     if seen != len(cpus):
         return None
     return ticks / os.sysconf("SC_CLK_TCK")
+
+
+def quota_cores(
+    cpu_max: str | None = None, cfs_quota_us: str | None = None, cfs_period_us: str | None = None
+) -> int | None:
+    """Whole cores a cgroup CPU quota allows (v2 `cpu.max`, else v1 `cpu.cfs_quota_us`
+    and `cpu.cfs_period_us`), rounded up; None without a quota."""
+    try:
+        if cpu_max is not None:
+            quota, _, period = cpu_max.strip().partition(" ")
+            if quota == "max":
+                return None
+            return max(1, math.ceil(int(quota) / int(period or 100000)))
+        if cfs_quota_us is not None and cfs_period_us is not None and int(cfs_quota_us) > 0:
+            return max(1, math.ceil(int(cfs_quota_us) / int(cfs_period_us)))
+    except (ValueError, ZeroDivisionError):
+        return None
+    return None
+
+
+def _read(path: str) -> str | None:
+    try:
+        with open(path) as f:
+            return f.read()
+    except OSError:
+        return None
+
+
+def _quota_cores() -> int | None:
+    """This process's cgroup CPU quota in whole cores (a container's --cpus), if any."""
+    v2 = _read("/sys/fs/cgroup/cpu.max")
+    if v2 is not None:
+        return quota_cores(cpu_max=v2)
+    return quota_cores(
+        cfs_quota_us=_read("/sys/fs/cgroup/cpu/cpu.cfs_quota_us"),
+        cfs_period_us=_read("/sys/fs/cgroup/cpu/cpu.cfs_period_us"),
+    )
 
 
 class _IdleCores:
@@ -67,11 +109,13 @@ class _IdleCores:
     def __init__(self) -> None:
         self.lock = threading.Lock()
         self.cpus = set(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else set()
+        # a CPU quota (a container's --cpus) bounds what the CPU set would allow
+        self.limit = min(len(self.cpus), _quota_cores() or len(self.cpus))
         self.sample: tuple[float, float, float] | None = None
         self.usable: int | None = None
 
     def __call__(self) -> int:
-        if len(self.cpus) < 2:
+        if self.limit < 2:
             return 1
         with self.lock:
             now = time.monotonic()
@@ -79,12 +123,12 @@ class _IdleCores:
                 return self.usable or 1
             busy = _busy_seconds(self.cpus)
             if busy is None:
-                self.cpus = set()
+                self.limit = 1
                 return 1
             own = time.process_time()
             if self.sample is not None:
                 t0, busy0, own0 = self.sample
-                self.usable = usable_cores(busy - busy0, own - own0, now - t0, len(self.cpus))
+                self.usable = min(self.limit, usable_cores(busy - busy0, own - own0, now - t0, len(self.cpus)))
             self.sample = (now, busy, own)
             return self.usable or 1
 

@@ -16,6 +16,7 @@ plain import instead, compiler and all.
 from __future__ import annotations
 
 import sys
+import threading
 import types
 from typing import Any
 
@@ -26,8 +27,16 @@ def _unwrapped(fn: Any = None, recursive: bool = True, **_: Any) -> Any:
     return fn
 
 
+_lock = threading.Lock()
+
+
 def load() -> types.ModuleType:
-    """The roma module (imported on first use)."""
+    """The roma module (imported on first use; one thread imports it)."""
+    with _lock:
+        return _load()
+
+
+def _load() -> types.ModuleType:
     if "roma" in sys.modules:
         return sys.modules["roma"]
     import torch

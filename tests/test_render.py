@@ -130,13 +130,16 @@ def test_kernel_threads_change_no_bit(monkeypatch, dtype):
     gradient is the same bits with 1, 2 and 3 threads, on a scene that every
     kernel splits between threads (a thread per 8,192 Gaussians projected or
     in view to bin, per 4,096 tile intersections to composite)."""
-    from mogaf.cores import ENV
+    from mogaf.cores import ENV, kernel_threads
+    from mogaf.devices import torch_threads
 
     scene = random_scene(12, 30000, 96, 72, 3, dtype=dtype, px_sigma=(0.5, 2.0))
     runs = []
     for n in ("1", "2", "3"):
         monkeypatch.setenv(ENV, n)
-        out, grads = _grads("cpu", scene, 96, 72, background=torch.tensor([0.2, 0.3, 0.4], dtype=dtype))
+        with torch_threads(1):  # torch's own count is the floor: one, so that n decides
+            assert kernel_threads() == int(n)
+            out, grads = _grads("cpu", scene, 96, 72, background=torch.tensor([0.2, 0.3, 0.4], dtype=dtype))
         runs.append((_outputs(out), grads))
     for outs, grads in runs[1:]:
         for a, b in zip(outs + tuple(grads), runs[0][0] + tuple(runs[0][1])):
@@ -170,12 +173,24 @@ def test_kernel_threads_follow_the_idle_cores_or_the_setting(monkeypatch):
     assert cores.cores() == 4 and cores.kernel_threads() == max(4, torch_threads)
 
 
+def test_a_cgroup_cpu_quota_bounds_the_cores():
+    from mogaf.cores import quota_cores
+
+    assert quota_cores(cpu_max="max 100000\n") is None
+    assert quota_cores(cpu_max="100000 100000\n") == 1
+    assert quota_cores(cpu_max="150000 100000") == 2  # a container's --cpus=1.5
+    assert quota_cores(cpu_max="20000 100000") == 1
+    assert quota_cores(cfs_quota_us="-1\n", cfs_period_us="100000\n") is None
+    assert quota_cores(cfs_quota_us="400000", cfs_period_us="100000") == 4
+    assert quota_cores(cpu_max="garbled") is None and quota_cores() is None
+
+
 def test_idle_cores_sample_this_process_cpu_set():
     from mogaf.cores import FIRST_INTERVAL_S, _busy_seconds, _IdleCores
 
     sampler = _IdleCores()
-    if not sampler.cpus or _busy_seconds(sampler.cpus) is None:
-        pytest.skip("no /proc/stat or CPU affinity here: the kernels use torch's thread count")
+    if sampler.limit < 2 or _busy_seconds(sampler.cpus) is None:
+        pytest.skip("one CPU, or no /proc/stat or CPU affinity here: the kernels use torch's thread count")
     assert sampler() == 1 and sampler.usable is None  # one sample is no measurement yet
     time.sleep(FIRST_INTERVAL_S * 1.5)  # a caller's first measurement comes sooner than the next ones
     assert 1 <= sampler() <= len(sampler.cpus) and sampler.usable is not None

@@ -148,8 +148,9 @@ def run_evaluate_stage(
             return section, label, tiles
 
         # Forecasts are measured side by side where cores are idle (the same
-        # values in any order); metrics.json lists them in the same order.
-        workers = max(1, min(len(methods), cores()))
+        # values in any order); metrics.json lists them in the same order. Two
+        # at most: each holds its renders and video panels in memory.
+        workers = max(1, min(len(methods), cores(), 2))
         if workers > 1:
             log.info("measuring %d forecasts at a time on idle cores", workers)
         with shared_by(workers), ThreadPoolExecutor(max_workers=workers) as pool:
