@@ -41,23 +41,20 @@ def _load() -> types.ModuleType:
         return sys.modules["roma"]
     import torch
 
-    if "torch._dynamo" in sys.modules:
-        import roma
+    if "torch._dynamo" not in sys.modules:
+        # a module attribute is found before torch's lazy __getattr__ would import the compiler
+        stand_in = types.SimpleNamespace(disable=_unwrapped)
+        torch._dynamo = stand_in
+        try:
+            import roma
 
-        return roma
-    # a module attribute is found before torch's lazy __getattr__ would import the compiler
-    stand_in = types.SimpleNamespace(disable=_unwrapped)
-    torch._dynamo = stand_in
-    try:
-        import roma
-
-        return roma
-    except AttributeError:
-        for name in [m for m in sys.modules if m == "roma" or m.startswith("roma.")]:
-            del sys.modules[name]
-    finally:
-        if vars(torch).get("_dynamo") is stand_in:
-            del torch._dynamo
+            return roma
+        except AttributeError:  # roma wants more of the compiler: the plain import below
+            for name in [m for m in sys.modules if m == "roma" or m.startswith("roma.")]:
+                del sys.modules[name]
+        finally:
+            if vars(torch).get("_dynamo") is stand_in:
+                del torch._dynamo
     import roma
 
     return roma
