@@ -75,8 +75,10 @@ def weighted_procrustes(src, dst, weights=None) -> tuple[torch.Tensor, torch.Ten
         raise ValueError(f"points must be (..., P, 3), got {tuple(src_t.shape)} and {tuple(dst_t.shape)}")
     x = src_t.to(torch.float64)
     y = dst_t.to(torch.float64)
-    batch = torch.broadcast_shapes(x.shape[:-2], y.shape[:-2], () if w_t is None else w_t.shape[:-1])
-    P = torch.broadcast_shapes(x.shape[-2:-1], y.shape[-2:-1], () if w_t is None else w_t.shape[-1:])
+    # numpy's shape rule: the same result as torch.broadcast_shapes, whose first call imports
+    # torch's symbolic-shape machinery (sympy, ~0.4 s a process)
+    batch = np.broadcast_shapes(x.shape[:-2], y.shape[:-2], () if w_t is None else w_t.shape[:-1])
+    P = np.broadcast_shapes(x.shape[-2:-1], y.shape[-2:-1], () if w_t is None else w_t.shape[-1:])
     x = torch.broadcast_to(x, batch + P + (3,))
     y = torch.broadcast_to(y, batch + P + (3,))
     if P[0] == 0:

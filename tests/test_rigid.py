@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -176,3 +178,26 @@ def test_property_recovers_rigid_transform(seed, n, angle, shift, log_scale):
     _check_rotation(R)
     assert float((R - R_true).abs().max()) < 1e-6
     assert float(rigid_fit_residual(src, dst, R=R, t=t)) < 1e-6 * (1.0 + abs(shift) + 10.0**log_scale)
+
+
+# What the rigid_init, refine and grouping_quality stages import, and one
+# batched solve (canonical points against two frames).
+RIGID_STAGE_IMPORTS = """
+import sys
+import numpy as np
+from mogaf.grouping.quality import run_grouping_quality_stage
+from mogaf.grouping.stage import rigid_init
+from mogaf.rigid import weighted_procrustes
+src = np.random.default_rng(0).normal(size=(5, 3))
+R, t = weighted_procrustes(src, np.stack([src + 1.0, src - 1.0]), np.ones((1, 5)))
+print(tuple(R.shape), tuple(t.shape), ",".join(m for m in ("sympy", "scipy.spatial") if m in sys.modules) or "none")
+"""
+
+
+def test_rigid_stages_load_neither_sympy_nor_kd_trees():
+    """A batched solve broadcasts its shapes without torch's symbolic-shape
+    machinery (sympy, ~0.4 s a process), and the stages that only read groups
+    do not load the grouping methods' k-d trees (scipy.spatial, ~0.25 s)."""
+    res = subprocess.run([sys.executable, "-c", RIGID_STAGE_IMPORTS], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.split() == ["(2,", "3,", "3)", "(2,", "3)", "none"]

@@ -43,9 +43,7 @@ from ..representation import load_model
 from ..rigid import rigid_fit_residual, weighted_procrustes
 from ..scene import SCENE_STAGE, Instances
 from ..settings import as_dict, load
-from .api import group_gaussians
 from .core import GROUP_STAGE, Groups, MaskFrames, frames_in_time_order
-from .ours import keyframe_order
 from .params import RigidInitSettings, _typed_params, load_settings, resolve_params
 
 log = logging.getLogger("mogaf.grouping")
@@ -151,6 +149,11 @@ def read_mask_rows(priors_h5: str | os.PathLike, rows: np.ndarray) -> tuple[np.n
 
 def run_group_stage(recon_h5, priors_h5, scene_h5, out_h5, params: dict[str, Any] | None = None) -> Path:
     """Group the reconstruction's Gaussians by the observed frames' masks; write groups.h5."""
+    # local: the grouping methods load scipy.spatial, which rigid_init, refine's
+    # readers and grouping_quality (importers of this module) do not need
+    from .api import group_gaussians
+    from .ours import keyframe_order
+
     p = resolve_params(params)
     s = load_settings(p)
     model = load_model(recon_h5)
