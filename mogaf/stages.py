@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from . import registry
+from .allocator import keep_heap
 from .artefact import atomic_path, check_made_from, config_digest, open_artefact, stage_inputs, write_error
 from .errors import MogafError, input_error
 from .paths import check_outputs
@@ -113,6 +114,7 @@ def run_stage(
     try:
         _setup_logging(log_path)
         logging_ready = True
+        keep_heap()
         set_threads(threads)
         with warnings.catch_warnings():
             warnings.showwarning = _warning_to_log(log_path)
