@@ -3,9 +3,9 @@
 An optimisation step allocates and frees buffers of many sizes (images,
 per-pixel and per-Gaussian intermediates) every iteration. glibc's own
 thresholds, which adapt as the process runs, still hand many of them fresh
-pages from the kernel and give freed memory back: on a MuJoCo scene at
-200x200 with ~20k Gaussians the reconstruction spent a fifth of its CPU time
-in the kernel, faulting in the same memory again. Serving blocks up to 32 MiB
+pages from the kernel and give freed memory back, so that on larger scenes
+(200x200 images, tens of thousands of Gaussians) a step spends much
+of its time faulting the same memory in again. Serving blocks up to 32 MiB
 from the heap and never trimming it keeps that memory; the process then holds
 its peak, which its job reserves anyway. Where the memory comes from changes
 no value: results are the same bits.
