@@ -27,11 +27,10 @@ TRIM_THRESHOLD = 2**31 - 1  # mallopt takes an int: never trim below 2 GiB free
 USER_SETTINGS = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_", "MALLOC_MMAP_MAX_")
 
 
-def keep_heap() -> bool:
-    """Set the thresholds for this process; False where they are left alone."""
+def set_thresholds(mmap_threshold: int, trim_threshold: int) -> bool:
+    """glibc's mmap and trim thresholds for this process (bytes; fixed from
+    here on, no longer adapted); False where glibc is not the C library."""
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
-        return False
-    if any(name in os.environ for name in USER_SETTINGS):
         return False
     try:
         mallopt = ctypes.CDLL(None).mallopt
@@ -39,4 +38,11 @@ def keep_heap() -> bool:
         return False
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     mallopt.restype = ctypes.c_int
-    return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+    return bool(mallopt(M_MMAP_THRESHOLD, mmap_threshold)) and bool(mallopt(M_TRIM_THRESHOLD, trim_threshold))
+
+
+def keep_heap() -> bool:
+    """Set the stages' thresholds for this process; False where they are left alone."""
+    if any(name in os.environ for name in USER_SETTINGS):
+        return False
+    return set_thresholds(MMAP_THRESHOLD, TRIM_THRESHOLD)

@@ -49,7 +49,7 @@ def _result_dtype(*xs: torch.Tensor) -> torch.dtype:
     return dtype
 
 
-def normalized_weights(weights: torch.Tensor | None, shape: torch.Size, dtype=torch.float64) -> torch.Tensor:
+def normalized_weights(weights: torch.Tensor | None, shape: tuple[int, ...], dtype=torch.float64) -> torch.Tensor:
     """Weights (..., P) summing to one; uniform where they are None or sum to 0."""
     P = shape[-1]
     if weights is None:

@@ -24,7 +24,7 @@ def main(argv: list[str] | None = None) -> int:
     if name not in names:
         print(f"mogaf.bench: unknown benchmark '{name}' (choose from {', '.join(names)})", file=sys.stderr)
         return 2
-    keep_heap()  # as every stage's process: the timings are the pipeline's
+    keep_heap()  # as in every stage's process, so the timings are the pipeline's (bench render sets its own)
     return int(importlib.import_module(f"mogaf.bench.{name}").main(rest) or 0)
 
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import ctypes
 import math
 import os
 import statistics
@@ -34,6 +33,7 @@ import time
 
 import torch
 
+from mogaf.allocator import set_thresholds
 from mogaf.render import cpu, rasterize
 from mogaf.render.projection import project_gaussians
 
@@ -133,16 +133,6 @@ def _status_kib(key: str) -> int | None:
     except OSError:
         return None
     return None
-
-
-def _pin_malloc() -> None:
-    """Make glibc return freed large blocks to the OS, so RSS tracks live memory."""
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(-3, 128 * 1024)  # M_MMAP_THRESHOLD (also disables the dynamic threshold)
-        libc.mallopt(-1, 128 * 1024)  # M_TRIM_THRESHOLD
-    except (OSError, AttributeError):
-        pass
 
 
 @contextlib.contextmanager
@@ -263,7 +253,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
-    _pin_malloc()
+    # glibc returns freed large blocks to the system, so that the resident set
+    # (peak_mib's fallback) tracks live memory; it replaces the stages' settings
+    set_thresholds(128 * 1024, 128 * 1024)
     sizes = [int(s) for s in args.sizes.split(",") if s]
     res = [int(s) for s in args.res.split(",") if s]
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]

@@ -12,9 +12,10 @@ be shared between machines; on x86-64 GCC adds an AVX2 clone picked at load
 time, and -ffp-contract=off keeps the forward and backward passes bitwise
 consistent; no -ffast-math). Threads: mogaf.cores (torch's count, or the idle
 cores). The shared object lives in `cache_dir("kernels")`, built by
-mogaf.kernel_build (torch-free: `make setup` builds it while torch installs). Any failure (no compiler, compile error,
-load error) gives one warning and `load()` returns None: callers fall back to the
-torch compositor. Nothing is built at import time.
+mogaf.kernel_build (torch-free: `make setup` builds it while torch installs).
+Any failure (no compiler, compile error, load error) gives one warning and
+`load()` returns None: callers fall back to the torch compositor. Nothing is
+built at import time.
 """
 
 from __future__ import annotations
