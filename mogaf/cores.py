@@ -137,20 +137,27 @@ idle_cores = _IdleCores()
 _sharing = {"workers": 1}
 
 
+def fixed_cores() -> int | None:
+    """The core count MOGAF_CORES fixes (None where it is unset or blank);
+    a value that is not a whole number >= 1 is an error."""
+    fixed = os.environ.get(ENV, "").strip()
+    if not fixed:
+        return None
+    try:
+        n = int(fixed)
+    except ValueError:
+        n = 0
+    if n < 1:
+        from mogaf.errors import MogafError
+
+        raise MogafError(f"{ENV} must be a whole number >= 1, got {fixed!r}")
+    return n
+
+
 def cores() -> int:
     """Cores this process may use now: MOGAF_CORES, else the idle ones (at least 1)."""
-    fixed = os.environ.get(ENV, "").strip()
-    if fixed:
-        try:
-            n = int(fixed)
-        except ValueError:
-            n = 0
-        if n < 1:
-            from mogaf.errors import MogafError
-
-            raise MogafError(f"{ENV} must be a whole number >= 1, got {fixed!r}")
-        return n
-    return idle_cores()
+    fixed = fixed_cores()
+    return fixed if fixed is not None else idle_cores()
 
 
 @contextlib.contextmanager

@@ -43,6 +43,7 @@ from typing import Any
 from . import registry
 from .allocator import keep_heap
 from .artefact import atomic_path, check_made_from, config_digest, open_artefact, stage_inputs, write_error
+from .cores import fixed_cores
 from .errors import MogafError, input_error
 from .paths import check_outputs
 
@@ -115,6 +116,7 @@ def run_stage(
         _setup_logging(log_path)
         logging_ready = True
         keep_heap()
+        fixed_cores()  # a bad MOGAF_CORES fails every stage at its start, not only those that read it
         set_threads(threads)
         with warnings.catch_warnings():
             warnings.showwarning = _warning_to_log(log_path)

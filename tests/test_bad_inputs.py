@@ -1093,3 +1093,15 @@ def test_full_disk_synthesizing_a_scene_is_one_line(nearly_full_disk):
     msg = _fails(generate_scene, out, {"preset": "default", "width": 64, "height": 48, "num_frames": 12})
     assert msg.startswith(f"{out}: cannot be written: no space left on device")
     _only_filler(nearly_full_disk)
+
+
+def test_a_bad_core_count_fails_every_stage_at_its_start(monkeypatch, capsys):
+    """MOGAF_CORES is checked before the stage runs, also in a stage that
+    never asks how many cores it may use."""
+    monkeypatch.setenv("MOGAF_CORES", "two")
+    with pytest.raises(SystemExit) as exc:
+        stages.run_stage(lambda: pytest.fail("the stage ran with a bad MOGAF_CORES"))
+    assert exc.value.code == 1
+    assert "MOGAF_CORES must be a whole number >= 1, got 'two'" in _one_line(capsys.readouterr().err.strip())
+    monkeypatch.setenv("MOGAF_CORES", " ")  # blank: unset
+    assert stages.run_stage(lambda: 7) == 7
