@@ -36,6 +36,7 @@ DEVICE = {spec.cli for spec in registry.STAGES if spec.cli and spec.uses_device}
 CHECKPOINT = {spec.cli for spec in registry.STAGES if spec.cli and spec.checkpoint}
 COMMON = ("dataset", "scene")  # wildcards that are the common options --dataset / --scene
 SCHEMA_NAME = "schema.yaml"  # config/schema.yaml, the file the workflow validates against
+ABLATIONS_SCHEMA_NAME = "ablations.schema.yaml"  # and config/ablations.schema.yaml, beside it
 
 
 def _config_for(args: argparse.Namespace) -> dict[str, Any]:
@@ -43,9 +44,8 @@ def _config_for(args: argparse.Namespace) -> dict[str, Any]:
     cfg = mcfg.load_yaml(args.configfile)
     if not cfg:
         raise MogafError(f"{args.configfile}: is empty; give the pipeline config (config/config.yaml) or a copy of it")
-    variants = (
-        mcfg.load_yaml(cfg.get("ablations_file", "config/ablations.yaml")).get("variants", {}) if args.variant else {}
-    )
+    _validate(cfg, args.configfile)  # before its sections are read (a dataset that is not a mapping)
+    variants = _ablations(cfg, args.configfile).get("variants") or {} if args.variant else {}
     merged = mcfg.variant_config(cfg, variants, args.variant)
     if args.dataset and args.scene:
         try:
@@ -64,6 +64,25 @@ def _schema_file(configfile: str) -> Path | None:
         Path(__file__).resolve().parents[1] / "config" / SCHEMA_NAME,
     )
     return next((p for p in places if p.is_file()), None)
+
+
+def _ablations(cfg: dict[str, Any], configfile: str) -> dict[str, Any]:
+    """The config's ablations file, checked against config/ablations.schema.yaml
+    (beside config/schema.yaml) as the workflow checks it."""
+    path = Path(cfg.get("ablations_file", "config/ablations.yaml"))
+    if not path.is_absolute() and not path.exists():  # relative to the working folder, else to the checkout
+        path = Path(__file__).resolve().parents[1] / path
+    data = mcfg.load_yaml(path)
+    schema = _schema_file(configfile)
+    if schema is not None and (schema.parent / ABLATIONS_SCHEMA_NAME).is_file():
+        try:
+            import jsonschema  # noqa: F401
+        except ImportError:
+            return data
+        error = config_error(data, mcfg.load_yaml(schema.parent / ABLATIONS_SCHEMA_NAME), [(str(path), data)])
+        if error is not None:
+            raise error
+    return data
 
 
 def _check_names(args: argparse.Namespace) -> None:
@@ -265,7 +284,7 @@ def _run_extra(args: argparse.Namespace) -> int:
             metrics_files=list(args.metrics),
             out_files=main_table_paths(Path(args.out_dir)),
             params=cfg["report"],
-            ablations=mcfg.load_yaml(cfg.get("ablations_file", "config/ablations.yaml")),
+            ablations=_ablations(cfg, args.configfile),
         )
     return 0
 

@@ -261,6 +261,12 @@ def load_yaml(path: str | os.PathLike) -> dict[str, Any]:
             data = yaml.safe_load(fh) or {}
     except FileNotFoundError:
         raise MogafError(f"{p}: missing") from None
+    except IsADirectoryError:
+        raise MogafError(f"{p}: is a folder, not a YAML file") from None
+    except OSError as exc:
+        raise MogafError(f"{p}: cannot be read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise MogafError(f"{p}: not UTF-8 text (byte {exc.start})") from None
     except yaml.YAMLError as exc:
         raise MogafError(f"{p}: not valid YAML ({str(exc).splitlines()[0]})") from None
     if not isinstance(data, dict):

@@ -15,6 +15,7 @@ from pathlib import Path
 from .errors import input_error
 
 ENV_CACHE = "MOGAF_CACHE_DIR"
+NAME_MAX = 255  # bytes in one file or folder name (Linux, macOS, Windows file systems)
 
 
 def cache_dir(*parts: str, create: bool = True) -> Path:
@@ -85,6 +86,9 @@ def check_outputs(
     lie inside a dataset folder (one of `folders`, or any folder holding a
     dataset marker); a replaced folder may hold no input.
     """
+    for p in outputs.values():
+        if p is not None and any(len(os.fsencode(part)) > NAME_MAX for part in Path(p).parts):
+            raise input_error(p, f"has a file or folder name longer than {NAME_MAX} bytes; give a shorter path")
     given = {role: _resolved(p) for role, p in outputs.items() if p is not None}
     sources = [(p, _resolved(p)) for p in inputs if p is not None]
     dataset_folders = [_resolved(f) for f in folders]

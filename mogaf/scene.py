@@ -30,6 +30,7 @@ SCENE_STAGE = "ingest"
 SPLIT_CODES = {"train": 0, "val": 1, "test": 2}
 SPLIT_NAMES = {v: k for k, v in SPLIT_CODES.items()}
 LAYOUTS = ("iphone", "dnerf")
+MAX_TIMESTEPS = 1 << 24  # far beyond any video; bounds what a reader allocates per time step
 
 # Per-frame arrays stored under /frames, in the order they are checked.
 FRAME_ARRAYS = ("images", "K", "w2c", "time", "time_index", "camera_id", "source_split")
@@ -250,10 +251,12 @@ def check_scene_file(fh, path: str | os.PathLike) -> tuple[int, int]:
     alone (nothing read): one line naming the file where a reader would
     otherwise fail later, far from it. Returns (frames, time steps)."""
     T = _decode_attr(fh.attrs.get("num_timesteps"))
-    if isinstance(T, bool) or not isinstance(T, int) or T < 1:
-        raise input_error(path, f"attribute num_timesteps is {T!r}; it must be a positive integer (rerun ingest)")
+    if isinstance(T, bool) or not isinstance(T, int) or not 1 <= T <= MAX_TIMESTEPS:
+        raise input_error(
+            path, f"attribute num_timesteps is {T!r}; it must be an integer in [1, {MAX_TIMESTEPS}] (rerun ingest)"
+        )
     layout = _decode_attr(fh.attrs.get("layout"))
-    if layout not in LAYOUTS:
+    if not isinstance(layout, str) or layout not in LAYOUTS:
         raise input_error(path, f"attribute layout is {layout!r}; expected one of {', '.join(LAYOUTS)} (rerun ingest)")
     for key in (*FRAME_ARRAYS, "names"):
         if f"frames/{key}" not in fh:
@@ -277,6 +280,11 @@ def check_scene_file(fh, path: str | os.PathLike) -> tuple[int, int]:
                 path,
                 f"entry 'frames/{key}' has shape {fh[f'frames/{key}'].shape}, expected {shape} "
                 f"(one per frame; {F} frames)",
+            )
+    for key, kinds in (("time", "f"), ("time_index", "iu"), ("camera_id", "iu")):
+        if fh[f"frames/{key}"].dtype.kind not in kinds:
+            raise input_error(
+                path, f"entry 'frames/{key}' holds {fh[f'frames/{key}'].dtype}, not numbers (rerun ingest)"
             )
     for key in OPTIONAL_FRAME_ARRAYS:
         if f"frames/{key}" in fh and fh[f"frames/{key}"].shape[:3] != (F, H, W):

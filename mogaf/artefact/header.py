@@ -139,7 +139,17 @@ def _check_header(fh: h5py.File, path: Path, stages: tuple[str, ...] | None, exp
         raise input_error(
             path, f"format version {version}, this mogaf reads version {FORMAT_VERSION}; rerun the stage that wrote it"
         )
+    for name, value in fh.attrs.items():  # a structured attr a reader would fail to decode later, far from here
+        if isinstance(value, bytes):
+            value = value.decode(errors="replace")
+        if isinstance(value, str) and value.startswith("json:"):
+            try:
+                json.loads(value[5:])
+            except ValueError:
+                raise input_error(path, f"attribute {name} is not valid JSON; rerun the stage that writes it") from None
     stage = _decode_attr(fh.attrs.get(ATTR_STAGE, ""))
+    if not isinstance(stage, str) or not stage:
+        raise input_error(path, "names no stage that wrote it; not an artefact this mogaf wrote, rerun that stage")
     if stages is not None and stage not in stages:
         raise input_error(path, f"written by stage '{stage}', expected {' or '.join(repr(s) for s in stages)}")
     package = _decode_attr(fh.attrs.get(ATTR_PACKAGE, "?"))

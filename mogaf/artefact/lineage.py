@@ -40,12 +40,16 @@ def read_lineage(path: str | os.PathLike) -> Lineage:
     with _open(p) as fh:
         _check_header(fh, p, None, None)
         inputs = _decode_attr(fh.attrs.get(ATTR_INPUTS, "json:{}"))
-        return Lineage(
-            p,
-            _decode_attr(fh.attrs[ATTR_STAGE]),
-            _decode_attr(fh.attrs.get(ATTR_LINEAGE, "")),
-            {str(k): tuple(v) for k, v in dict(inputs).items()},
-        )
+        digest = _decode_attr(fh.attrs.get(ATTR_LINEAGE, ""))
+        if not (
+            isinstance(inputs, dict)
+            and all(isinstance(v, list) and all(isinstance(d, str) for d in v) for v in inputs.values())
+            and isinstance(digest, str)
+        ):
+            raise input_error(
+                p, f"attributes {ATTR_INPUTS} / {ATTR_LINEAGE} are malformed; rerun the stage that wrote it"
+            )
+        return Lineage(p, _decode_attr(fh.attrs[ATTR_STAGE]), digest, {str(k): tuple(v) for k, v in inputs.items()})
 
 
 def check_lineage(artefacts: Iterable[Lineage]) -> None:
@@ -84,11 +88,18 @@ def check_made_from(derived: str | os.PathLike, source: str | os.PathLike) -> No
         )
 
 
+def _is_file(path: str | os.PathLike) -> bool:
+    try:
+        return Path(path).is_file()
+    except OSError as exc:  # e.g. a name longer than the file system allows
+        raise input_error(path, f"cannot be opened ({exc.strerror or exc})") from None
+
+
 @contextlib.contextmanager
 def stage_inputs(*paths: str | os.PathLike | None) -> Iterator[tuple[Lineage, ...]]:
     """Declare the artefacts a stage reads. They are checked to share one
     lineage, and every artefact written inside the block records them."""
-    found = tuple(read_lineage(p) for p in paths if p is not None and Path(p).is_file())
+    found = tuple(read_lineage(p) for p in paths if p is not None and _is_file(p))
     check_lineage(found)
     token = _STAGE_INPUTS.set(found)
     try:

@@ -47,7 +47,7 @@ import numpy as np
 
 from ..camera import GL_TO_CV, camera_centre_problem, intrinsics_matrix, pose_problem, rigid_inverse, scale_intrinsics
 from ..errors import MogafError, input_error
-from ..scene import SPLIT_CODES, Instances, Scene
+from ..scene import MAX_TIMESTEPS, SPLIT_CODES, Instances, Scene
 from .common import (
     as_array,
     as_float,
@@ -158,6 +158,8 @@ def _parse_split(scene_dir: Path, split: str) -> list[_Frame]:
         file_path = as_str(fr["file_path"], path, f"{where} file_path")
         if len(file_path) > 1024 or any(len(part) > 200 for part in file_path.split("/")):
             raise input_error(path, f"{where}: file_path is too long")
+        if os.path.normpath(file_path) == ".":
+            raise input_error(path, f"{where}: file_path {file_path!r} names the scene folder, not an image")
         if _leaves_folder(file_path):
             raise input_error(
                 path,
@@ -404,7 +406,7 @@ def read_dnerf_scene(
     rules = rigidity_rules(options, where=where)
     T_opt = options.get("num_timesteps")
     if T_opt is not None:
-        T_opt = option_int(options, "num_timesteps", 1, lo=1, hi=1 << 24, where=where)
+        T_opt = option_int(options, "num_timesteps", 1, lo=1, hi=MAX_TIMESTEPS, where=where)
     use_masks = option_bool(options, "masks", True, where=where)
 
     all_frames = _read_all_frames(scene_dir, scene)

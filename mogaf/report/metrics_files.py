@@ -58,7 +58,12 @@ def _folder_ratio(path: Path) -> float | None:
 
 
 def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an integer beyond float range
+        return False
 
 
 def _header_problem(data: dict[str, Any]) -> str | None:
@@ -89,6 +94,11 @@ def _method_problem(method: str, section: Any) -> str | None:
     """What is wrong with methods.<method>, or None."""
     if not isinstance(section, dict):
         return f"'methods.{method}' must be an object"
+    forecast = section.get("forecast")
+    if forecast is not None and not isinstance(forecast, dict):
+        return f"'methods.{method}.forecast' must be an object"
+    if forecast is not None and not isinstance(forecast.get("params") or {}, dict):
+        return f"'methods.{method}.forecast.params' must be an object"
     for part in METRIC_SECTIONS:
         values = section.get(part)
         if values is None:
@@ -142,7 +152,7 @@ def load_metrics(paths: list[str | os.PathLike]) -> list[dict[str, Any]]:
             raise input_error(p, "no such metrics file")
         try:
             data = json.loads(p.read_bytes(), parse_constant=_no_constants)
-        except (OSError, ValueError) as exc:  # ValueError: also malformed UTF-8, NaN, Infinity
+        except (OSError, ValueError, RecursionError) as exc:  # ValueError: also malformed UTF-8, NaN, Infinity
             raise input_error(
                 p, f"not readable JSON ({exc.__class__.__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
             ) from None
