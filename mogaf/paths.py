@@ -149,3 +149,27 @@ def unwritable_folder(path: str | os.PathLike) -> tuple[Path, str] | None:
     except OSError:
         read_only = False
     return folder, "a read-only file system" if read_only else "no write permission"
+
+
+def read_text_file(path: str | os.PathLike) -> str:
+    """A UTF-8 text file's contents; a missing, unreadable or non-UTF-8 file is one line naming it."""
+    p = Path(path)
+    if not p.is_file():
+        raise input_error(p, "no such file")
+    try:
+        return p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise input_error(p, f"cannot be read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise input_error(p, f"is not UTF-8 text (byte {exc.start})") from None
+
+
+def check_writable(path: str | os.PathLike) -> None:
+    """Refuse, before a long run, an output file that could not be written at its end:
+    an existing folder, or a path whose nearest existing parent is not a writable folder."""
+    p = Path(path)
+    if p.is_dir():
+        raise input_error(p, "is an existing directory; the output must be a file path")
+    parent = next((q for q in p.absolute().parents if q.exists()), None)
+    if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise input_error(p, f"cannot be written: {parent} is not a writable folder")

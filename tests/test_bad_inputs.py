@@ -505,6 +505,11 @@ def _metrics(path: Path, **changes) -> Path:
         ),
         ({"methods": {"mogaf": {"forecast": "oops"}}}, "'methods.mogaf.forecast' must be an object"),
         ({"methods": {"mogaf": {"forecast": {"params": 3}}}}, "'methods.mogaf.forecast.params' must be an object"),
+        ({"methods": {"mogaf": {"forecast": {"jobs": [1]}}}}, "'methods.mogaf.forecast.jobs' must be an object"),
+        ({"grouping": {"per_object_iou": ["x"]}}, "'grouping.per_object_iou[0]' must be a number or null, got 'x'"),
+        ({"grouping": {"per_part_iou": [None]}}, "'grouping.per_part_iou[0]' must be a number, got null"),
+        ({"grouping": {"per_object_iou": 0.5}}, "'grouping.per_object_iou' must be a list"),
+        ({"grouping": {"object_names": [1]}}, "'grouping.object_names' must be a list of names"),
     ],
 )
 def test_tables_refuse_a_bad_metrics_file(in_repo, tmp_path, capsys, change, words):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -121,3 +123,29 @@ def test_a_sweep_waits_for_the_runs_shared_jobs(results):
     jobs = pipeline.collect(results)
     sweep_recon = next(j for j in jobs if j.sweep and j.name == "recon")
     assert [(j.name, j.sweep) for j in pipeline._needs(sweep_recon, jobs)] == [("priors", "")]
+
+
+def test_bad_flags_and_an_empty_benchmarks_folder_fail_before_any_work(results, tmp_path, capsys):
+    (tmp_path / "empty" / "benchmarks").mkdir(parents=True)
+    assert pipeline.main(["--results", str(tmp_path / "empty")]) == 2
+    assert "its benchmarks/ folder holds no job's .tsv" in capsys.readouterr().err
+    for argv, words in (
+        (["--cores", "0"], "--cores must be at least 1, got 0"),
+        (["--snakemake-seconds", "nan"], "--snakemake-seconds must be a finite number >= 0, got nan"),
+        (["--run", "--snakemake", str(tmp_path / "nosuch")], "no such executable"),
+    ):
+        with pytest.raises(SystemExit) as exc:
+            pipeline.main(["--results", str(results), *argv])
+        assert exc.value.code == 2 and words in capsys.readouterr().err
+    folder = tmp_path / "rows.json"
+    folder.mkdir()
+    assert pipeline.main(["--results", str(results), "--json", str(folder)]) == 2
+    assert f"{folder}: is an existing directory" in capsys.readouterr().err
+
+
+def test_the_json_rows_are_written_whole(results, tmp_path, monkeypatch):
+    monkeypatch.setattr(pipeline, "import_seconds", lambda: {"python": 0.01})
+    out = tmp_path / "rows.json"
+    assert pipeline.main(["--results", str(results), "--json", str(out), "--snakemake-seconds", "300"]) == 0
+    assert json.loads(out.read_text())["snakemake_s"] == 300.0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results", "rows.json"]  # no temporary beside it

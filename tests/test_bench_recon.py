@@ -52,3 +52,19 @@ def test_velocity_error_sees_an_error_of_the_last_step_alone(tmp_path):
     assert mid == pytest.approx(0.0, abs=1e-6) and last == pytest.approx(0.02, abs=1e-6)
     # the mean position error sees it only as one step in many
     assert bench.trajectory_error(*matched)[0] < 0.01 + 0.02 / 4
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["--params", "notjson"], "--params is not JSON"),
+        (["--mujoco-params", "[1]"], "--mujoco-params must be a JSON object"),
+        (["--cases", " , "], "--cases ' , ': give synthetic[:PRESET] and/or mujoco/SCENE"),
+        (["--cases", "synthetic,nope"], "--cases 'synthetic,nope'"),
+    ],
+)
+def test_flags_are_checked_before_the_first_case_trains(tmp_path, capsys, argv, words):
+    with pytest.raises(SystemExit) as exc:
+        bench.main(["--workdir", str(tmp_path / "work"), *argv])
+    assert exc.value.code == 2 and words in capsys.readouterr().err
+    assert not (tmp_path / "work").exists()

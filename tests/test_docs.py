@@ -6,7 +6,10 @@ import json
 import re
 from pathlib import Path
 
+import pytest
 import yaml
+
+from mogaf.errors import MogafError
 
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
@@ -173,3 +176,7 @@ def test_results_page_shows_the_pipeline_rows_and_given_metrics(tmp_path):
     results = load_metrics([metrics])
     assert glance_table(results).rstrip("\n") in page and scenes_table(results).rstrip("\n") in page
     assert f"| `{metrics.as_posix()}` | the pipeline's evaluate stage |" in page
+    doc = json.loads((bench / "pipeline_demo.json").read_text())
+    (bench / "pipeline_demo.json").write_text(json.dumps({**doc, "imports_s": {"import torch": "slow"}}))
+    with pytest.raises(MogafError, match=r"pipeline_demo\.json: is not `python -m mogaf.bench pipeline --json` output"):
+        results_page("docs/results.md", bench, [metrics])

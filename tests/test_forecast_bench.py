@@ -179,6 +179,9 @@ def test_comparison_table_merges_files_and_refuses_disagreement(tmp_path, capsys
     broken.write_text(json.dumps({"rows": [{"set": "x", "ratio": 0.6, "method": "frozen"}]}))
     assert bench.main(["--from-json", str(broken)]) == 1
     assert "broken.json: row 0 has no epe, train_s" in capsys.readouterr().err
+    broken.write_text(json.dumps({"rows": [{"set": "x", "ratio": "abc", "method": "frozen", "epe": 1, "train_s": 0}]}))
+    assert bench.main(["--from-json", str(broken)]) == 1
+    assert "broken.json: row 0 has ratio 'abc', not a number" in capsys.readouterr().err
 
 
 def test_a_step_budget_is_its_own_column_and_only_keeps_the_named_sets(tmp_path, capsys):
@@ -241,3 +244,21 @@ def test_summary_counts_wins_over_the_references(tmp_path):
     assert summary[3] == "| constant_velocity | 0.3000 | – | 2 of 3 (67 %) |"
     steps = bench.per_step_table([path]).splitlines()
     assert steps[2] == "| s0 | 0.60 | 1 / 2 | 0.0000 / 0.1000 | 0.0000 / 0.1000 | 0.0000 / 0.1000 |"
+
+
+def test_cli_flags_are_checked_before_any_training(tmp_path, capsys):
+    for argv, words in (
+        (["--ratios", "abc"], "--ratios takes numbers in (0, 1)"),
+        (["--ratios", "0.6,1.5"], "--ratios takes numbers in (0, 1)"),
+        (["--params", "[1]"], "--params must be a JSON object {method: {param: value}}"),
+        (["--params", '{"ode": 3}'], "--params must be a JSON object"),
+    ):
+        assert bench.main(["--sets", "static", *argv]) == 1
+        assert words in capsys.readouterr().err
+    text = tmp_path / "sets.npz"
+    text.write_text("not an archive")
+    assert bench.main(["--sets", "none", "--npz", str(text)]) == 1
+    assert f"{text}: cannot read as .npz" in capsys.readouterr().err
+    (tmp_path / "afile").write_text("")
+    assert bench.main(["--sets", "static", "--json", str(tmp_path / "afile" / "rows.json")]) == 1
+    assert "rows.json: cannot be written" in capsys.readouterr().err

@@ -597,3 +597,19 @@ def test_gsplat_parity():
     for a, b in zip(gparams, params):
         torch.testing.assert_close(a.grad.cpu(), b.grad, rtol=2e-2, atol=2e-3)
     torch.testing.assert_close(out.means2d_grad.cpu(), ref.means2d_grad, rtol=2e-2, atol=2e-3)
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["--sizes", "abc"], "--sizes takes whole numbers >= 1"),
+        (["--res", "0"], "--res takes whole numbers >= 1"),
+        (["--repeats", "0"], "--repeats must be at least 1, got 0"),
+    ],
+)
+def test_bench_render_checks_its_flags_before_timing(capsys, argv, words):
+    from mogaf.bench import render as bench
+
+    with pytest.raises(SystemExit) as exc:
+        bench.main(argv)
+    assert exc.value.code == 2 and words in capsys.readouterr().err

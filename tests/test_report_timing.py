@@ -56,3 +56,27 @@ def test_timing_cli_writes_and_checks_only_its_section(tmp_path, capsys):
 def test_readme_timing_line_is_the_committed_benchmark(monkeypatch):
     monkeypatch.chdir(ROOT)
     assert main(["timing", "results/bench/pipeline_demo_cpu.json", "--check", "README.md"]) == 0
+
+
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        ({"snakemake_s": -65}, "'snakemake_s' is -65; expected a finite number of seconds >= 0"),
+        ({"budgets": [{"row": "x", "wall_s": "abc", "budget_s": 5}]}, "budgets[0] is {'row': 'x', 'wall_s': 'abc'"),
+        ({"budgets": [3]}, "budgets[0] is 3; expected an object"),
+    ],
+)
+def test_timing_line_refuses_rows_that_are_not_seconds(tmp_path, change, words):
+    path = _rows(tmp_path / "p.json")
+    path.write_text(json.dumps({**json.loads(path.read_text()), **change}))
+    with pytest.raises(MogafError) as exc:
+        timing_line(path)
+    assert str(exc.value).startswith(f"{path}: {words}")
+
+
+def test_a_page_that_is_not_utf8_text_is_one_line(tmp_path, capsys):
+    doc = tmp_path / "README.md"
+    doc.write_bytes(b"\xff\xfe" + "\n".join(MARKERS).encode())
+    for flag in ("--write", "--check"):
+        assert main(["timing", str(_rows(tmp_path / "p.json")), flag, str(doc)]) == 1
+        assert f"{doc}: is not UTF-8 text (byte 0)" in capsys.readouterr().err

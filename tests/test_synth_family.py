@@ -107,11 +107,18 @@ def test_the_family_command_says_bad_input_in_one_line_and_writes_nothing(tmp_pa
     assert "is an existing directory" in capsys.readouterr().err and list(target.iterdir()) == []
     assert main(["--count", "1", "--check", str(tmp_path / "absent.yaml")]) == 1
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "absent.yaml: cannot be read" in err
+    assert err.count("\n") == 1 and "absent.yaml: no such file" in err
+    latin = tmp_path / "latin.yaml"
+    latin.write_bytes(b"\xff")
+    assert main(["--count", "1", "--check", str(latin)]) == 1
+    assert f"{latin}: is not UTF-8 text (byte 0)" in capsys.readouterr().err
+    assert main(["--count", "1", "--seed", "-1"]) == 1
+    assert capsys.readouterr().err.strip() == "mogaf.synth.family: error: scene family: seed must be >= 0, got -1"
     assert main(["--count", "1", "--check", str(FAMILY)]) == 1  # one scene is not the committed 24
     assert "differs from the family drawn now" in capsys.readouterr().err
     assert main(["--count", "1", "--write", str(tmp_path / "f.yaml")]) == 0
     assert (tmp_path / "f.yaml").read_text() == family_yaml(1, 0) and sorted(p.name for p in tmp_path.iterdir()) == [
         "dir",
         "f.yaml",
+        "latin.yaml",
     ]

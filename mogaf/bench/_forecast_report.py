@@ -81,6 +81,9 @@ def read_rows(path: Path, only: Sequence[str] = ()) -> tuple[dict[str, Any], lis
         missing = [k for k in ("set", "ratio", "method", "epe", "train_s") if k not in r]
         if missing:
             raise MogafError(f"{path}: row {i} has no {', '.join(missing)}")
+        for key in ("ratio", "epe", "train_s"):  # NaN stands for a failed fit
+            if not isinstance(r[key], (int, float)) or isinstance(r[key], bool):
+                raise MogafError(f"{path}: row {i} has {key} {r[key]!r}, not a number")
     if only:
         rows = [r for r in rows if set_selected(str(r["set"]), only)]
     return {k: v for k, v in doc.items() if k != "rows"}, rows

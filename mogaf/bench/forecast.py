@@ -49,6 +49,7 @@ from mogaf.forecast import quat
 from mogaf.forecast.params import METHODS
 from mogaf.forecast.registry import fit_and_rollout
 from mogaf.forecast.synthetic import TRAJECTORY_SETS
+from mogaf.paths import check_writable
 
 from ._forecast_report import (  # noqa: F401  (read_rows, summary_table, per_step_table, column_name re-exported)
     REDUCED,
@@ -245,9 +246,23 @@ def _parse_methods(text: str) -> list[str]:
 
 def _parse_overrides(text: str) -> Any:
     try:
-        return json.loads(text)
+        overrides = json.loads(text)
     except json.JSONDecodeError as exc:
         raise MogafError(f"bench forecast: --params is not JSON ({exc})") from None
+    if not isinstance(overrides, dict) or not all(isinstance(v, dict) for v in overrides.values()):
+        raise MogafError(f"bench forecast: --params must be a JSON object {{method: {{param: value}}}}, got {text!r}")
+    return overrides
+
+
+def _parse_ratios(text: str) -> list[float]:
+    """--ratios: observed fractions, each in (0, 1)."""
+    try:
+        ratios = [float(r) for r in _comma_list(text)]
+    except ValueError:
+        ratios = []
+    if not ratios or not all(0 < r < 1 for r in ratios):
+        raise MogafError(f"bench forecast: --ratios takes numbers in (0, 1) separated by commas, got {text!r}")
+    return ratios
 
 
 def _method_params(
@@ -291,8 +306,8 @@ def _npz_sources(paths: Sequence[str]) -> dict[str, Any]:
             with np.load(path) as data:
                 for key in data.files:
                     sources[f"{key}"] = np.array(data[key])
-        except OSError as exc:
-            raise MogafError(f"{path}: cannot read ({exc})") from None
+        except (OSError, ValueError) as exc:  # ValueError: not an .npz (or a pickled array)
+            raise MogafError(f"{path}: cannot read as .npz ({exc})") from None
     return sources
 
 
@@ -350,13 +365,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(report(args.from_json, patterns))
             return 0
         methods = _parse_methods(args.methods)
-        ratios = [float(r) for r in args.ratios.split(",")]
+        ratios = _parse_ratios(args.ratios)
         params, reduced = _method_params(methods, args.budget, args.threads, _parse_overrides(args.params))
         sources = _select_sources(args, patterns)
         # the device the rows are computed on ("auto" resolved: a CPU-only machine's rows are CPU rows)
         device = resolve_device(args.device, "bench forecast").type
         header = {"budget": args.budget, "params": params, "seed": args.seed, "device": device}
         done = _done_rows(args, header)
+        if args.json:
+            check_writable(args.json)  # not after the first row's minutes of training
 
         print(
             f"forecast benchmark: budget={args.budget}, threads={args.threads}, seed={args.seed}, device={device}",

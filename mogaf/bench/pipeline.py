@@ -25,7 +25,9 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -33,8 +35,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mogaf.artefact import atomic_path
 from mogaf.errors import MogafError
 from mogaf.forecast.params import METHOD_TABLE
+from mogaf.paths import check_writable
 
 DEMO_RESULTS = Path("results/synthetic/default/ratio0.6")
 # MoGaF's jobs: the methods reading forecast.mogaf (the method table); the baselines: the others
@@ -167,6 +171,10 @@ def collect(results: Path) -> list[Job]:
         for tsv in sorted((folder / "benchmarks").glob("*.tsv")):
             name = tsv.stem
             jobs.append(_job(name, sweep, tsv, folder / "logs" / f"{name}.log", _detail(folder, name)))
+    if not jobs:
+        raise FileNotFoundError(
+            f"{results}: its benchmarks/ folder holds no job's .tsv (run `make demo` or pass --run)"
+        )
     return jobs
 
 
@@ -321,10 +329,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--snakemake-seconds", type=float, default=None, help="the whole run's wall time, if known")
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = ap.parse_args(argv)
+    if args.cores < 1:
+        ap.error(f"--cores must be at least 1, got {args.cores}")
     total = args.snakemake_seconds
-    if args.run:
-        total = run_demo(args.snakemake, args.cores)
+    if total is not None and not (math.isfinite(total) and total >= 0):
+        ap.error(f"--snakemake-seconds must be a finite number >= 0, got {total}")
+    if args.run and shutil.which(args.snakemake) is None:
+        ap.error(f"--snakemake {args.snakemake}: no such executable (install the workflow extra: `make setup`)")
     try:
+        if args.json:
+            check_writable(args.json)
+        if args.run:
+            total = run_demo(args.snakemake, args.cores)
         jobs = collect(args.results)
     except (FileNotFoundError, ValueError, MogafError) as exc:
         print(f"mogaf.bench pipeline: {exc}", file=sys.stderr)
@@ -336,8 +352,12 @@ def main(argv: list[str] | None = None) -> int:
     imports = import_seconds()
     print("\nA fresh process here: " + ", ".join(f"{k} {v:.2f} s" for k, v in imports.items()))
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         payload = {"results": str(args.results), "snakemake_s": total, "budgets": rows,
                    "schedule": bound, "imports_s": imports, "jobs": [asdict(j) for j in jobs]}  # fmt: skip
-        args.json.write_text(json.dumps(payload, indent=1) + "\n")
+        try:
+            with atomic_path(args.json) as tmp:
+                tmp.write_text(json.dumps(payload, indent=1) + "\n")
+        except MogafError as exc:
+            print(f"mogaf.bench pipeline: {exc}", file=sys.stderr)
+            return 2
     return 0

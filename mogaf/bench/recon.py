@@ -41,7 +41,7 @@ from mogaf.artefact import atomic_path, config_digest
 from mogaf.datasets import read_scene
 from mogaf.errors import MogafError
 from mogaf.metrics.image import mpsnr, psnr
-from mogaf.paths import cache_dir
+from mogaf.paths import cache_dir, check_writable
 from mogaf.priors.stage import run_priors_stage
 from mogaf.recon.stage import run_recon_stage
 from mogaf.rendering import render_model
@@ -261,11 +261,22 @@ def main(argv: list[str] | None = None) -> int:
         _write_rows(args.json, rows)
         return 0
 
+    # every flag checked before the first case trains (minutes each)
+    params = _json_object(ap, "--params", args.params)
+    mujoco_params = _json_object(ap, "--mujoco-params", args.mujoco_params)
+    cases = [c.strip() for c in args.cases.split(",") if c.strip()]
+    unknown = [c for c in cases if not (c.startswith("synthetic") or c.startswith("mujoco/"))]
+    if not cases or unknown:
+        ap.error(f"--cases {args.cases!r}: give synthetic[:PRESET] and/or mujoco/SCENE, comma-separated")
+    if args.json:
+        try:
+            check_writable(args.json)
+        except MogafError as exc:
+            ap.error(str(exc))
     work = Path(args.workdir) if args.workdir else cache_dir("bench_recon")
     work.mkdir(parents=True, exist_ok=True)
-    params = json.loads(args.params)
     rows = []
-    for case in [c.strip() for c in args.cases.split(",") if c.strip()]:
+    for case in cases:
         if case.startswith("synthetic"):
             preset = case.split(":", 1)[1] if ":" in case else "default"
             inputs = _prepare_synthetic(work, preset)
@@ -275,10 +286,7 @@ def main(argv: list[str] | None = None) -> int:
             if inputs is None:
                 print(f"skipping {case}: {SHARED / 'mujoco'} is absent", file=sys.stderr)
                 continue
-            p = {**params, **json.loads(args.mujoco_params)}
-        else:
-            print(f"unknown case {case!r}", file=sys.stderr)
-            return 2
+            p = {**params, **mujoco_params}
         print(f"[{case}] running recon ...", file=sys.stderr, flush=True)
         rows.append(run_case(case, inputs, work, p, args.seed, args.progress))
         print_table(rows[-1:])
@@ -286,6 +294,16 @@ def main(argv: list[str] | None = None) -> int:
     print_table(rows)
     _write_rows(args.json, rows)
     return 0
+
+
+def _json_object(ap: argparse.ArgumentParser, flag: str, text: str) -> dict[str, Any]:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        ap.error(f"{flag} is not JSON ({exc})")
+    if not isinstance(value, dict):
+        ap.error(f"{flag} must be a JSON object of recon settings, got {text!r}")
+    return value
 
 
 def _write_rows(path: str | None, rows: list[dict[str, Any]]) -> None:

@@ -242,6 +242,16 @@ def reference_fits(n: int, width: int, height: int, budget_gib: float) -> bool:
     return n * width * height * 72 <= budget_gib * 2**30
 
 
+def _positive_ints(ap: argparse.ArgumentParser, flag: str, text: str) -> list[int]:
+    try:
+        values = [int(s) for s in text.split(",") if s.strip()]
+    except ValueError:
+        values = []
+    if not values or min(values) < 1:
+        ap.error(f"{flag} takes whole numbers >= 1 separated by commas, got {text!r}")
+    return values
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m mogaf.bench render", description=__doc__.split("\n")[0])
     ap.add_argument("--sizes", default="2000,5000,20000,50000", help="comma-separated N")
@@ -251,13 +261,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     ap.add_argument("--reference-gib", type=float, default=3.0, help="memory budget for the dense reference")
     args = ap.parse_args(argv)
+    sizes, res = (_positive_ints(ap, flag, text) for flag, text in (("--sizes", args.sizes), ("--res", args.res)))
+    if args.repeats < 1:
+        ap.error(f"--repeats must be at least 1, got {args.repeats}")
     if args.threads:
         torch.set_num_threads(args.threads)
     # glibc returns freed large blocks to the system, so that the resident set
     # (peak_mib's fallback) tracks live memory; it replaces the stages' settings
     set_thresholds(128 * 1024, 128 * 1024)
-    sizes = [int(s) for s in args.sizes.split(",") if s]
-    res = [int(s) for s in args.res.split(",") if s]
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     print(
         f"# mogaf.render benchmark: torch {torch.__version__}, {torch.get_num_threads()} threads, "

@@ -18,6 +18,7 @@ from typing import Any
 
 from ..artefact import atomic_path
 from ..errors import input_error
+from ..paths import read_text_file
 from .metrics_files import load_metrics
 from .tables import METHOD_ORDER, _key, _metric, _variant, budget_differences, fmt, method_label
 
@@ -95,9 +96,7 @@ def replace_section(
 def write_section(path: str | os.PathLike, block: str, markers: tuple[str, str] = (START, END)) -> bool:
     """Rewrite the marked section (default: the glance one) of the file at `path`; True if it changed."""
     p = Path(path)
-    if not p.is_file():
-        raise input_error(p, "no such file")
-    text = p.read_text(encoding="utf-8")
+    text = read_text_file(p)
     new = replace_section(text, block, p, markers)
     if new == text:
         return False
@@ -109,9 +108,7 @@ def write_section(path: str | os.PathLike, block: str, markers: tuple[str, str] 
 def section_matches(path: str | os.PathLike, block: str, markers: tuple[str, str] = (START, END)) -> bool:
     """Whether the marked section (default: the glance one) of the file at `path` holds `block` already."""
     p = Path(path)
-    if not p.is_file():
-        raise input_error(p, "no such file")
-    text = p.read_text(encoding="utf-8")
+    text = read_text_file(p)
     return replace_section(text, block, p, markers) == text
 
 

@@ -57,7 +57,8 @@ def _folder_ratio(path: Path) -> float | None:
     return None
 
 
-def _is_number(value: Any) -> bool:
+def is_number(value: Any) -> bool:
+    """A finite int or float (not a bool)."""
     if not isinstance(value, (int, float)) or isinstance(value, bool):
         return False
     try:
@@ -72,7 +73,7 @@ def _header_problem(data: dict[str, Any]) -> str | None:
         if not isinstance(data.get(key), str) or not data[key]:
             return f"'{key}' must be a non-empty string, got {data.get(key)!r}"
     ratio = data.get("ratio")
-    if not _is_number(ratio) or not 0 < ratio < 1:
+    if not is_number(ratio) or not 0 < ratio < 1:
         return f"'ratio' must be a number in (0, 1), got {ratio!r}"
     for key in ("variant", "protocol"):
         if data.get(key) is not None and not isinstance(data[key], str):
@@ -82,7 +83,7 @@ def _header_problem(data: dict[str, Any]) -> str | None:
 
 def _value_problem(where: str, section: str, name: str, value: Any) -> str | None:
     """What is wrong with one metric value (a number in its range, or null) at `where`, or None."""
-    if value is not None and not _is_number(value):
+    if value is not None and not is_number(value):
         return f"'{where}' must be a number or null, got {value!r}"
     why = None if value is None else _out_of_range(section, name, value)
     if why:
@@ -97,8 +98,9 @@ def _method_problem(method: str, section: Any) -> str | None:
     forecast = section.get("forecast")
     if forecast is not None and not isinstance(forecast, dict):
         return f"'methods.{method}.forecast' must be an object"
-    if forecast is not None and not isinstance(forecast.get("params") or {}, dict):
-        return f"'methods.{method}.forecast.params' must be an object"
+    for key in ("params", "jobs"):
+        if forecast is not None and not isinstance(forecast.get(key) or {}, dict):
+            return f"'methods.{method}.forecast.{key}' must be an object"
     for part in METRIC_SECTIONS:
         values = section.get(part)
         if values is None:
@@ -120,6 +122,20 @@ def _grouping_problem(grouping: Any) -> str | None:
         problem = _value_problem(f"grouping.{name}", "grouping", name, (grouping or {}).get(name))
         if problem:
             return problem
+    for name in ("per_object_iou", "per_part_iou"):
+        values = (grouping or {}).get(name)
+        if values is None:
+            continue
+        if not isinstance(values, list):
+            return f"'grouping.{name}' must be a list"
+        for i, value in enumerate(values):
+            problem = _value_problem(f"grouping.{name}[{i}]", "grouping", "mean_iou", value)
+            if problem or value is None:
+                return problem or f"'grouping.{name}[{i}]' must be a number, got null"
+    for name in ("object_names", "part_names"):
+        values = (grouping or {}).get(name)
+        if values is not None and not (isinstance(values, list) and all(isinstance(v, str) for v in values)):
+            return f"'grouping.{name}' must be a list of names"
     return None
 
 

@@ -33,6 +33,7 @@ from typing import Any
 
 from ..artefact import atomic_path
 from ..errors import input_error
+from ..paths import read_text_file
 
 BENCH_DIR = Path("results/bench")
 REFERENCES = ("constant_velocity", "frozen")  # what the win counts compare against
@@ -300,12 +301,14 @@ def pipeline_section(path: Path) -> str:
         jobs = [Job(**j) for j in doc["jobs"]]
         rows = list(doc["budgets"])
         text = render(jobs, rows)
-    except (KeyError, TypeError, ValueError) as exc:
+        imports = doc.get("imports_s") or {}
+        tail = (
+            ["", "A fresh process there: " + ", ".join(f"{k} {v:.2f} s" for k, v in imports.items())] if imports else []
+        )
+        if doc.get("schedule"):
+            tail += ["", schedule_line(doc["schedule"], doc.get("snakemake_s"))]
+    except (AttributeError, KeyError, TypeError, ValueError) as exc:
         raise input_error(path, f"is not `python -m mogaf.bench pipeline --json` output ({exc})") from None
-    imports = doc.get("imports_s") or {}
-    tail = ["", "A fresh process there: " + ", ".join(f"{k} {v:.2f} s" for k, v in imports.items())] if imports else []
-    if doc.get("schedule"):
-        tail += ["", schedule_line(doc["schedule"], doc.get("snakemake_s"))]
     return "\n\n".join(
         [
             f"## Where a pipeline run's time goes: `{_posix(path)}`",
@@ -374,7 +377,7 @@ def results_page(
 def write_page(path: str | os.PathLike, text: str) -> bool:
     """Write the page to `path` (whole file or nothing); True if it changed."""
     p = Path(path)
-    if p.is_file() and p.read_text(encoding="utf-8") == text:
+    if p.is_file() and read_text_file(p) == text:
         return False
     with atomic_path(p) as tmp:
         Path(tmp).write_text(text, encoding="utf-8")
@@ -383,10 +386,7 @@ def write_page(path: str | os.PathLike, text: str) -> bool:
 
 def page_matches(path: str | os.PathLike, text: str) -> bool:
     """Whether the file at `path` holds `text` already."""
-    p = Path(path)
-    if not p.is_file():
-        raise input_error(p, "no such file")
-    return p.read_text(encoding="utf-8") == text
+    return read_text_file(path) == text
 
 
 __all__ = ["BENCH_DIR", "command", "page_matches", "results_page", "write_page"]

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import input_error
+from .metrics_files import is_number
 
 MARKERS = ("<!-- timing:start -->", "<!-- timing:end -->")
 
@@ -34,9 +35,18 @@ def read_pipeline_rows(path: str | os.PathLike) -> dict[str, Any]:
         raise input_error(p, f"not a readable JSON file ({exc})") from None
     if not isinstance(data, dict) or not isinstance(data.get("budgets"), list):
         raise input_error(p, "not `python -m mogaf.bench pipeline --json` output (no 'budgets' list)")
-    if not isinstance(data.get("snakemake_s"), (int, float)):
+    if data.get("snakemake_s") is None:
         raise input_error(p, "has no whole-run wall time ('snakemake_s'): write it with `--run` or --snakemake-seconds")
+    if not _seconds(data["snakemake_s"]):
+        raise input_error(p, f"'snakemake_s' is {data['snakemake_s']!r}; expected a finite number of seconds >= 0")
+    for i, row in enumerate(data["budgets"]):
+        if not isinstance(row, dict) or not all(_seconds(row.get(key)) for key in ("wall_s", "budget_s")):
+            raise input_error(p, f"budgets[{i}] is {row!r}; expected an object with seconds 'wall_s' and 'budget_s'")
     return data
+
+
+def _seconds(value: Any) -> bool:
+    return is_number(value) and value >= 0
 
 
 def timing_line(path: str | os.PathLike) -> str:

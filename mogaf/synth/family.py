@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 
 from ..artefact import atomic_path
-from ..errors import MogafError, input_error
+from ..errors import MogafError
+from ..paths import read_text_file
 from .params import resolve_params
 
 # Motion kinds: (name, what it shows, drawn parameters (rng -> dict)).
@@ -108,6 +109,8 @@ def family_scenes(count: int, seed: int = 0) -> dict[str, dict[str, Any]]:
 
     if count < 1:
         raise MogafError(f"scene family: count must be at least 1, got {count}")
+    if seed < 0:
+        raise MogafError(f"scene family: seed must be >= 0, got {seed}")
     scenes: dict[str, dict[str, Any]] = {}
     for i in range(count):
         kind = i % len(KINDS)
@@ -179,11 +182,7 @@ def main(argv: list[str] | None = None) -> int:
                 Path(tmp).write_text(text)
             print(f"wrote {args.write}")
         elif args.check:
-            try:
-                current = Path(args.check).read_text()
-            except OSError as exc:
-                raise input_error(args.check, f"cannot be read ({exc.strerror})") from None
-            if current != text:
+            if read_text_file(args.check) != text:
                 raise MogafError(f"{args.check}: differs from the family drawn now; rewrite it with --write")
         else:
             print(text, end="")
