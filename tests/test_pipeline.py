@@ -148,7 +148,7 @@ def test_every_method_has_finite_metrics(runs):
     (job,) = metrics["methods"]["mogaf"]["forecast"]["jobs"].values()
     assert job["mode"] == "structured" and job["choice"] in ("learned", "constant_velocity", "frozen")
     assert metrics["methods"]["mogaf_paper"]["forecast"]["params"]["mode"] == "paper"
-    # the better forecasts beat showing the last observed frame
+    # a plausible image score (the end-to-end budgets are too small to rank the methods)
     assert metrics["methods"]["mogaf"]["image"]["psnr"] > 10
     # grouping quality at held-out views (grouping_quality stage), copied into metrics.json
     grouping = metrics["grouping"]

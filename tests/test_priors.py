@@ -279,6 +279,14 @@ def test_stage_writes_the_schema(tmp_path):
     assert 0 <= a["track_fb_error_median_px"] <= a["track_fb_error_p95_px"]
     # Two squares moving differently: two instances, each mostly one square.
     assert len(ids) == 2
+    _, alphas, _ = moving_squares(np.random.default_rng(3), T, H, W, SQUARES)  # make_scene's squares
+    owners = []
+    for k in (0, 1):
+        only_k = (alphas[k, :F] > 0.99) & (alphas[1 - k, :F] < 0.01)
+        labels = inst[only_k]
+        owners.append(int(np.bincount(labels).argmax()))
+        assert owners[-1] != 0 and (labels == owners[-1]).mean() > 0.9, k
+    assert owners[0] != owners[1]
 
 
 def test_dnerf_gets_no_depth_and_no_tracks(tmp_path):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 
 import h5py
 import numpy as np
@@ -11,7 +12,7 @@ import torch
 
 from mogaf.artefact import read_artefact
 from mogaf.split import read_split
-from support.tiny_scene import TINY_PARAMS, H, T, W, assert_same_arrays, make_tiny_scene
+from support.tiny_scene import TINY_PARAMS, H, T, W, assert_same_arrays, differs, make_tiny_scene, perturbed_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -59,6 +60,8 @@ def test_time_breakdown_splits_the_training_steps(tiny_run):
     if cpu.available():
         assert t["rasterizer_forward"] > 0 and t["rasterizer_backward"] > 0
     assert all(t[k] >= 0 for k in parts) and sum(t[k] for k in parts) == pytest.approx(t["steps_total"], abs=0.01)
+    # every timer ran (the remainder, losses_and_other, is the total minus the timed parts)
+    assert all(t[k] > 0 for k in ("render_other", "autograd_other", "optimizer", "steps_total")), t
 
 
 def test_same_seed_same_artefact(tiny_scene, tiny_run, tmp_path):
@@ -91,7 +94,7 @@ def test_future_frames_are_never_read(tiny_scene, tiny_run, tmp_path):
     assert_same_arrays(tiny_run, out)
 
 
-def test_resume_from_checkpoint_matches_uninterrupted(tiny_scene, tiny_run, tmp_path):
+def test_resume_from_checkpoint_matches_uninterrupted(tiny_scene, tiny_run, tmp_path, caplog):
     from mogaf.recon.stage import run_recon_stage
 
     ckpt = tmp_path / "ckpt" / "recon.pt"
@@ -102,18 +105,29 @@ def test_resume_from_checkpoint_matches_uninterrupted(tiny_scene, tiny_run, tmp_
     assert ckpt.exists() and not (tmp_path / "unused.h5").exists()
     state = torch.load(ckpt, weights_only=True)
     assert state["iteration"] == 15
-    out = run_recon_stage(*tiny_scene, tmp_path / "resumed.h5", TINY_PARAMS, seed=3, checkpoint=ckpt, progress=False)
+    moved = tmp_path / "moved.pt"
+    perturbed_checkpoint(ckpt, moved)
+    with caplog.at_level(logging.INFO, logger="mogaf"):
+        out = run_recon_stage(
+            *tiny_scene, tmp_path / "resumed.h5", TINY_PARAMS, seed=3, checkpoint=ckpt, progress=False
+        )
+    assert f"recon: resumed from {ckpt} at iteration 15 of 30" in caplog.text
     assert not ckpt.exists()  # removed after success
     assert_same_arrays(tiny_run, out)
+    # the state is read from the checkpoint, not recomputed: moved means give another model
+    other = run_recon_stage(*tiny_scene, tmp_path / "moved.h5", TINY_PARAMS, seed=3, checkpoint=moved, progress=False)
+    assert differs(out, other)
 
 
-def test_checkpoint_of_other_settings_is_ignored(tiny_scene, tiny_run, tmp_path):
+def test_checkpoint_of_other_settings_is_ignored(tiny_scene, tiny_run, tmp_path, caplog):
     from mogaf.recon.stage import run_recon_stage
 
     ckpt = tmp_path / "recon.pt"
     other = {**TINY_PARAMS, "num_bases": 2}
     run_recon_stage(*tiny_scene, tmp_path / "x.h5", other, seed=3, checkpoint=ckpt, progress=False, stop_at=12)
-    out = run_recon_stage(*tiny_scene, tmp_path / "fresh.h5", TINY_PARAMS, seed=3, checkpoint=ckpt, progress=False)
+    with caplog.at_level(logging.INFO, logger="mogaf"):
+        out = run_recon_stage(*tiny_scene, tmp_path / "fresh.h5", TINY_PARAMS, seed=3, checkpoint=ckpt, progress=False)
+    assert "resumed from" not in caplog.text
     assert_same_arrays(tiny_run, out)
 
 
@@ -130,6 +144,13 @@ def test_render_model_reproduces_training_view(tiny_scene, tiny_run):
     np.testing.assert_allclose(same.features.numpy(), out.features[..., :3].numpy(), atol=1e-5)
     with pytest.raises(Exception, match="not an observed step"):
         render_model(m, T - 1, fr.K[1], fr.w2c[1], W, H)
+    # the trained view: closer to its own image at its own time than at the other observed times
+    target = torch.tensor(fr.images[1], dtype=torch.float32) / 255.0
+    err = {
+        t: float((render_model(m, t, fr.K[1], fr.w2c[1], W, H).features - target).square().mean())
+        for t in range(m.trajectory_means.shape[1])
+    }
+    assert min(err, key=err.get) == int(fr.time_index[1]), err
 
 
 def test_stored_model_renders_as_trained_with_sh(tiny_scene):

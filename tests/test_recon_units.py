@@ -185,6 +185,36 @@ def test_losses():
     assert abs(float(masked_l1(pred, gt, None, 0.98)) - 1.0) < 1e-6
     line = torch.linspace(0, 1, 10)[None, :, None].repeat(2, 1, 3)
     assert float(accel_loss(line)) < 1e-6
+    # the mean norm of second differences: one of norm 5 (a 3-4-5 step), two of norm 1
+    kink = torch.tensor([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 3.0, 4.0]]])
+    assert float(accel_loss(kink)) == pytest.approx(5.0)
+    parabola = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0], [6.0, 0, 0]]])
+    assert float(accel_loss(parabola)) == pytest.approx(1.0)
+
+
+def test_blend_bases_gives_each_basis_alone_and_orthonormalises_a_blend():
+    """Against matrices built elsewhere (scipy), not against the model's own conversions."""
+    from scipy.spatial.transform import Rotation
+
+    from mogaf.representation import blend_bases
+
+    rots = Rotation.from_rotvec([[0.3, -0.2, 0.5], [-1.0, 0.4, 0.2], [0.0, 0.0, 0.0]]).as_matrix()
+    # two time steps per basis: the rotation, then its transpose
+    frames = np.stack([rots, rots.transpose(0, 2, 1)], axis=1)  # (B, T, 3, 3)
+    rot6d = torch.tensor(frames[..., :2, :].reshape(3, 2, 6))  # rows b1, b2
+    transl = torch.tensor(np.arange(18, dtype=np.float64).reshape(3, 2, 3))
+    R, t = blend_bases(torch.eye(3, dtype=torch.float64), rot6d, transl)
+    assert R.shape == (3, 2, 3, 3) and t.shape == (3, 2, 3)
+    np.testing.assert_allclose(R.numpy(), frames, atol=1e-12)
+    np.testing.assert_array_equal(t.numpy(), transl.numpy())
+    R, t = blend_bases(torch.tensor([[0.5, 0.5, 0.0]], dtype=torch.float64), rot6d, transl)
+    a1, a2 = frames[:2, :, 0].mean(0), frames[:2, :, 1].mean(0)  # the blended rows, per time step
+    b1 = a1 / np.linalg.norm(a1, axis=-1, keepdims=True)
+    b2 = a2 - (b1 * a2).sum(-1, keepdims=True) * b1
+    b2 /= np.linalg.norm(b2, axis=-1, keepdims=True)
+    np.testing.assert_allclose(R[0].numpy(), np.stack([b1, b2, np.cross(b1, b2)], axis=-2), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(R[0].numpy()), 1.0, atol=1e-12)
+    np.testing.assert_allclose(t[0].numpy(), transl[:2].numpy().mean(0), atol=1e-12)
 
 
 def test_params_are_checked():

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -13,7 +15,7 @@ from mogaf.refine import resolve_params
 from mogaf.refine.stage import run_refine_stage
 from mogaf.refine.trainer import neighbour_pairs, rigid_residuals
 from mogaf.representation import load_model
-from support.tiny_scene import TINY_PARAMS, assert_same_arrays, make_tiny_scene
+from support.tiny_scene import TINY_PARAMS, assert_same_arrays, differs, make_tiny_scene, perturbed_checkpoint
 
 REFINE = {"iterations": 40, "rigid_times": 2, "recon": {"checkpoint_every": 10}}
 
@@ -122,14 +124,19 @@ def test_rigid_groups_without_rigid_file_fail_clearly(tiny):
     assert not (tiny["folder"] / "never.h5").exists()
 
 
-def test_resume_and_determinism(tiny):
+def test_resume_and_determinism(tiny, caplog):
     a = _refine(tiny, "a.h5")
     ck = tiny["folder"] / "refine.pt"
     assert _refine(tiny, "b.h5", checkpoint=ck, stop_at=15) == ck and ck.exists()
     assert not (tiny["folder"] / "b.h5").exists()
-    b = _refine(tiny, "b.h5", checkpoint=ck)
+    moved = tiny["folder"] / "moved.pt"
+    perturbed_checkpoint(ck, moved)
+    with caplog.at_level(logging.INFO, logger="mogaf"):
+        b = _refine(tiny, "b.h5", checkpoint=ck)
+    assert f"refine: resumed from {ck} at iteration 15" in caplog.text
     assert not ck.exists()
     assert_same_arrays(a, b)
+    assert differs(b, _refine(tiny, "moved.h5", checkpoint=moved))  # the state is read, not recomputed
 
 
 def test_params_are_checked():

@@ -160,3 +160,21 @@ def assert_same_arrays(a: Path, b: Path) -> None:
     assert sorted(A) == sorted(B)
     for k in A:
         np.testing.assert_array_equal(A[k], B[k], err_msg=k)
+
+
+def perturbed_checkpoint(src: Path, dst: Path) -> None:
+    """A copy of a training checkpoint with its Gaussians' means moved: a run
+    resumed from it must differ from one resumed from `src` (it was loaded)."""
+    import torch
+
+    from mogaf.recon.checkpoint import save_checkpoint
+
+    state = torch.load(src, map_location="cpu", weights_only=True)
+    state["model"]["fg.means"] = state["model"]["fg.means"] + 0.05
+    save_checkpoint(dst, state)
+
+
+def differs(a: Path, b: Path) -> bool:
+    """Whether two artefacts differ in any array."""
+    A, B = read_arrays(a), read_arrays(b)
+    return sorted(A) != sorted(B) or any(not np.array_equal(A[k], B[k]) for k in A)
