@@ -69,19 +69,11 @@ def _schema_file(configfile: str) -> Path | None:
 def _ablations(cfg: dict[str, Any], configfile: str) -> dict[str, Any]:
     """The config's ablations file, checked against config/ablations.schema.yaml
     (beside config/schema.yaml) as the workflow checks it."""
-    path = Path(cfg.get("ablations_file", "config/ablations.yaml"))
-    if not path.is_absolute() and not path.exists():  # relative to the working folder, else to the checkout
-        path = Path(__file__).resolve().parents[1] / path
+    path = mcfg.ablations_path(cfg, Path(__file__).resolve().parents[1])
     data = mcfg.load_yaml(path)
     schema = _schema_file(configfile)
     if schema is not None and (schema.parent / ABLATIONS_SCHEMA_NAME).is_file():
-        try:
-            import jsonschema  # noqa: F401
-        except ImportError:
-            return data
-        error = config_error(data, mcfg.load_yaml(schema.parent / ABLATIONS_SCHEMA_NAME), [(str(path), data)])
-        if error is not None:
-            raise error
+        _check_against(data, mcfg.load_yaml(schema.parent / ABLATIONS_SCHEMA_NAME), str(path))
     return data
 
 
@@ -102,13 +94,17 @@ def _validate(cfg: dict[str, Any], configfile: str) -> None:
     """The workflow's schema check (config/schema.yaml, where it is found), so
     a config the workflow would refuse fails here with one line, not a traceback."""
     schema = _schema_file(configfile)
-    if schema is None:
-        return
+    if schema is not None:
+        _check_against(cfg, load_config_schema(schema), configfile)
+
+
+def _check_against(data: dict[str, Any], schema: dict[str, Any], where: str) -> None:
+    """One line naming `where` and the key where `data` breaks the schema."""
     try:
         import jsonschema  # noqa: F401
     except ImportError:  # the `workflow` extra is not installed; the stages check their own parameters
         return
-    error = config_error(cfg, load_config_schema(schema), [(configfile, cfg)])
+    error = config_error(data, schema, [(where, data)])
     if error is not None:
         raise error
 

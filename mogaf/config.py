@@ -116,6 +116,12 @@ def rigidity_of(name: str, table: Mapping[str, str]) -> int:
 
 
 # ------------------------------------------------------------------ variants
+def ablations_path(config: Mapping[str, Any], checkout: str | os.PathLike) -> Path:
+    """The config's ablations_file: relative to the working folder, else to the checkout."""
+    path = Path(config.get("ablations_file", "config/ablations.yaml"))
+    return path if path.is_absolute() or path.exists() else Path(checkout) / path
+
+
 def variant_config(config: Mapping[str, Any], variants: Mapping[str, Any], variant: str | None) -> dict[str, Any]:
     if not variant:
         return copy.deepcopy(dict(config))

@@ -142,6 +142,8 @@ def unwritable_folder(path: str | os.PathLike) -> tuple[Path, str] | None:
     folder = Path(path).absolute().parent
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent
+    if not folder.is_dir():
+        return folder, "a file, not a folder"
     if os.access(folder, os.W_OK | os.X_OK):
         return None
     try:
@@ -170,6 +172,6 @@ def check_writable(path: str | os.PathLike) -> None:
     p = Path(path)
     if p.is_dir():
         raise input_error(p, "is an existing directory; the output must be a file path")
-    parent = next((q for q in p.absolute().parents if q.exists()), None)
-    if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-        raise input_error(p, f"cannot be written: {parent} is not a writable folder")
+    found = unwritable_folder(p)
+    if found is not None:
+        raise input_error(p, f"cannot be written: {found[0]} is not writable ({found[1]})")

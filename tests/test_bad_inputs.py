@@ -712,6 +712,8 @@ def test_unwritable_folder_names_the_nearest_existing_folder(tmp_path, monkeypat
     monkeypatch.setattr(os, "access", lambda path, mode: Path(path) != tmp_path)
     folder, reason = unwritable_folder(tmp_path / "a" / "b" / "c.h5")
     assert folder == tmp_path and reason in ("no write permission", "a read-only file system")
+    (tmp_path / "afile").write_text("")
+    assert unwritable_folder(tmp_path / "afile" / "c.h5") == (tmp_path / "afile", "a file, not a folder")
 
 
 def test_log_file_that_cannot_be_created_is_one_line(scene_h5, tmp_path, capsys):

@@ -88,11 +88,7 @@ mpaths.use_cache_dir(config["cache_dir"])
 
 
 def _ablations_path():
-    """config's ablations_file, relative to the working directory, else to the repository."""
-    path = Path(config["ablations_file"])
-    if not path.is_absolute() and not path.exists():
-        path = Path(workflow.basedir) / path
-    return path
+    return mcfg.ablations_path(config, workflow.basedir)
 
 
 def _load_ablations():
