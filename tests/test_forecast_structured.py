@@ -1042,3 +1042,27 @@ def test_a_fast_spin_is_a_moving_body_for_the_forecaster_and_the_coherence_figur
     spun = motion.members(motion.constant_velocity_trajectory(5))
     figures = coherence(pos, spun[..., :3], np.zeros(12, int), np.array([False]), np.array([True]))
     assert figures["still_gaussians"] == 0 and figures["rigid_distance_change"] < 1e-9
+
+
+def test_nonrigid_group_as_rigid_body_keeps_its_last_shape():
+    """nonrigid_motion: rigid_body forecasts a group that is not rigid the way
+    a rigid one is (the same poses, bit for bit): its members keep their last
+    observed shape, where each Gaussian's own extrapolated jitter (the
+    default) moves them apart."""
+    box = add_noise(rigid_box(48, 24), pos_sigma=0.002, rot_sigma=0.0)
+    as_body = {**QUICK, "structured": {"nonrigid_motion": "rigid_body"}}
+    body = fit_and_rollout("mogaf", box, 8, as_body, seed=0, rigid=False)
+    assert body.info["rigid"] is False and body.info["forecast_as"] == "rigid_body"
+    np.testing.assert_array_equal(body.poses, fit_and_rollout("mogaf", box, 8, as_body, seed=0, rigid=True).poses)
+
+    def shape_change(poses: np.ndarray) -> float:
+        last = box[:, -1, :3]
+        before = np.linalg.norm(last[:, None] - last[None], axis=-1)
+        return max(
+            float(np.abs(np.linalg.norm(p[:, None] - p[None], axis=-1) - before).max())
+            for p in poses[..., :3].transpose(1, 0, 2)
+        )
+
+    own = fit_and_rollout("mogaf", box, 8, QUICK, seed=0, rigid=False)
+    assert "forecast_as" not in own.info
+    assert shape_change(body.poses) < 1e-9 < 1e-3 < shape_change(own.poses)

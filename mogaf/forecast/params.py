@@ -48,6 +48,13 @@ class StructuredSettings:
     still_factor: float = setting(
         3.0, "non-rigid groups: a Gaussian moving less than this x the noise level stays still", minimum=0
     )
+    nonrigid_motion: Literal["per_gaussian", "rigid_body"] = setting(
+        "per_gaussian",
+        "how a group that is not rigid is forecast: 'per_gaussian' (each moving Gaussian's own series) or "
+        "'rigid_body' (the group's rigid-fit motion, centroid and rotation, carried to its moving members, whose "
+        "shape stays as last observed). Each Gaussian's extrapolated series carries its own noise, which tears a "
+        "surface apart over the forecast (docs/forecasting.md, variant nonrigid_rigid_body)",
+    )
     gate: bool = setting(True, "backtest the candidates per group (false: the learned forecaster alone)")
     backtest_frac: float = setting(
         0.5,

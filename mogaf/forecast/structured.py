@@ -62,6 +62,10 @@ local affine fit of its nearest moving Gaussians' motions
 (candidates.neighbour_smoothed_poses), so noise extrapolated Gaussian by
 Gaussian does not tear a surface apart.
 
+`nonrigid_motion: rigid_body` (off by default; variant nonrigid_rigid_body): a
+group that is not rigid is forecast as a rigid one is, its rigid-fit motion
+carried to its moving members, whose shape stays as last observed.
+
 Known limit: a rigid group whose members lie on one line has no observable
 rotation about that line; Procrustes then picks one, which can turn the
 members' orientations about it.
@@ -111,7 +115,10 @@ def group_motion(obs: np.ndarray, own: StructuredSettings, rigid_hint: bool | No
         "rigid_residual_rel": rel,
         "rigid_source": "groups" if rigid_hint is not None and rel is not None else "residual",
     }
-    return GroupMotion(obs, rigid, own.still_factor, decomposition, damping=own.damping), info
+    as_body = rigid or (decomposition is not None and own.nonrigid_motion == "rigid_body")
+    if as_body != rigid:
+        info["forecast_as"] = "rigid_body"
+    return GroupMotion(obs, as_body, own.still_factor, decomposition, damping=own.damping), info
 
 
 def backtest_frames(length: int, own: StructuredSettings, horizon: int) -> int | None:
