@@ -776,3 +776,12 @@ def test_scenes_table_gives_mogafs_margin_over_the_better_of_frozen_and_constant
         "MoGaF is more than 0.3 dB PSNR below the better of frozen and constant velocity on 1 of 3 scenes "
         "(worst margin -0.50 dB, c)." in text
     )
+
+
+def test_scene_table_names_each_rigid_parts_decision():
+    """A group forecast in rigid parts shows each part's own choice, counted."""
+    from mogaf.report.scenes import _choice_text
+
+    info = {"choice": "rigid_parts", "part_choices": ["frozen", "linear_trend", "linear_trend"]}
+    assert _choice_text(info) == "rigid parts (frozen, linear trend x2)"
+    assert _choice_text({"choice": "linear_trend", "backtest_weight_linear_trend": 0.75}) == "linear trend 0.75"

@@ -48,12 +48,27 @@ class StructuredSettings:
     still_factor: float = setting(
         3.0, "non-rigid groups: a Gaussian moving less than this x the noise level stays still", minimum=0
     )
-    nonrigid_motion: Literal["per_gaussian", "rigid_body"] = setting(
-        "per_gaussian",
-        "how a group that is not rigid is forecast: 'per_gaussian' (each moving Gaussian's own series) or "
+    nonrigid_motion: Literal["per_gaussian", "rigid_body", "rigid_parts"] = setting(
+        "rigid_parts",
+        "how a group that is not rigid is forecast: 'per_gaussian' (each moving Gaussian's own series), "
         "'rigid_body' (the group's rigid-fit motion, centroid and rotation, carried to its moving members, whose "
-        "shape stays as last observed). Each Gaussian's extrapolated series carries its own noise, which tears a "
-        "surface apart over the forecast (docs/forecasting.md, variant nonrigid_rigid_body)",
+        "shape stays as last observed) or 'rigid_parts' (the group cut into at most `rigid_parts` parts that each "
+        "move as one rigid body, each forecast as a rigid group is). Each Gaussian's extrapolated series carries its "
+        "own noise, which tears a surface apart over the forecast (docs/forecasting.md, variants "
+        "nonrigid_rigid_body, nonrigid_rigid_parts)",
+    )
+    rigid_parts: int = setting(
+        8,
+        "nonrigid_motion: rigid_parts: the most parts a group is cut into (K-motions on the observed trajectories; "
+        "fewer where parts would have under 3 members or move alike)",
+        minimum=1,
+    )
+    parts_unexplained: float = setting(
+        0.45,
+        "nonrigid_motion: rigid_parts: a group whose parts leave more than this share of its motion unexplained "
+        "(RMS distance from each part's rigid fit over RMS displacement) is forecast per Gaussian instead; measured: "
+        "0.53 for 200 points each at its own constant velocity, at most 0.40 over the scene family's non-rigid groups",
+        minimum=0,
     )
     gate: bool = setting(True, "backtest the candidates per group (false: the learned forecaster alone)")
     backtest_frac: float = setting(
@@ -120,7 +135,8 @@ class StructuredSettings:
     )
     backtest_neighbors: int = setting(
         32,
-        "combine: weighted, non-rigid groups (rigid groups and combine: select decide per group): each moving "
+        "combine: weighted, non-rigid groups forecast per Gaussian (rigid groups, rigid parts and combine: select "
+        "decide per group or part): each moving "
         "Gaussian is weighted by the candidates' backtest errors (and the learned one's drift) averaged over its "
         "this many nearest moving Gaussians of the group at the last observed frame, itself included; 0 (or as "
         "many as move) = one weighting per group. Per Gaussian because a non-rigid group can join parts that move "
@@ -129,7 +145,8 @@ class StructuredSettings:
     )
     coherent_neighbors: int = setting(
         0,
-        "non-rigid groups: each moving Gaussian's forecast motion (displacement and turn since its last observed "
+        "non-rigid groups forecast per Gaussian: each moving Gaussian's forecast motion (displacement and turn since "
+        "its last observed "
         "pose) is the local affine fit over its this many nearest moving Gaussians at the last observed frame, "
         "itself included; 0 = each its own. Each Gaussian's series is extrapolated on its own, and their noise, "
         "which grows over the forecast, tears a surface apart where the truth moves it as a piece; an affine fit "
@@ -380,6 +397,9 @@ def _unread_by_mogaf(net: MogafSettings, own: StructuredSettings, changed: Mappi
         why.setdefault("structured.trend_window", "candidates has neither linear_trend nor damped_trend")
     if "damped_trend" not in own.candidates:
         why.setdefault("structured.trend_half_life", "candidates has no damped_trend")
+    if own.nonrigid_motion != "rigid_parts":
+        for k in ("rigid_parts", "parts_unexplained"):
+            why.setdefault(f"structured.{k}", f"nonrigid_motion is {own.nonrigid_motion}, not rigid_parts")
     if own.combine == "select":
         why.setdefault("structured.backtest_neighbors", "combine is select, which decides per group")
         why.setdefault("structured.backtest_origins", "combine is select, which scores one window")

@@ -11,8 +11,10 @@ pose's normalised level, and Gaussians rolled out one by one drift apart.
   * Rigid groups (the grouping's hint, or a rigid-fit residual below
     `rigid_residual` of the group's radius) forecast one group trajectory
     (centroid + accumulated body-frame rotation vector, relative to the last
-    observed frame) applied to every member, so they stay rigid. Non-rigid
-    groups forecast each Gaussian.
+    observed frame) applied to every member, so they stay rigid. A non-rigid
+    group is cut into rigid parts (`nonrigid_motion: rigid_parts`, below),
+    or forecast Gaussian by Gaussian (`per_gaussian`, and where its parts
+    leave over `parts_unexplained` of its motion unexplained).
   * Gaussians whose observed motion is below the trajectories' own noise
     level (`still_factor` x the median third difference; position and
     orientation in a non-rigid group, position in a rigid one) stay where
@@ -65,6 +67,14 @@ Gaussian does not tear a surface apart.
 `nonrigid_motion: rigid_body` (off by default; variant nonrigid_rigid_body): a
 group that is not rigid is forecast as a rigid one is, its rigid-fit motion
 carried to its moving members, whose shape stays as last observed.
+`nonrigid_motion: rigid_parts` (the default; variant nonrigid_per_gaussian is
+the other way): a group that is not rigid is cut into at most `rigid_parts`
+parts that each move as one rigid body (trajectory.rigid_parts), and each
+part is forecast as a rigid group, with its own backtest; the learned
+candidate's networks are fitted once over all parts' series (SharedNetworks),
+as a non-rigid group's one network is over its Gaussians'. A hinged lid and
+the still body it is joined to, or the patches of a cloth, each keep their
+shape, where each Gaussian's own extrapolated noise tears a surface apart.
 
 Known limit: a rigid group whose members lie on one line has no observable
 rotation about that line; Procrustes then picks one, which can turn the
@@ -94,11 +104,11 @@ from mogaf.forecast.candidates import (
     neighbour_mean,
     neighbour_smoothed_poses,
 )
-from mogaf.forecast.channel_net import window_sizes
+from mogaf.forecast.channel_net import ChannelForecaster, window_sizes
 from mogaf.forecast.group_motion import GroupMotion
 from mogaf.forecast.mogaf_settings import MogafRun, load_run
 from mogaf.forecast.params import MOGAF_DEFAULTS, STRUCTURED_CANDIDATES, StructuredSettings
-from mogaf.forecast.trajectory import rigid_decomposition
+from mogaf.forecast.trajectory import rigid_decomposition, rigid_parts, unexplained_motion
 
 
 def group_motion(obs: np.ndarray, own: StructuredSettings, rigid_hint: bool | None) -> tuple[GroupMotion, dict]:
@@ -180,13 +190,16 @@ def backtest(
     h: int,
     device: Any,
     horizon: int = 0,
+    shared: SharedNetworks | None = None,
 ) -> Backtest:
     """Backtest on observed frames only: fit on the first T - h, score on the
     last h (and, backtest_origins > 1 under combine: weighted, from later
     origins too: _later_origin). On short observations the backtested network
     reads a shorter context (window_sizes) than the one refitted on all T
     frames, which keeps its own. `horizon`: the forecast's length, which the
-    drift check's refit rolls out at once (kept for the forecast)."""
+    drift check's refit rolls out at once (kept for the forecast). `shared`:
+    networks fitted over several groups' series, used instead of fitting the
+    learned candidate's here (nonrigid_motion: rigid_parts)."""
     own, T = run.own, obs.shape[1]
     past = GroupMotion(obs[:, : T - h], motion.rigid, own.still_factor, damping=own.damping)
     # combine: weighted, non-rigid: every moving member scored over its nearest
@@ -198,14 +211,15 @@ def backtest(
     bt = Backtest(h, {}, local, {})
     learned_net = None
     for name in candidates:
-        fitted = FittedCandidate(name, past, run, seed, device)
+        model = shared.past if shared is not None and name == "learned" else None
+        fitted = FittedCandidate(name, past, run, seed, device, model=model)
         _score(fitted, obs, h, name, bt.scores, bt.member_scores, moving, neighbours)
         bt.info[f"backtest_epe_{name}"] = bt.scores[name]
         bt.iterations += fitted.info.get("iterations", 0)
         if name == "learned":
             learned_net = fitted.model
     if own.drift_check and learned_net is not None and motion.series.shape[0] and np.isfinite(bt.scores["learned"]):
-        _drift_check(bt, motion, learned_net, run, seed, device, neighbours, horizon)
+        _drift_check(bt, motion, learned_net, run, seed, device, neighbours, horizon, shared)
     _no_weight_where_non_finite(bt.scores, bt.member_scores)
     bt.info["backtest_frames"] = h
     origins = origin_frames(h, int(own.backtest_origins)) if own.combine == "weighted" else [h]
@@ -301,13 +315,15 @@ def _drift_check(
     device: Any,
     neighbours: Any,
     horizon: int = 0,
+    shared: SharedNetworks | None = None,
 ) -> None:
     """The backtest judged a network that never saw the last h frames; the one
     deployed is refitted on them. How far the two forecasts part is error the
     backtest could not see (a reconstruction's last frames are its least
     accurate, and a network can learn their artefacts as motion): the learned
     candidate's scores are combined with it (root sum of squares)."""
-    bt.refit_learned = FittedCandidate("learned", motion, run, seed, device, rollout_steps=horizon)
+    full = shared.full if shared is not None else None
+    bt.refit_learned = FittedCandidate("learned", motion, run, seed, device, model=full, rollout_steps=horizon)
     judged = FittedCandidate("learned", motion, run, seed, device, model=learned_net)
     bt.drift = member_distances(bt.refit_learned.rollout(bt.frames), judged.rollout(bt.frames))
     _with_drift(bt.scores, bt.member_scores, bt.drift, motion, neighbours)
@@ -382,6 +398,7 @@ def refit(
     run: MogafRun,
     seed: int,
     device: Any,
+    shared: SharedNetworks | None = None,
 ) -> tuple[FittedCandidate | WeightedCandidates, dict[str, Any]]:
     """The decision's candidates fitted on every observed frame (the drift
     check's refit reused): the chosen one, or, where several keep a weight,
@@ -394,7 +411,8 @@ def refit(
     def fitted_on_all(name: str) -> FittedCandidate:
         if name == "learned" and kept is not None:
             return kept
-        return FittedCandidate(name, motion, run, seed, device)
+        model = shared.full if shared is not None and name == "learned" else None
+        return FittedCandidate(name, motion, run, seed, device, model=model)
 
     weights = decision.weights
     if weights is not None and max(weights.values()) < 1.0:
@@ -409,6 +427,37 @@ def refit(
     return fitted, info
 
 
+@dataclass
+class SharedNetworks:
+    """The learned candidate's networks of several rigid groups (a non-rigid
+    group's parts, nonrigid_motion: rigid_parts), each fitted once over all
+    their series, as a non-rigid group's one network is over its Gaussians':
+    `past` on the first T - h observed frames (the backtest's), `full` on all
+    T (the drift check's refit, the forecast's)."""
+
+    past: ChannelForecaster
+    full: ChannelForecaster
+    iterations: int
+
+
+def shared_networks(
+    observed: list[np.ndarray], run: MogafRun, seed: int, device: Any, horizon: int
+) -> SharedNetworks | None:
+    """The networks the rigid groups `observed` (each (G_i, T, 7)) share, or
+    None where none is fitted (no learned candidate, no backtest)."""
+    own, T = run.own, observed[0].shape[1]
+    h = backtest_frames(T, own, horizon)
+    if "learned" not in own.candidates or h is None:
+        return None
+
+    def fitted(frames: int) -> ChannelForecaster:
+        motions = [GroupMotion(o[:, :frames], True, own.still_factor, damping=own.damping) for o in observed]
+        series = np.concatenate([m.series for m in motions])
+        return ChannelForecaster(run, seed, device).fit(series, np.concatenate([m.floor for m in motions]))
+
+    return SharedNetworks(fitted(T - h), fitted(T), 2 * int(run.net.iterations))
+
+
 class StructuredMoGaF(Forecaster):
     """The structured MoGaF forecaster (forecast.mogaf, `mode: structured`).
     Its fit depends on the forecast's length (the backtest holds back at most
@@ -419,6 +468,7 @@ class StructuredMoGaF(Forecaster):
     DEFAULTS = MOGAF_DEFAULTS
     MIN_FRAMES = 3  # as the paper mode's (the method's input check is one)
     NEEDS_HORIZON = True
+    shared: SharedNetworks | None = None  # a part's forecaster (rigid_parts): its group's networks
 
     @classmethod
     def load_settings(cls, params: Any) -> MogafRun:
@@ -427,18 +477,30 @@ class StructuredMoGaF(Forecaster):
     def _fit(self, obs: np.ndarray) -> None:
         device = self.device  # resolved (and recorded) even where no network is fitted
         run = self.settings
+        self.parts: list[tuple[np.ndarray, StructuredMoGaF]] | None = None  # nonrigid_motion: rigid_parts
         own, T = run.own, obs.shape[1]
         motion, info = group_motion(obs, own, self.rigid_hint)
+        if not motion.rigid and own.nonrigid_motion == "rigid_parts" and obs.shape[0] >= 3:
+            labels = rigid_parts(obs[..., :3], int(own.rigid_parts), self.seed)
+            info["parts_unexplained"] = unexplained_motion(obs[..., :3], labels)
+            if info["parts_unexplained"] <= own.parts_unexplained:
+                self._fit_parts(obs, labels, info)
+                return
         candidates = [c for c in STRUCTURED_CANDIDATES if c in own.candidates]  # in tie order
         h = backtest_frames(T, own, self.horizon)
-        bt = backtest(obs, motion, candidates, run, self.seed, h, device, self.horizon) if h is not None else None
+        shared = self.shared
+        bt = (
+            backtest(obs, motion, candidates, run, self.seed, h, device, self.horizon, shared)
+            if h is not None
+            else None
+        )
         decision = weighting(bt, candidates, own, T)
         if bt is not None:
             info.update(bt.info)
         info.update(decision.info)
         info["still_fraction"] = float(motion.still.mean())
         info["choice"] = decision.choice
-        self.fitted, refit_info = refit(motion, decision, candidates, bt, run, self.seed, device)
+        self.fitted, refit_info = refit(motion, decision, candidates, bt, run, self.seed, device, shared)
         self.motion = motion
         self.coherent = coherent_neighbours(motion, int(own.coherent_neighbors))
         if self.coherent is not None:
@@ -446,7 +508,31 @@ class StructuredMoGaF(Forecaster):
         self.info.update(info)
         self.info.update(refit_info)
 
+    def _fit_parts(self, obs: np.ndarray, labels: np.ndarray, info: dict[str, Any]) -> None:
+        """nonrigid_motion: rigid_parts: each part (`labels`, rigid_parts) fitted as a rigid group."""
+        run = self.settings
+        groups = [np.flatnonzero(labels == p) for p in range(int(labels.max()) + 1)]
+        shared = shared_networks([obs[m] for m in groups], run, self.seed, self.device, self.horizon)
+        self.parts = []
+        for members in groups:
+            part = StructuredMoGaF(run, self.seed, self.device_name)
+            part.shared = shared
+            self.parts.append((members, part.fit(obs[members], rigid=True, horizon=self.horizon)))
+        infos = [part.info for _, part in self.parts]
+        info["forecast_as"] = "rigid_parts"
+        info["parts"] = [int(len(members)) for members, _ in self.parts]
+        info["part_choices"] = [str(i["choice"]) for i in infos]
+        info["choice"] = "rigid_parts"
+        info["still_fraction"] = float(sum(i["still_fraction"] * n for i, n in zip(infos, info["parts"])) / len(obs))
+        info["iterations"] = int(sum(i.get("iterations", 0) for i in infos)) + (shared.iterations if shared else 0)
+        self.info.update(info)
+
     def _rollout(self, n_steps: int) -> np.ndarray:
+        if self.parts is not None:
+            poses = np.empty((self._obs.shape[0], n_steps, 7))
+            for members, part in self.parts:
+                poses[members] = part.rollout(n_steps)
+            return poses
         poses = self.fitted.rollout(n_steps)
         if self.coherent is not None:
             moving = self.motion.moving

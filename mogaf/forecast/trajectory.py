@@ -1,6 +1,6 @@
 """Rotation and trajectory helpers of the structured MoGaF forecaster
 (mogaf.forecast.structured): accumulated rotation vectors, a group's best
-rigid motion, its still members and local polynomial fits."""
+rigid motion, its still members, its rigid parts and local polynomial fits."""
 
 from __future__ import annotations
 
@@ -52,6 +52,66 @@ def rigid_decomposition(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     radius = float(np.sqrt(np.mean(np.sum(src[0] ** 2, axis=-1))))
     rel = float(residual.max() / radius) if radius > 0 else 0.0
     return centroids, quat.make_continuous(_matrix_to_quat(R), axis=0), rel
+
+
+def rigid_parts(positions: np.ndarray, k: int, seed: int, iterations: int = 8) -> np.ndarray:
+    """(G,) labels 0..P-1 (P <= k) of a group's members (G, T, 3), each part
+    moving as one rigid body (K-motions): k-means on the members'
+    displacements from their last position, then, alternately, each part's
+    best rigid motion from the last frame to every frame and each member moved
+    to the part whose motion follows its trajectory closest. A part of fewer
+    than 3 members fixes no rotation: its members go to the other parts.
+    Deterministic for a seed."""
+    from sklearn.cluster import KMeans
+
+    pos = np.asarray(positions, dtype=np.float64)
+    G = pos.shape[0]
+    displacement = (pos - pos[:, -1:]).reshape(G, -1)
+    # (k-means needs k distinct points: members moving alike count once)
+    k = min(int(k), G // 3, len(np.unique(displacement, axis=0)))
+    if k <= 1:
+        return np.zeros(G, np.int64)
+    labels = KMeans(k, n_init=4, random_state=int(seed)).fit_predict(displacement).astype(np.int64)
+    for _ in range(int(iterations)):
+        errors = np.stack([_rigid_fit_error(pos, labels == p) for p in range(k)])
+        if not np.isfinite(errors).any(axis=0).all():
+            break
+        new = np.argmin(errors, axis=0)
+        if np.array_equal(new, labels):
+            break
+        labels = new
+    _, labels = np.unique(labels, return_inverse=True)
+    return labels.astype(np.int64)
+
+
+def unexplained_motion(positions: np.ndarray, labels: np.ndarray) -> float:
+    """The share of a group's motion (G, T, 3) its rigid parts (`labels`,
+    rigid_parts) leave unexplained: the RMS over members and frames of each
+    member's distance from its part's rigid fit, over the RMS of its
+    displacement from its last position (0: the parts move exactly as rigid
+    bodies; about 0.5: members each moving on their own)."""
+    pos = np.asarray(positions, dtype=np.float64)
+    error = np.zeros(pos.shape[0])
+    for p in range(int(labels.max()) + 1):
+        part = labels == p
+        error[part] = _rigid_fit_error(pos, part)[part] if part.sum() >= 3 else 0.0
+    displacement = np.sqrt(np.mean(np.sum((pos - pos[:, -1:]) ** 2, axis=-1), axis=1))
+    moved = float(np.sqrt(np.mean(displacement**2)))
+    return float(np.sqrt(np.mean(error**2)) / moved) if moved > 0 else 0.0
+
+
+def _rigid_fit_error(pos: np.ndarray, part: np.ndarray) -> np.ndarray:
+    """(G,) each member's RMS distance over the frames from where the best rigid
+    motion of `part`'s members (from the last frame to every frame) carries
+    its last position; inf for every member when the part has fewer than 3."""
+    from mogaf.rigid import procrustes_numpy  # local: mogaf.rigid imports torch at module level
+
+    if part.sum() < 3:
+        return np.full(pos.shape[0], np.inf)
+    members = pos[part]
+    R, t = procrustes_numpy(members[:, -1][None], np.moveaxis(members, 1, 0))  # (T, 3, 3), (T, 3)
+    carried = np.einsum("tij,gj->gti", R, pos[:, -1]) + t[None]
+    return np.sqrt(np.mean(np.sum((carried - pos) ** 2, axis=-1), axis=1))
 
 
 def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
