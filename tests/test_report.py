@@ -782,6 +782,6 @@ def test_scene_table_names_each_rigid_parts_decision():
     """A group forecast in rigid parts shows each part's own choice, counted."""
     from mogaf.report.scenes import _choice_text
 
-    info = {"choice": "rigid_parts", "part_choices": ["frozen", "linear_trend", "linear_trend"]}
+    info = {"choice": "rigid_parts", "part_choices": "frozen linear_trend linear_trend"}
     assert _choice_text(info) == "rigid parts (frozen, linear trend x2)"
     assert _choice_text({"choice": "linear_trend", "backtest_weight_linear_trend": 0.75}) == "linear trend 0.75"

@@ -66,8 +66,8 @@ class StructuredSettings:
     parts_unexplained: float = setting(
         0.45,
         "nonrigid_motion: rigid_parts: a group whose parts leave more than this share of its motion unexplained "
-        "(RMS distance from each part's rigid fit over RMS displacement) is forecast per Gaussian instead; measured: "
-        "0.53 for 200 points each at its own constant velocity, at most 0.40 over the scene family's non-rigid groups",
+        "(RMS distance from each part's rigid fit over RMS displacement) is forecast per Gaussian instead: about 0.5 "
+        "where members each keep their own velocity, lower on reconstructed objects (docs/forecasting.md)",
         minimum=0,
     )
     gate: bool = setting(True, "backtest the candidates per group (false: the learned forecaster alone)")

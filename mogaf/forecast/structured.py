@@ -520,10 +520,13 @@ class StructuredMoGaF(Forecaster):
             self.parts.append((members, part.fit(obs[members], rigid=True, horizon=self.horizon)))
         infos = [part.info for _, part in self.parts]
         info["forecast_as"] = "rigid_parts"
-        info["parts"] = [int(len(members)) for members, _ in self.parts]
-        info["part_choices"] = [str(i["choice"]) for i in infos]
+        # space-separated, as a job's info keeps scalars (metrics.json)
+        sizes = [int(len(members)) for members, _ in self.parts]
+        info["parts"] = len(sizes)
+        info["part_members"] = " ".join(map(str, sizes))
+        info["part_choices"] = " ".join(str(i["choice"]) for i in infos)
         info["choice"] = "rigid_parts"
-        info["still_fraction"] = float(sum(i["still_fraction"] * n for i, n in zip(infos, info["parts"])) / len(obs))
+        info["still_fraction"] = float(sum(i["still_fraction"] * n for i, n in zip(infos, sizes)) / len(obs))
         info["iterations"] = int(sum(i.get("iterations", 0) for i in infos)) + (shared.iterations if shared else 0)
         self.info.update(info)
 

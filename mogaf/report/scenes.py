@@ -26,8 +26,8 @@ def _choice_text(info: dict[str, Any]) -> str:
     """A group's backtest decision: the candidate, with its weight when the
     candidates were blended (combine: weighted)."""
     choice = str(info.get("choice"))
-    if isinstance(info.get("part_choices"), list):  # nonrigid_motion: rigid_parts, each part's own decision
-        counts = Counter(str(c).replace("_", " ") for c in info["part_choices"])
+    if isinstance(info.get("part_choices"), str):  # nonrigid_motion: rigid_parts, each part's own decision
+        counts = Counter(c.replace("_", " ") for c in info["part_choices"].split())
         return "rigid parts (" + ", ".join(n + (f" x{k}" if k > 1 else "") for n, k in sorted(counts.items())) + ")"
     weight = info.get(f"backtest_weight_{choice}")
     return choice.replace("_", " ") + (f" {weight:.2f}" if isinstance(weight, float) and weight < 1.0 else "")
