@@ -147,7 +147,9 @@ def test_every_method_has_finite_metrics(runs):
     # the default MoGaF records its per-group decision; the paper's mode runs beside it
     (job,) = metrics["methods"]["mogaf"]["forecast"]["jobs"].values()
     choices = job.get("part_choices", job["choice"]).split()  # a non-rigid group: each rigid part's own choice
-    assert job["mode"] == "structured" and set(choices) <= {"learned", "constant_velocity", "frozen"}, choices
+    assert job["mode"] == "structured" and set(choices) <= {"learned", "linear_trend", "constant_velocity", "frozen"}, (
+        choices
+    )
     assert metrics["methods"]["mogaf_paper"]["forecast"]["params"]["mode"] == "paper"
     # a plausible image score (the end-to-end budgets are too small to rank the methods)
     assert metrics["methods"]["mogaf"]["image"]["psnr"] > 10
