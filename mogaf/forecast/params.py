@@ -55,7 +55,7 @@ class StructuredSettings:
         "shape stays as last observed) or 'rigid_parts' (the group cut into at most `rigid_parts` parts that each "
         "move as one rigid body, each forecast as a rigid group is). Each Gaussian's extrapolated series carries its "
         "own noise, which tears a surface apart over the forecast (docs/forecasting.md, variants "
-        "nonrigid_rigid_body, nonrigid_rigid_parts)",
+        "nonrigid_rigid_body, nonrigid_per_gaussian)",
     )
     rigid_parts: int = setting(
         8,

@@ -59,9 +59,10 @@ def rigid_parts(positions: np.ndarray, k: int, seed: int, iterations: int = 8) -
     moving as one rigid body (K-motions): k-means on the members'
     displacements from their last position, then, alternately, each part's
     best rigid motion from the last frame to every frame and each member moved
-    to the part whose motion follows its trajectory closest. A part of fewer
-    than 3 members fixes no rotation: its members go to the other parts.
-    Deterministic for a seed."""
+    to the part whose motion follows its trajectory closest (at most
+    `iterations` rounds). A part of fewer than 3 members fixes no rotation:
+    the next round moves its members to the other parts (a part the last
+    round left that small is forecast per Gaussian). Deterministic for a seed."""
     from sklearn.cluster import KMeans
 
     pos = np.asarray(positions, dtype=np.float64)
