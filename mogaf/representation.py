@@ -83,14 +83,50 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
 
 
 def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices to wxyz quaternions with w >= 0 (roma's robust method)."""
+    """Rotation matrices to wxyz quaternions with w >= 0 (rotmat_to_xyzw)."""
     import torch
 
-    from .eager_roma import load as load_roma
-
-    xyzw = load_roma().rotmat_to_unitquat(R)
+    xyzw = rotmat_to_xyzw(R)
     q = torch.cat([xyzw[..., 3:], xyzw[..., :3]], dim=-1)
     return torch.where(q[..., :1] < 0, -q, q)
+
+
+def rotmat_to_xyzw(R: torch.Tensor) -> torch.Tensor:
+    """Unit xyzw quaternions of rotation matrices (...,3,3), Markley's method
+    (J. Guid. Control Dyn. 31(2), 2008): the four vectors 4 q_i q (his eq. 8,
+    attitude matrix A = R^T) and the one with the largest 4 q_i^2
+    normalised, which gives a unit quaternion for a slightly non-orthonormal
+    matrix too. Every operation as roma.rotmat_to_unitquat's, so the same
+    bits (tests/test_representation.py), but the largest diagonal entry is
+    found with three comparisons: torch's argmax over a last dimension of 4
+    is ten times as slow on the CPU."""
+    import torch
+
+    rows = R.transpose(-1, -2).unbind(-2)
+    (a11, a12, a13), (a21, a22, a23), (a31, a32, a33) = (row.unbind(-1) for row in rows)
+    # fmt: off
+    x = torch.stack([1 + a11 - a22 - a33, a12 + a21, a13 + a31, a23 - a32,
+                     a21 + a12, 1 + a22 - a33 - a11, a23 + a32, a31 - a13,
+                     a31 + a13, a32 + a23, 1 + a33 - a11 - a22, a12 - a21,
+                     a23 - a32, a31 - a13, a12 - a21, 1 + a11 + a22 + a33], dim=-1).unflatten(-1, (4, 4))
+    # fmt: on
+    i = first_argmax(x.diagonal(dim1=-2, dim2=-1))
+    x_i = torch.gather(x, -2, i[..., None, None].expand(*i.shape, 1, 4))[..., 0, :]
+    return x_i / torch.norm(x_i, dim=-1, keepdim=True)
+
+
+def first_argmax(v: torch.Tensor) -> torch.Tensor:
+    """torch.argmax(v, dim=-1) for a short last dimension: the first largest
+    entry, a NaN counting as the largest (as argmax's), by one comparison per entry."""
+    import torch
+
+    best, index = v[..., 0], torch.zeros(v.shape[:-1], dtype=torch.long, device=v.device)
+    for k in range(1, v.shape[-1]):
+        entry = v[..., k]
+        larger = (entry > best) | (entry.isnan() & ~best.isnan())
+        best = torch.where(larger, entry, best)
+        index = torch.where(larger, k, index)
+    return index
 
 
 def rot6d_to_matrix(x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:

@@ -270,3 +270,30 @@ def test_last_dim_variance_equals_torch_var_bit_for_bit_forward_and_backward():
                 assert torch.equal(ours, ref) and torch.equal(our_grad, ref_grad), (scale, offset, width)
     wide = torch.randn(5, 16, generator=gen, dtype=torch.float64)
     assert torch.equal(last_dim_variance(wide), torch.var(wide, dim=-1))
+
+
+def test_a_softmax_read_several_times_per_step_is_computed_once_with_the_same_bits():
+    from mogaf.optim import Adam
+    from mogaf.recon.model import last_dim_softmax
+
+    gen = torch.Generator().manual_seed(0)
+    logits = torch.nn.Parameter(torch.randn(500, 10, generator=gen) * 3)
+    heads = [torch.randn(500, 10, generator=gen) for _ in range(3)]
+
+    def loss_and_grad(read):
+        logits.grad = None
+        loss = sum(((read() * h) ** 2).sum() * (k + 1) for k, h in enumerate(heads))
+        loss.backward()
+        return loss.detach(), logits.grad.clone()
+
+    cache: list = []
+    want = loss_and_grad(lambda: torch.softmax(logits, dim=-1))
+    got = loss_and_grad(lambda: last_dim_softmax(logits, cache))
+    assert torch.equal(want[0], got[0]) and torch.equal(want[1], got[1])  # three reads, one softmax
+    first = cache[2]
+    assert last_dim_softmax(logits, cache) is not first and cache[2] is first
+    # an optimiser step (in place) or a new tensor computes it again
+    Adam([logits], lr=0.5).step()
+    assert torch.equal(last_dim_softmax(logits, cache), torch.softmax(logits, dim=-1)) and cache[2] is not first
+    other = torch.nn.Parameter(logits.detach().clone() * 2)
+    assert torch.equal(last_dim_softmax(other, cache), torch.softmax(other, dim=-1)) and cache[0] is other

@@ -27,6 +27,35 @@ GAUSS_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "color_logits"
 AUX_FIELDS = ("labels",)  # per-Gaussian tensors that are carried along but not optimised
 
 
+class _SoftmaxOf(torch.autograd.Function):
+    """softmax(logits) given its already computed value `probs`, with
+    softmax's own backward: a step that reads the same softmax several times
+    computes it once (a 10-wide last dimension is slow on the CPU), and each
+    read keeps its own backward node, so the gradients are the same bits as
+    with one torch.softmax per read."""
+
+    @staticmethod
+    def forward(ctx, logits: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(probs)
+        ctx.input_dtype = logits.dtype
+        return probs.clone()
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
+        (probs,) = ctx.saved_tensors
+        return torch._softmax_backward_data(grad, probs, -1, ctx.input_dtype), None
+
+
+def last_dim_softmax(logits: torch.Tensor, cache: list) -> torch.Tensor:
+    """torch.softmax(logits, -1), computed once while `logits` is unchanged:
+    `cache` holds [tensor, its version, softmax] of the last call (an
+    optimiser step or a replaced parameter starts a new one)."""
+    if not cache or cache[0] is not logits or cache[1] != logits._version:
+        with torch.no_grad():
+            cache[:] = [logits, logits._version, torch.softmax(logits, dim=-1)]
+    return _SoftmaxOf.apply(logits, cache[2])
+
+
 class GaussianParams(nn.Module):
     def __init__(self, tensors: dict[str, torch.Tensor]):
         super().__init__()
@@ -35,6 +64,7 @@ class GaussianParams(nn.Module):
         )
         # aux: e.g. "labels" (N,) int64 instance id the Gaussian was initialised on (0 = unknown)
         self.aux: dict[str, torch.Tensor] = {k: v.detach().clone() for k, v in tensors.items() if k in AUX_FIELDS}
+        self._coefs_cache: list = []  # last_dim_softmax's
 
     def __len__(self) -> int:
         return int(self.params["means"].shape[0])
@@ -52,7 +82,7 @@ class GaussianParams(nn.Module):
         return normalize_quat(self.params["quats"])
 
     def coefs(self) -> torch.Tensor:
-        return torch.softmax(self.params["motion_coef_logits"], dim=-1)
+        return last_dim_softmax(self.params["motion_coef_logits"], self._coefs_cache)
 
     def sh_rest(self) -> torch.Tensor | None:
         return self.params.get("sh_rest")
