@@ -12,6 +12,7 @@ import pytest
 from mogaf.errors import MogafError
 from mogaf.forecast import candidates, quat
 from mogaf.forecast.candidates import (
+    FittedCandidate,
     WeightedCandidates,
     backtest_weights,
     blend_trajectories,
@@ -19,12 +20,13 @@ from mogaf.forecast.candidates import (
     neighbour_mean,
     neighbour_smoothed_poses,
 )
-from mogaf.forecast.channel_net import window_sizes
+from mogaf.forecast.channel_net import NetworkMean, window_sizes
 from mogaf.forecast.coherence import coherence, rigid_distance_change
 from mogaf.forecast.group_motion import GroupMotion, damped_steps, time_warped
-from mogaf.forecast.params import STRUCTURED_CANDIDATES, inert_settings
+from mogaf.forecast.mogaf_settings import load_run
+from mogaf.forecast.params import MOGAF_DEFAULTS, STRUCTURED_CANDIDATES, inert_settings
 from mogaf.forecast.registry import fit_and_rollout, make_forecaster
-from mogaf.forecast.structured import StructuredMoGaF, origin_frames
+from mogaf.forecast.structured import REFIT_SEED_STRIDE, StructuredMoGaF, origin_frames, refitted_learned
 from mogaf.forecast.synthetic import add_noise, ballistic_sphere, rigid_box, rigid_motion, waving_sheet
 from mogaf.forecast.trajectory import (
     accumulated_rotvec,
@@ -629,6 +631,27 @@ def test_info_records_the_decision():
         assert f"backtest_epe_{other}" not in info
     # the backtest's network, then the refit the drift check compares it with (kept, not fitted again)
     assert info["iterations"] == 2 * QUICK["iterations"]
+    two = fit_and_rollout("mogaf", obs, 4, {**QUICK, "structured": {"refit_networks": 2}}, seed=0).info
+    assert two["iterations"] == 3 * QUICK["iterations"]
+
+
+def test_refit_networks_average_networks_fitted_from_their_own_seeds():
+    obs = rigid_box(24, 30)
+    run = load_run("mogaf", MOGAF_DEFAULTS, {**QUICK, "structured": {"refit_networks": 2}}, {})
+    motion = GroupMotion(obs, True, run.own.still_factor)
+    mean = refitted_learned(motion, run, 5, "cpu", rollout_steps=4)
+    one = [FittedCandidate("learned", motion, run, 5 + k * REFIT_SEED_STRIDE) for k in range(2)]
+    assert mean.info["iterations"] == 2 * QUICK["iterations"] and mean.info["final_loss"] == one[0].info["final_loss"]
+    np.testing.assert_array_equal(mean.series_future(4), np.mean([c.series_future(4) for c in one], axis=0))
+    assert np.abs(one[0].series_future(4) - one[1].series_future(4)).max() > 0  # two fits, two forecasts
+    # the default, one network: that network's forecast
+    single = load_run("mogaf", MOGAF_DEFAULTS, QUICK, {})
+    np.testing.assert_array_equal(refitted_learned(motion, single, 5, "cpu").series_future(4), one[0].series_future(4))
+    # a group whose every Gaussian is still has no series and fits no network
+    jitter = add_noise(np.repeat(obs[:, -1:], 30, axis=1), pos_sigma=1e-4, rot_sigma=1e-4)
+    assert refitted_learned(GroupMotion(jitter, False, run.own.still_factor), run, 5, "cpu").model is None
+    with pytest.raises(MogafError, match="a mean of no networks"):
+        NetworkMean(())
 
 
 def test_short_observations_fall_back_without_failing():
@@ -808,6 +831,8 @@ def test_inert_settings_count_every_method_that_reads_forecast_mogaf():
     # a learned-free candidate list leaves the network's settings unread, not the parabola's context
     no_net = {"lr": 0.01, "structured": {"candidates": ["frozen", "constant_acceleration"], "context": 8}}
     assert _inert_keys(["mogaf"], no_net) == {"lr"}
+    no_net["structured"]["refit_networks"] = 2
+    assert _inert_keys(["mogaf"], no_net) == {"lr", "structured.refit_networks"}
     # the defaults, and a candidate list in another order, list nothing
     assert inert_settings({"methods": ["mogaf"], "mogaf": {}}) == []
     assert _inert_keys(["mogaf"], {"structured": {"candidates": DEFAULT_CANDIDATES[::-1]}}) == set()

@@ -133,3 +133,16 @@ class ChannelForecaster:
                 hist = np.concatenate([hist, values[:, :take]], axis=1)[:, -L:]
                 done += take
         return out
+
+
+class NetworkMean:
+    """Fitted ChannelForecasters as one: rollout() is the mean of their
+    rollouts (each reads its own context and predicts its own horizon)."""
+
+    def __init__(self, models: tuple[ChannelForecaster, ...]) -> None:
+        if not models:
+            raise MogafError("forecast.mogaf: a mean of no networks")
+        self.models = models
+
+    def rollout(self, series: np.ndarray, floor: np.ndarray, n_steps: int) -> np.ndarray:
+        return np.mean([m.rollout(series, floor, n_steps) for m in self.models], axis=0)

@@ -160,6 +160,13 @@ class StructuredSettings:
         "falls with its length against what was observed (docs/forecasting.md, variant damped_forecast)",
         minimum=0,
     )
+    refit_networks: int = setting(
+        1,
+        "networks the learned candidate fits on every observed frame (each from its own seed), whose rollouts it "
+        "averages: a fit's training noise moves its forecast, and a mean of independent fits partly cancels it, "
+        "at one more fit each (docs/forecasting.md, variant two_refits)",
+        minimum=1,
+    )
     drift_check: bool = setting(
         True,
         "the learned candidate's backtest error is combined (root sum of squares) with its refit drift: the mean "
@@ -370,7 +377,15 @@ BACKTEST_ONLY = (
 )
 # forecast.mogaf.structured settings only the learned candidate reads
 # (`context` also sizes constant_acceleration's parabola).
-LEARNED_ONLY = ("context", "horizon", "weight_decay", "max_train_windows", "drift_check", "backtest_margin")
+LEARNED_ONLY = (
+    "context",
+    "horizon",
+    "weight_decay",
+    "max_train_windows",
+    "drift_check",
+    "backtest_margin",
+    "refit_networks",
+)
 # forecast.mogaf settings of the masked input training, both modes.
 MASKING_ONLY = ("mask_ratio_start", "mask_ratio_end", "mask_anneal_frac")
 

@@ -104,7 +104,7 @@ from mogaf.forecast.candidates import (
     neighbour_mean,
     neighbour_smoothed_poses,
 )
-from mogaf.forecast.channel_net import ChannelForecaster, window_sizes
+from mogaf.forecast.channel_net import ChannelForecaster, NetworkMean, window_sizes
 from mogaf.forecast.group_motion import GroupMotion
 from mogaf.forecast.mogaf_settings import MogafRun, load_run
 from mogaf.forecast.params import MOGAF_DEFAULTS, STRUCTURED_CANDIDATES, StructuredSettings
@@ -322,8 +322,7 @@ def _drift_check(
     backtest could not see (a reconstruction's last frames are its least
     accurate, and a network can learn their artefacts as motion): the learned
     candidate's scores are combined with it (root sum of squares)."""
-    full = shared.full if shared is not None else None
-    bt.refit_learned = FittedCandidate("learned", motion, run, seed, device, model=full, rollout_steps=horizon)
+    bt.refit_learned = refitted_learned(motion, run, seed, device, shared, rollout_steps=horizon)
     judged = FittedCandidate("learned", motion, run, seed, device, model=learned_net)
     bt.drift = member_distances(bt.refit_learned.rollout(bt.frames), judged.rollout(bt.frames))
     _with_drift(bt.scores, bt.member_scores, bt.drift, motion, neighbours)
@@ -409,10 +408,9 @@ def refit(
     info: dict[str, Any] = {}
 
     def fitted_on_all(name: str) -> FittedCandidate:
-        if name == "learned" and kept is not None:
-            return kept
-        model = shared.full if shared is not None and name == "learned" else None
-        return FittedCandidate(name, motion, run, seed, device, model=model)
+        if name == "learned":
+            return kept if kept is not None else refitted_learned(motion, run, seed, device, shared)
+        return FittedCandidate(name, motion, run, seed, device)
 
     weights = decision.weights
     if weights is not None and max(weights.values()) < 1.0:
@@ -436,8 +434,42 @@ class SharedNetworks:
     T (the drift check's refit, the forecast's)."""
 
     past: ChannelForecaster
-    full: ChannelForecaster
+    full: tuple[ChannelForecaster, ...]  # refit_networks of them, from their own seeds
     iterations: int
+
+
+# Seed offset between the networks of one refit (refit_networks): unrelated to
+# the jobs' seeds, which are 1000 apart (mogaf.forecast.stage).
+REFIT_SEED_STRIDE = 7919
+
+
+def refitted_learned(
+    motion: GroupMotion,
+    run: MogafRun,
+    seed: int,
+    device: Any,
+    shared: SharedNetworks | None = None,
+    rollout_steps: int = 0,
+) -> FittedCandidate:
+    """The learned candidate refitted on every observed frame: its
+    refit_networks networks (seeds seed, seed + REFIT_SEED_STRIDE, ...; the
+    `shared` ones where given) roll out as their mean. Its info is the first
+    fit's, with every fit's optimiser steps."""
+    if shared is not None:
+        model = _one(shared.full)
+        return FittedCandidate("learned", motion, run, seed, device, model=model, rollout_steps=rollout_steps)
+    n = int(run.own.refit_networks)
+    fits = [FittedCandidate("learned", motion, run, seed + k * REFIT_SEED_STRIDE, device) for k in range(n)]
+    if fits[0].model is None:  # every Gaussian still: no network
+        return fits[0]
+    model = _one(tuple(f.model for f in fits))
+    out = FittedCandidate("learned", motion, run, seed, device, model=model, rollout_steps=rollout_steps)
+    out.info = {**fits[0].info, "iterations": sum(f.info["iterations"] for f in fits)}
+    return out
+
+
+def _one(nets: tuple[ChannelForecaster, ...]) -> ChannelForecaster | NetworkMean:
+    return nets[0] if len(nets) == 1 else NetworkMean(nets)
 
 
 def shared_networks(
@@ -450,12 +482,14 @@ def shared_networks(
     if "learned" not in own.candidates or h is None:
         return None
 
-    def fitted(frames: int) -> ChannelForecaster:
+    def fitted(frames: int, net_seed: int) -> ChannelForecaster:
         motions = [GroupMotion(o[:, :frames], True, own.still_factor, damping=own.damping) for o in observed]
         series = np.concatenate([m.series for m in motions])
-        return ChannelForecaster(run, seed, device).fit(series, np.concatenate([m.floor for m in motions]))
+        return ChannelForecaster(run, net_seed, device).fit(series, np.concatenate([m.floor for m in motions]))
 
-    return SharedNetworks(fitted(T - h), fitted(T), 2 * int(run.net.iterations))
+    n = int(own.refit_networks)
+    full = tuple(fitted(T, seed + k * REFIT_SEED_STRIDE) for k in range(n))
+    return SharedNetworks(fitted(T - h, seed), full, (1 + n) * int(run.net.iterations))
 
 
 class StructuredMoGaF(Forecaster):
