@@ -459,10 +459,13 @@ def refitted_learned(
         model = _one(shared.full)
         return FittedCandidate("learned", motion, run, seed, device, model=model, rollout_steps=rollout_steps)
     n = int(run.own.refit_networks)
-    fits = [FittedCandidate("learned", motion, run, seed + k * REFIT_SEED_STRIDE, device) for k in range(n)]
-    if fits[0].model is None:  # every Gaussian still: no network
+    fits = [
+        FittedCandidate("learned", motion, run, seed + k * REFIT_SEED_STRIDE, device, rollout_steps=rollout_steps)
+        for k in range(n)
+    ]
+    if n == 1 or fits[0].model is None:  # one network, or every Gaussian still: no network
         return fits[0]
-    model = _one(tuple(f.model for f in fits))
+    model = NetworkMean(tuple(f.model for f in fits))
     out = FittedCandidate("learned", motion, run, seed, device, model=model, rollout_steps=rollout_steps)
     out.info = {**fits[0].info, "iterations": sum(f.info["iterations"] for f in fits)}
     return out
