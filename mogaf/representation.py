@@ -91,6 +91,13 @@ def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
     return torch.where(q[..., :1] < 0, -q, q)
 
 
+def matrix_to_quat_numpy(R: np.ndarray) -> np.ndarray:
+    """matrix_to_quat of a NumPy array (float64), as a NumPy array."""
+    import torch
+
+    return matrix_to_quat(torch.from_numpy(np.ascontiguousarray(R, dtype=np.float64))).numpy()
+
+
 def rotmat_to_xyzw(R: torch.Tensor) -> torch.Tensor:
     """Unit xyzw quaternions of rotation matrices (...,3,3), Markley's method
     (J. Guid. Control Dyn. 31(2), 2008): the four vectors 4 q_i q (his eq. 8,

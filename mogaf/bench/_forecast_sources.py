@@ -24,6 +24,7 @@ def _local_rotations(points: np.ndarray, k: int = 8) -> np.ndarray:
     frame 0) from frame 0 to every frame: the best rigid fit, det = +1."""
     from scipy.spatial import cKDTree
 
+    from mogaf.representation import matrix_to_quat_numpy  # local, as procrustes_numpy
     from mogaf.rigid import procrustes_numpy  # local: mogaf.rigid imports torch, which only this path needs
 
     k = min(k + 1, points.shape[0])
@@ -31,15 +32,7 @@ def _local_rotations(points: np.ndarray, k: int = 8) -> np.ndarray:
     src = points[nn, 0][:, None]  # (P, 1, k, 3)
     dst = points[nn].transpose(0, 2, 1, 3)  # (P, T, k, 3)
     R, _ = procrustes_numpy(src, dst)
-    return quat.make_continuous(_matrix_to_quat(R), axis=1)
-
-
-def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    import torch  # local: only this path computes with it
-
-    from mogaf.representation import matrix_to_quat
-
-    return matrix_to_quat(torch.from_numpy(np.ascontiguousarray(R, dtype=np.float64))).numpy()
+    return quat.make_continuous(matrix_to_quat_numpy(R), axis=1)
 
 
 def synthetic_scene_sets(preset: str = "default") -> dict[str, np.ndarray]:
@@ -50,6 +43,7 @@ def synthetic_scene_sets(preset: str = "default") -> dict[str, np.ndarray]:
     the cache once."""
     import json as _json
 
+    from mogaf.representation import matrix_to_quat_numpy  # local: it imports h5py (artefacts)
     from mogaf.synth.generate import generate_scene  # local: mogaf.synth imports cv2, which only this path needs
 
     root = cache_dir("bench_forecast", f"synthetic_{preset}")
@@ -70,7 +64,7 @@ def synthetic_scene_sets(preset: str = "default") -> dict[str, np.ndarray]:
             continue
         if int(obj.get("pose_index", -1)) >= 0:
             R = poses[int(obj["pose_index"])][:, :3, :3]  # (T, 3, 3)
-            q = quat.make_continuous(np.repeat(_matrix_to_quat(R)[None], sel.size, axis=0), axis=1)
+            q = quat.make_continuous(np.repeat(matrix_to_quat_numpy(R)[None], sel.size, axis=0), axis=1)
         else:
             q = _local_rotations(points[sel])
         out[f"{preset}/{obj['name']}"] = np.concatenate([points[sel], q], axis=-1)

@@ -39,6 +39,7 @@ def rigid_decomposition(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     Returns centroids (T, 3), rotations (T, 4) wxyz with the identity at the
     last frame, and the relative residual: the largest per-frame RMS distance
     of the members from the rigid fit, over the group's RMS radius."""
+    from mogaf.representation import matrix_to_quat_numpy  # local: it imports h5py (artefacts)
     from mogaf.rigid import procrustes_numpy  # local: mogaf.rigid imports torch at module level
 
     pos = np.asarray(positions, dtype=np.float64)
@@ -51,7 +52,7 @@ def rigid_decomposition(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     residual = np.sqrt(np.mean(np.sum((fitted - dst) ** 2, axis=-1), axis=1))
     radius = float(np.sqrt(np.mean(np.sum(src[0] ** 2, axis=-1))))
     rel = float(residual.max() / radius) if radius > 0 else 0.0
-    return centroids, quat.make_continuous(_matrix_to_quat(R), axis=0), rel
+    return centroids, quat.make_continuous(matrix_to_quat_numpy(R), axis=0), rel
 
 
 def rigid_parts(positions: np.ndarray, k: int, seed: int, iterations: int = 8) -> np.ndarray:
@@ -113,14 +114,6 @@ def _rigid_fit_error(pos: np.ndarray, part: np.ndarray) -> np.ndarray:
     R, t = procrustes_numpy(members[:, -1][None], np.moveaxis(members, 1, 0))  # (T, 3, 3), (T, 3)
     carried = np.einsum("tij,gj->gti", R, pos[:, -1]) + t[None]
     return np.sqrt(np.mean(np.sum((carried - pos) ** 2, axis=-1), axis=1))
-
-
-def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    import torch  # local: only this path computes with it
-
-    from mogaf.representation import matrix_to_quat
-
-    return matrix_to_quat(torch.from_numpy(np.ascontiguousarray(R, dtype=np.float64))).numpy()
 
 
 def _noise_level(series: np.ndarray) -> float:
