@@ -71,6 +71,18 @@ def test_same_seed_same_artefact(tiny_scene, tiny_run, tmp_path):
     assert_same_arrays(tiny_run, again)
 
 
+def test_smooth_bases_prior_reaches_the_training(tiny_scene, tiny_run, tmp_path):
+    """recon.smooth_bases "jerk" changes the reconstruction (its default is
+    SoM's acceleration prior) and is recorded with its parameters."""
+    from mogaf.recon.stage import run_recon_stage
+
+    params = {**TINY_PARAMS, "smooth_bases": "jerk"}
+    out = run_recon_stage(*tiny_scene, tmp_path / "jerk.h5", params, seed=3, progress=False)
+    assert differs(tiny_run, out)
+    assert read_artefact(out, "recon").attrs["params"]["smooth_bases"] == "jerk"
+    assert read_artefact(tiny_run, "recon").attrs["params"]["smooth_bases"] == "acceleration"
+
+
 def test_future_frames_are_never_read(tiny_scene, tiny_run, tmp_path):
     """Poison every future row of scene.h5 (noise images, NaN cameras): same artefact."""
     import shutil

@@ -192,6 +192,52 @@ def test_losses():
     assert float(accel_loss(parabola)) == pytest.approx(1.0)
 
 
+def test_jerk_loss_against_numpy_third_differences():
+    from mogaf.recon.losses import accel_loss, jerk_loss
+
+    x = torch.randn(4, 11, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    reference = np.linalg.norm(np.diff(x.numpy(), n=3, axis=1), axis=-1).mean()
+    assert float(jerk_loss(x)) == pytest.approx(reference, rel=1e-12)
+    # constant acceleration costs nothing; a cubic's jerk is the same at every step (6 a)
+    t = torch.arange(9, dtype=torch.float64)[None, :, None]
+    falling = torch.cat([t, -4.9 * t**2, 0 * t], dim=-1)
+    assert float(jerk_loss(falling)) == pytest.approx(0.0, abs=1e-9) and float(accel_loss(falling)) > 9
+    assert float(jerk_loss(0.5 * t**3)) == pytest.approx(3.0)
+    # too short for a third difference: zero, with a gradient
+    short = torch.ones(2, 3, 3, requires_grad=True)
+    jerk_loss(short).backward()
+    assert float(jerk_loss(short)) == 0.0 and short.grad is not None
+
+
+def test_jerk_prior_keeps_the_speed_of_an_accelerating_trajectory_at_both_ends():
+    """Fit a trajectory to noisy samples of a falling point under each smoothness
+    prior (recon.smooth_bases): the acceleration prior shrinks the acceleration,
+    so the fitted velocity is off at both ends of the observation; the jerk
+    prior leaves constant acceleration alone."""
+    from mogaf.recon.losses import basis_smoothness
+
+    T = 30
+    t = torch.arange(T, dtype=torch.float64)
+    truth = torch.stack([0.02 * t, -0.004 * t**2, 0 * t], dim=-1)[None]  # (1, T, 3)
+    noisy = truth + 5e-4 * torch.randn(truth.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    rot = torch.zeros(1, T, 6, dtype=torch.float64)
+    end_error = {}
+    for prior in ("acceleration", "jerk"):
+        x = noisy.clone().requires_grad_(True)
+        opt = torch.optim.Adam([x], lr=2e-3)
+        for _ in range(500):
+            opt.zero_grad()
+            loss = ((x - noisy) ** 2).sum(-1).mean() + 1e-2 * basis_smoothness(rot, x, 1.0, prior)
+            loss.backward()
+            opt.step()
+        fit = x.detach()[0]
+        end_error[prior] = [
+            float(torch.linalg.norm((fit[i + 1] - fit[i]) - (truth[0, i + 1] - truth[0, i]))) for i in (0, T - 2)
+        ]
+    # first and last step's velocity error (the true speed there: 0.02 and 0.23 per step)
+    assert all(j < 0.2 * a for j, a in zip(end_error["jerk"], end_error["acceleration"], strict=True)), end_error
+
+
 def test_blend_bases_gives_each_basis_alone_and_orthonormalises_a_blend():
     """Against matrices built elsewhere (scipy), not against the model's own conversions."""
     from scipy.spatial.transform import Rotation

@@ -220,6 +220,7 @@ def _carve_and_fit(data: TrainData, cano: int, params: dict, seed: int, iters: i
         seed=seed,
         w_still=params.silhouette_fit_still,
         w_smooth=params.silhouette_fit_smooth,
+        smoothness=params.smooth_bases,
         gap_fill=params.gap_interpolation,
     )
     return float(info["silhouette_fit_forward_px"] + info["silhouette_fit_coverage_px"])
@@ -309,6 +310,7 @@ def _init_without_tracks(data: TrainData, params: dict, rng: np.random.Generator
             seed=seed,
             w_still=params.silhouette_fit_still,
             w_smooth=params.silhouette_fit_smooth,
+            smoothness=params.smooth_bases,
             gap_fill=params.gap_interpolation,
         )
         info.update(sinfo)

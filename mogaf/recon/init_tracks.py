@@ -196,6 +196,7 @@ def fit_bases_to_tracks(
     frame_tidx: np.ndarray,
     iters: int,
     scale: float,
+    smoothness: str = "acceleration",
 ) -> tuple[np.ndarray, ...]:
     """SoM's initial optimisation: bases, coefficients and canonical means fit the lifted 3D tracks."""
     if iters <= 0:
@@ -223,7 +224,7 @@ def fit_bases_to_tracks(
         loss = ((pos - target).abs().mean(-1, keepdim=True) * w).sum() / w.sum().clamp_min(1) / scale
         loss = loss + 0.01 * (1 - (coefs**2).sum(-1).mean())
         ws = 0.01 if i < iters * 0.4 else 0.01 + 0.09 * (i - iters * 0.4) / (iters * 0.6)
-        loss = loss + ws * basis_smoothness(r, t, scale)
+        loss = loss + ws * basis_smoothness(r, t, scale, smoothness)
         order = torch.argsort(ft, stable=True)
         loss = loss + 0.5 * ws * accel_loss(pos[:, order] / scale)
         opt.zero_grad()
@@ -265,7 +266,16 @@ def _init_from_tracks(data: TrainData, params: dict, rng: np.random.Generator, s
     # fit tracks (SoM run_initial_optim)
     scale0 = max(fg_extent, 1e-3)
     m_fit, c_fit, rot, tr = fit_bases_to_tracks(
-        can[keep], logits[keep], rot, tr, xyz[keep], ok[keep], data.tidx, params.init_optim_iters, scale0
+        can[keep],
+        logits[keep],
+        rot,
+        tr,
+        xyz[keep],
+        ok[keep],
+        data.tidx,
+        params.init_optim_iters,
+        scale0,
+        params.smooth_bases,
     )
     info.update(num_tracks=int(keep.sum()), num_clusters=int(len(ids)))
     track_ids = track_ids[keep]

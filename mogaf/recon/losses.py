@@ -113,9 +113,27 @@ def accel_loss(x: torch.Tensor, dim: int = 1) -> torch.Tensor:
     return a.norm(dim=-1).mean()
 
 
-def basis_smoothness(rot6d: torch.Tensor, transl: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
-    """SoM: accel(rot) + 2 accel(translation) of the bases over time (translation / scene scale)."""
-    return accel_loss(rot6d) + 2.0 * accel_loss(transl / scale)
+def jerk_loss(x: torch.Tensor, dim: int = 1) -> torch.Tensor:
+    """Mean norm of third differences along `dim` (last axis = vector): zero
+    for motion at constant acceleration, which accel_loss slows down."""
+    n = x.shape[dim]
+    if n < 4:
+        return x.sum() * 0.0
+    j = x.narrow(dim, 3, n - 3) - 3 * x.narrow(dim, 2, n - 3) + 3 * x.narrow(dim, 1, n - 3) - x.narrow(dim, 0, n - 3)
+    return j.norm(dim=-1).mean()
+
+
+# recon.smooth_bases: the finite difference of the bases over time that the smoothness prior penalises
+SMOOTHNESS_PRIORS = {"acceleration": accel_loss, "jerk": jerk_loss}
+
+
+def basis_smoothness(
+    rot6d: torch.Tensor, transl: torch.Tensor, scale: float = 1.0, prior: str = "acceleration"
+) -> torch.Tensor:
+    """SoM: accel(rot) + 2 accel(translation) of the bases over time
+    (translation / scene scale); prior "jerk": the same with third differences."""
+    difference = SMOOTHNESS_PRIORS[prior]
+    return difference(rot6d) + 2.0 * difference(transl / scale)
 
 
 def z_velocity_loss(means_nb: torch.Tensor, cam_centers: torch.Tensor, scale: float = 1.0) -> torch.Tensor:

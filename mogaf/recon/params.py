@@ -102,6 +102,11 @@ class ReconSettings:
         "weight of the motion bases' smoothness (acceleration) prior. CPU: stronger than SoM's 0.1, since a CPU run "
         "takes ~1.5k single-frame steps instead of SoM's ~25k steps of 8 frames",
     )
+    smooth_bases: Literal["acceleration", "jerk"] = setting(
+        "acceleration",
+        '"acceleration" (SoM: second differences of the bases over time) or "jerk" (ours: third differences, so '
+        "motion at constant acceleration, e.g. falling, is not slowed down towards both ends of the observation)",
+    )
     w_smooth_tracks: float = setting(2.0, "SoM w_smooth_tracks")
     w_z_accel: float = setting(1.0, "SoM w_z_accel")
     w_scale_var: float = setting(0.01, "SoM w_scale_var")

@@ -134,6 +134,7 @@ def fit_bases_to_silhouettes(
     w_still: float = 0.0,
     w_smooth: float = 0.05,
     gap_fill: bool = True,
+    smoothness: str = "acceleration",
 ) -> tuple[torch.Tensor, torch.Tensor, dict]:
     """Fit the motion bases (and coefficients) so projected centres follow the masks of every frame."""
     if iters <= 0:
@@ -188,7 +189,7 @@ def fit_bases_to_silhouettes(
         pos = torch.einsum("nfij,nj->nfi", R, m) + tt
         uv, front = project_batch(pos, K[frames], w2c[frames], 1e-3 * scale)
         fwd, cov = targets.terms(frames, uv, front, ones, lab)
-        smooth = basis_smoothness(r[:, lo : hi + 1], t[:, lo : hi + 1], scale) if hi - lo >= 2 else fwd * 0
+        smooth = basis_smoothness(r[:, lo : hi + 1], t[:, lo : hi + 1], scale, smoothness) if hi - lo >= 2 else fwd * 0
         still = (
             (
                 (r[:, lo + 1 : hi + 1] - r[:, lo:hi]).norm(dim=-1).mean()

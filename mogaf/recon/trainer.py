@@ -352,7 +352,7 @@ class Trainer(TrainerSchedule, FrameLosses):
         reg = torch.zeros((), device=self.dev)
         if p.w_smooth_bases > 0 and T >= 3:
             reg = reg + p.w_smooth_bases * note(
-                "smooth_bases", basis_smoothness(m.motion["rot6d"], m.motion["transl"], self.scale)
+                "smooth_bases", basis_smoothness(m.motion["rot6d"], m.motion["transl"], self.scale, p.smooth_bases)
             )
         if (p.w_smooth_tracks > 0 or p.w_z_accel > 0) and T >= 3:
             ts = self.tidx[pick].clamp(1, T - 2)
