@@ -148,7 +148,8 @@ def test_reconstruction_quality_gets_its_config_section(in_repo, tmp_path, monke
     monkeypatch.setattr(cli.stages, "run_stage", lambda fn, log, threads=None, **kw: seen.update(kw, fn=fn))
     configfile = _config(tmp_path, lambda c: c["reconstruction_quality"].update(max_frames=3))
     assert cli.main(_stage_args(tmp_path, "reconstruction-quality", configfile)) == 0
-    assert seen["fn"] is cli.stages.reconstruction_quality and seen["params"] == {"max_frames": 3}
+    assert seen["fn"] is cli.stages.reconstruction_quality
+    assert seen["params"] == {"max_frames": 3, "tracking_neighbors": 4}
     assert seen["model"] == str(tmp_path / "model-h5.h5")
 
 

@@ -220,6 +220,46 @@ def test_reconstruction_quality_stage(toy_files):
         read_reconstruction_quality(out)
 
 
+def test_observed_motion_carries_ground_truth_points_with_the_model():
+    """GT points attached at the last observed step and carried back by the
+    model's trajectories: no error for a model that moves as the points do (a
+    spin and a fall); a model whose last step is off by d has that velocity
+    error at the last step; a ground truth of other steps is refused."""
+    from types import SimpleNamespace
+
+    from scipy.spatial.transform import Rotation
+
+    from mogaf.reconstruction_quality.measure import observed_motion
+
+    rng = np.random.default_rng(0)
+    T = 7
+    steps = np.arange(T, dtype=np.float64)
+    turns = Rotation.from_rotvec(np.outer(0.15 * steps, [0.2, 0.3, 1.0]))
+    shift = np.stack([0.02 * steps, -0.005 * steps**2, 0 * steps], axis=1)
+
+    def moved(points):  # (P, 3) -> (P, T, 3) under the rigid motion
+        return np.stack([turns[k].apply(points) + shift[k] for k in range(T)], axis=1)
+
+    centres = rng.uniform(-0.5, 0.5, (60, 3))
+    xyzw = turns.as_quat()
+    wxyz = np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
+    model = SimpleNamespace(trajectory_means=moved(centres), trajectory_quats=np.tile(wxyz, (60, 1, 1)))
+    truth = moved(rng.uniform(-0.5, 0.5, (30, 3)))
+    exact = observed_motion(model, truth, 4)
+    assert exact["epe_3d"] < 1e-12 and exact["velocity_error"] < 1e-12 and exact["last_velocity_error"] < 1e-12
+    assert exact["speed"] == pytest.approx(np.linalg.norm(np.diff(truth, axis=1), axis=-1).mean())
+    d = np.array([0.003, -0.004, 0.0])  # the last step 5 mm off
+    lagging = SimpleNamespace(
+        trajectory_means=model.trajectory_means + np.r_[np.zeros((T - 1, 3)), d[None]][None],
+        trajectory_quats=model.trajectory_quats,
+    )
+    off = observed_motion(lagging, truth, 4)
+    assert off["last_velocity_error"] == pytest.approx(0.005, rel=1e-9)
+    assert off["epe_3d"] == pytest.approx(0.005 * (T - 1) / T, rel=1e-9)
+    with pytest.raises(MogafError, match=r"recon\.h5: the model has 7 observed steps.*\(30, 6, 3\)"):
+        observed_motion(model, truth[:, 1:], 4, "recon.h5")
+
+
 def test_rigid_init_stage(toy_files):
     groups_h5 = toy_files["root"] / "groups_for_rigid.h5"
     run_group_stage(toy_files["recon"], toy_files["priors"], toy_files["scene"], groups_h5, {})

@@ -762,6 +762,8 @@ def test_scenes_table_gives_mogafs_margin_over_the_better_of_frozen_and_constant
     for f, psnr in zip(files, (None, 21.0, 23.0), strict=True):  # the reconstruction's held-out PSNR
         data = json.loads(f.read_text())
         data["reconstruction"] = {"heldout_observed": {"psnr": psnr}} if psnr else {}
+        if psnr:  # and its velocity error at the last observed step against the GT points' speed
+            data["reconstruction"]["observed_motion"] = {"last_velocity_error": psnr / 1000, "speed": 0.01}
         f.write_text(json.dumps(data))
     text = scenes_table(load_metrics(files))
     rows = md_rows(text)
@@ -771,6 +773,8 @@ def test_scenes_table_gives_mogafs_margin_over_the_better_of_frozen_and_constant
     assert [r[iou] for r in rows[1:4]] == ["box 0.91, flag 0.40", "chest 0.85, chest/body 0.80, chest/lid 0.12", "–"]
     recon = rows[0].index("reconstruction PSNR, held-out views of observed times")
     assert [r[recon] for r in rows[1:5]] == ["–", "21.00", "23.00", "22.00"]  # the mean over the scenes that have it
+    velocity = rows[0].index("reconstruction: GT points' velocity error at the last observed step / their speed")
+    assert [r[velocity] for r in rows[1:5]] == ["–", "0.0210 / 0.0100", "0.0230 / 0.0100", "0.0220 / 0.0100"]
     assert len({len(r) for r in rows}) == 1  # the mean row has every column
     assert (
         "MoGaF is more than 0.3 dB PSNR below the better of frozen and constant velocity on 1 of 3 scenes "

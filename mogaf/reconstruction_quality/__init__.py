@@ -13,9 +13,14 @@ reconstruction_quality/{model}.h5 (stage "reconstruction_quality"):
   per_frame/<metric> (F,)  float64: each metric every frame has, where finite in all
   attrs: params (JSON), heldout_observed (JSON: mean PSNR and SSIM, and for
     the iPhone protocol mPSNR and mSSIM over the co-visible pixels; a frame
-    whose value is not finite, e.g. a perfect render, is left out of a mean)
-metrics.json["reconstruction"] copies it: {"heldout_observed": ..., "num_frames": F},
-or {} where the split has no held-out view at an observed step.
+    whose value is not finite, e.g. a perfect render, is left out of a mean),
+    observed_motion (JSON, scenes with ground-truth surface points, else {}:
+    the model's observed trajectories against them, measure.observed_motion:
+    epe_3d, velocity_error, last_velocity_error and the points' speed, in
+    scene units per step)
+metrics.json["reconstruction"] copies it: {"heldout_observed": ..., "num_frames": F,
+"observed_motion": ...}, without the first two where the split has no
+held-out view at an observed step, without the last without ground truth.
 
 Modules: params (DEFAULT_PARAMS), measure (the metrics), stage (the
 artefact).

@@ -16,6 +16,9 @@ class ReconstructionQualitySettings:
     """Settings of the reconstruction_quality stage (config section `reconstruction_quality`)."""
 
     max_frames: int = setting(24, "held-out views at observed times rendered (evenly spaced); 0 = all", minimum=0)
+    tracking_neighbors: int = setting(
+        4, "Gaussians a ground-truth surface point is attached to for the observed-motion errors", minimum=1
+    )
 
 
 DEFAULT_PARAMS: dict[str, Any] = defaults(ReconstructionQualitySettings)

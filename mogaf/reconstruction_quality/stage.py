@@ -33,7 +33,11 @@ def run_reconstruction_quality_stage(
         "timesteps": measured["timesteps"],
         "per_frame": per_frame_arrays(measured["per_frame"]),
     }
-    attrs = {"params": as_dict(p), "heldout_observed": mean_metrics(measured["per_frame"])}
+    attrs = {
+        "params": as_dict(p),
+        "heldout_observed": mean_metrics(measured["per_frame"]),
+        "observed_motion": measured["observed_motion"],
+    }
     return write_artefact(out, RECONSTRUCTION_QUALITY_STAGE, data, config_digest=config_digest(as_dict(p)), attrs=attrs)
 
 
@@ -71,6 +75,10 @@ def read_reconstruction_quality(path: str | os.PathLike) -> dict[str, Any]:
             f"entry 'timesteps' has shape {np.asarray(art['timesteps']).shape}, "
             f"but {num_frames} frame(s) were rendered (corrupted artefact)",
         )
+    motion = art.attrs.get("observed_motion", {})
+    if not isinstance(motion, dict) or not all(isinstance(v, (int, float)) for v in motion.values()):
+        raise input_error(path, "attribute 'observed_motion' is not a mapping of errors (corrupted artefact)")
+    section: dict[str, Any] = {"observed_motion": {k: float(v) for k, v in motion.items()}} if motion else {}
     if num_frames == 0:
-        return {}
-    return {"heldout_observed": {k: float(v) for k, v in means.items()}, "num_frames": num_frames}
+        return section
+    return {"heldout_observed": {k: float(v) for k, v in means.items()}, "num_frames": num_frames, **section}

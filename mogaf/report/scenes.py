@@ -16,6 +16,8 @@ import os
 from collections import Counter
 from typing import Any
 
+import numpy as np
+
 from ..errors import MogafError
 from .glance import _methods, best_text
 from .metrics_files import load_metrics
@@ -67,6 +69,23 @@ def recon_psnr(result: dict[str, Any]) -> float | None:
     """The reconstruction's PSNR at the held-out views of observed times (reconstruction_quality), or None."""
     value = ((result.get("reconstruction") or {}).get("heldout_observed") or {}).get("psnr")
     return None if value is None else float(value)
+
+
+def recon_velocity(result: dict[str, Any]) -> tuple[float, float] | None:
+    """The reconstruction's velocity error at the last observed step and the
+    ground-truth points' mean speed (reconstruction_quality's observed_motion), or None."""
+    motion = (result.get("reconstruction") or {}).get("observed_motion") or {}
+    if "last_velocity_error" not in motion or "speed" not in motion:
+        return None
+    return float(motion["last_velocity_error"]), float(motion["speed"])
+
+
+def _velocity_cell(pairs: list[tuple[float, float] | None]) -> str:
+    """The mean velocity error / mean speed over the pairs that are there, or –."""
+    there = [p for p in pairs if p is not None]
+    if not there:
+        return "–"
+    return f"{np.mean([p[0] for p in there]):.4f} / {np.mean([p[1] for p in there]):.4f}"
 
 
 def _cell(value: tuple[float | None, ...], best: tuple[str | None, ...], metrics: tuple[str, ...]) -> str:
@@ -125,11 +144,13 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
     margin = mogaf and all(m in methods for m in NOTHING)
     ious = any((r.get("grouping") or {}).get("per_object_iou") for r in results)
     recon = any(recon_psnr(r) is not None for r in results)
+    velocity = any(recon_velocity(r) is not None for r in results)
     starred = {m: any(budget_differences(r, m) for r in results) for m in methods}
     header = ["scene"] + [method_label(results[0], m) + ("*" if starred[m] else "") for m in methods]
     header += ["MoGaF − best of frozen, const. velocity (dB)"] if margin else []
     header += ["grouping IoU per object"] if ious else []
     header += ["reconstruction PSNR, held-out views of observed times"] if recon else []
+    header += ["reconstruction: GT points' velocity error at the last observed step / their speed"] if velocity else []
     header += ["MoGaF's choice per group (weight)", "MoGaF coherence: rigid / still (m, still count)"] if mogaf else []
     datasets = ", ".join(sorted({r["dataset"] for r in results}))
     caption = f"Ratio {float(results[0]['ratio']):g} ({datasets}; {' / '.join(CELL_NAMES[k] for k in metrics)}):"
@@ -142,12 +163,14 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
         cells += [f"{psnr_margin(r):+.2f}"] if margin else []
         cells += [_object_ious(r)] if ious else []
         cells += [fmt(recon_psnr(r), "psnr")] if recon else []
+        cells += [_velocity_cell([recon_velocity(r)])] if velocity else []
         cells += [_choices(r), _coherence(r)] if mogaf else []
         lines.append("| " + " | ".join(cells) + " |")
     (best,) = _best([means], metrics)
     cells = ["**mean**"] + [_cell(means[m], best, metrics) for m in methods]
     cells += [""] * (margin + ious)
     cells += [fmt(_mean([recon_psnr(r) for r in results]), "psnr")] if recon else []
+    cells += [_velocity_cell([recon_velocity(r) for r in results])] if velocity else []
     cells += ["", ""] if mogaf else []
     lines.append("| " + " | ".join(cells) + " |")
     if margin:
