@@ -211,7 +211,13 @@ def test_reconstruction_quality_stage(toy_files):
         toy_files["recon"], toy_files["scene"], none_h5, toy_files["root"] / "empty_quality.h5"
     )
     assert read_reconstruction_quality(empty) == {} and read_artefact(empty)["frame_ids"].shape == (0,)
+    with h5py.File(out, "r+") as fh:  # the observed motion's figures must be numbers
+        kept = fh.attrs["observed_motion"]
+        fh.attrs["observed_motion"] = 'json:{"epe_3d": "small"}'
+    with pytest.raises(MogafError, match=r"recon\.h5: attribute 'observed_motion' is not a mapping of errors"):
+        read_reconstruction_quality(out)
     with h5py.File(out, "r+") as fh:
+        fh.attrs["observed_motion"] = kept
         del fh["timesteps"]
         fh.create_dataset("timesteps", data=np.zeros(2, np.int64), fletcher32=True)
     with pytest.raises(
@@ -258,6 +264,9 @@ def test_observed_motion_carries_ground_truth_points_with_the_model():
     assert off["epe_3d"] == pytest.approx(0.005 * (T - 1) / T, rel=1e-9)
     with pytest.raises(MogafError, match=r"recon\.h5: the model has 7 observed steps.*\(30, 6, 3\)"):
         observed_motion(model, truth[:, 1:], 4, "recon.h5")
+    unknown = truth.copy()
+    unknown[:10, 2] = np.nan  # points without a position at some step are left out
+    assert observed_motion(model, unknown, 4) == pytest.approx(observed_motion(model, truth[10:], 4))
 
 
 def test_rigid_init_stage(toy_files):

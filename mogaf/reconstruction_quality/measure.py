@@ -37,6 +37,7 @@ def observed_motion(
             f"the model has {means.shape[1]} observed steps, the scene's ground-truth points have shape {gt.shape} "
             "at the split's observed steps (a model of another split?)",
         )
+    gt = gt[np.isfinite(gt).all(axis=(1, 2))]  # a point without a position at some step is left out
     if gt.shape[1] < 2 or gt.shape[0] == 0 or means.shape[0] == 0:
         return {}
     idx, w, offsets = attach_points(gt[:, -1], means[:, -1], quats[:, -1], neighbors)
