@@ -26,7 +26,7 @@ def observed_motion(
     error over the observed steps, and the mean error of the points' velocity
     (one step's displacement) over every step and over the last one, the
     velocity the forecasts start from, beside the points' mean true speed."""
-    from ..evaluate.tracking import attach_points, carry_points  # local: torch
+    from ..evaluate.tracking import predicted_gt_tracks  # local: torch
 
     gt = np.asarray(gt_points, np.float64)
     means = np.asarray(model.trajectory_means, np.float64)
@@ -40,8 +40,8 @@ def observed_motion(
     gt = gt[np.isfinite(gt).all(axis=(1, 2))]  # a point without a position at some step is left out
     if gt.shape[1] < 2 or gt.shape[0] == 0 or means.shape[0] == 0:
         return {}
-    idx, w, offsets = attach_points(gt[:, -1], means[:, -1], quats[:, -1], neighbors)
-    carried = carry_points(idx, w, offsets, means, quats)  # (P, T, 3)
+    # the forecasts' tracking metrics' attachment, carried by the observed poses instead of a forecast's
+    carried = predicted_gt_tracks(model, {"means": means, "quats": quats}, {"points3d": gt}, neighbors)  # (P, T, 3)
     velocity_error = np.linalg.norm(np.diff(carried, axis=1) - np.diff(gt, axis=1), axis=-1)  # (P, T - 1)
     return {
         "epe_3d": float(np.linalg.norm(carried - gt, axis=-1).mean()),
@@ -59,10 +59,11 @@ def measure_reconstruction_quality(
     has none), and "observed_motion" where the scene has ground-truth points
     (observed_motion; {} otherwise)."""
     p = load_settings(params)
-    model = load_model(model_h5)
+    has_views = split.frame_ids.get("evaluation_observed", np.zeros(0)).size > 0
     gt = load_ground_truth(scene_h5, split, "observed", entries=("points3d",))
+    model = load_model(model_h5) if has_views or "points3d" in gt else None
     motion = observed_motion(model, gt["points3d"], int(p.tracking_neighbors), model_h5) if "points3d" in gt else {}
-    if split.frame_ids.get("evaluation_observed", np.zeros(0)).size == 0:
+    if not has_views:
         return {
             "frame_ids": np.zeros(0, np.int64),
             "timesteps": np.zeros(0, np.int64),
