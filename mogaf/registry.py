@@ -180,6 +180,7 @@ def _in(argument: str, source: str | Source | None, **kw: Any) -> Input:
 
 
 SCENE = _in("scene", "ingest")
+SCENE_OPTIONAL = _in("scene", "ingest", required=False)
 SPLIT = _in("split", "split")
 PRIORS = _in("priors", "priors")
 
@@ -332,7 +333,8 @@ STAGES: tuple[StageSpec, ...] = (
         "forecast_group",
         wrapper="forecast_group",
         output="forecast/{method}/group{group}.h5",
-        inputs=(_in("model", forecast_input), _in("groups", "group", checkpoint=True), SPLIT),
+        # the scene: the observed frames' camera poses (structured MoGaF's unobserved_motion)
+        inputs=(_in("model", forecast_input), _in("groups", "group", checkpoint=True), SPLIT, SCENE_OPTIONAL),
         settings="forecast",
         seed="kwarg",
         device="kwarg",
@@ -350,6 +352,7 @@ STAGES: tuple[StageSpec, ...] = (
             _in("model", forecast_input),
             _in("groups", "group", checkpoint=True),
             SPLIT,
+            SCENE_OPTIONAL,
             _in("parts", None, option="parts", required=False, many=True),
         ),
         settings="forecast",

@@ -376,14 +376,16 @@ def forecast_group(
     group: str,
     seed: int,
     device: str = "cpu",
+    scene: str | None = None,
 ) -> Path:
     from .forecast.stage import run_forecast_group  # local: a stage's package (and torch) loads only when it runs
 
-    check_outputs({"out": out}, [model, groups, split])
-    with stage_inputs(model, groups, split):
+    inputs = [model, groups, split, *([scene] if scene else [])]
+    check_outputs({"out": out}, inputs)
+    with stage_inputs(*inputs):
         check_groups_cover(model, groups)
         return run_forecast_group(
-            model, groups, split, out, dict(params), method=method, job=group, seed=seed, device=device
+            model, groups, split, out, dict(params), method=method, job=group, seed=seed, device=device, scene_h5=scene
         )
 
 
@@ -398,14 +400,26 @@ def forecast_merge(
     seed: int = 0,
     device: str | None = None,
     job_threads: int | None = None,
+    scene: str | None = None,
 ) -> Path:
     from .forecast.stage import run_forecast_merge  # local: a stage's package (and torch) loads only when it runs
 
-    check_outputs({"out": out}, [model, groups, split, *parts])
-    with stage_inputs(model, groups, split, *parts):
+    inputs = [model, groups, split, *([scene] if scene else []), *parts]
+    check_outputs({"out": out}, inputs)
+    with stage_inputs(*inputs):
         check_groups_cover(model, groups)
         return run_forecast_merge(
-            model, groups, split, parts, out, dict(params), method=method, seed=seed, device=device, threads=job_threads
+            model,
+            groups,
+            split,
+            parts,
+            out,
+            dict(params),
+            method=method,
+            seed=seed,
+            device=device,
+            threads=job_threads,
+            scene_h5=scene,
         )
 
 

@@ -30,7 +30,6 @@ from mogaf.forecast.stage import (
     run_forecast_group,
     run_forecast_merge,
 )
-from mogaf.grouping.core import Groups
 from mogaf.grouping.stage import write_groups
 from mogaf.representation import load_model
 from mogaf.split import read_split
@@ -48,23 +47,12 @@ from support.forecast_scene import (
     write_model,
     write_scene,
 )
+from support.forecast_scene import (
+    groups_of as _groups,
+)
 
 # gate off: the learned candidate runs, so the seed matters (the gate may pick one that trains nothing)
 MOGAF_FAST = {"mogaf": {"iterations": 5, "structured": {"gate": False}}}
-
-
-def _groups(group_id: np.ndarray, static: list[int], rigid: list[int]) -> Groups:
-    K = len(static)
-    return Groups(
-        group_id=np.asarray(group_id, np.int64),
-        rigid=np.asarray(rigid, np.int8),
-        static=np.asarray(static, np.int8),
-        instance_id=-np.ones(K, np.int64),
-        names=[f"g{k}" for k in range(K)],
-        rigid_source=["config"] * K,
-        method="ours",
-        params={"seed": 0},
-    )
 
 
 @pytest.fixture(scope="module")
@@ -93,6 +81,7 @@ def mogaf_parts(inputs, tmp_path_factory) -> list[Path]:
             method="mogaf",
             job=j,
             seed=7,
+            scene_h5=str(inputs["scene"]),
         )
         for j in forecast_jobs(inputs["groups"], groupwise=True)
     ]
@@ -108,6 +97,7 @@ def _merge(inputs, out: Path, parts: list, method: str, params=None, seed: int =
         params or {},
         method=method,
         seed=seed,
+        scene_h5=str(inputs["scene"]),
     )
 
 
@@ -183,6 +173,7 @@ def test_group_job_mogaf_all(inputs, tmp_path):
         job="all",
         seed=0,
         device="auto",
+        scene_h5=str(inputs["scene"]),
     )
     art = read_artefact(out, "forecast_group")
     assert art.attrs["info"]["device"] in ("cpu", "cuda")  # the device the network ran on, recorded
@@ -270,6 +261,7 @@ def test_a_job_loads_and_checks_its_settings_once(inputs, tmp_path, monkeypatch,
         method=method,
         job=str(RIGID),
         seed=0,
+        scene_h5=str(inputs["scene"]),
     )
     assert calls == {"check": 1, "load_mogaf": 1 if method == "mogaf" else 0}
 
@@ -376,6 +368,7 @@ def test_merge_per_method_is_the_group_jobs_forecast(inputs, mogaf_parts, tmp_pa
             {**params, "jobs": "per_method"},
             method="mogaf",
             seed=7,
+            scene_h5=str(inputs["scene"]),
             threads=1,
         )
         assert torch.get_num_threads() == 3  # restored
@@ -409,6 +402,7 @@ def test_merge_refuses_missing_overlapping_and_foreign_parts(inputs, mogaf_parts
         method="mogaf",
         job="all",
         seed=7,
+        scene_h5=str(inputs["scene"]),
     )
     with pytest.raises(MogafError, match="overlaps"):
         _merge(inputs, tmp_path / "d.h5", [mogaf_parts[0], whole], "mogaf", MOGAF_FAST)
@@ -453,6 +447,7 @@ def test_same_inputs_same_seed_same_arrays(inputs, mogaf_parts, tmp_path):
         method="mogaf",
         job=Path(mogaf_parts[0]).stem.removeprefix("group"),
         seed=7,
+        scene_h5=str(inputs["scene"]),
     )
     a, b = _arrays(mogaf_parts[0]), _arrays(again)
     assert a.keys() == b.keys()
@@ -476,6 +471,7 @@ def test_same_inputs_same_seed_same_arrays(inputs, mogaf_parts, tmp_path):
         method="mogaf",
         job=Path(mogaf_parts[0]).stem.removeprefix("group"),
         seed=8,
+        scene_h5=str(inputs["scene"]),
     )
     assert not np.array_equal(_arrays(other)["means"], a["means"])
 

@@ -160,6 +160,24 @@ class StructuredSettings:
         "falls with its length against what was observed (docs/forecasting.md, variant damped_forecast)",
         minimum=0,
     )
+    unobserved_motion: Literal["suppress", "keep"] = setting(
+        "suppress",
+        "motion along directions the views of the last `view_window` observed steps did not see across (along the "
+        "rays of one camera filming from one side, where a reconstruction's velocity rests on depth cues alone): "
+        "'suppress' scales each forecast displacement down along them, 'keep' forecasts it as the candidates do. "
+        "Views spread around the scene change nothing (mogaf.forecast.observability; docs/forecasting.md, variant "
+        "keep_unobserved_motion)",
+    )
+    view_window: int = setting(
+        8, "unobserved_motion: suppress: the last observed steps whose views count (as trend_window's line)", minimum=1
+    )
+    observed_spread_deg: float = setting(
+        30.0,
+        "unobserved_motion: suppress: a direction whose mean squared sine with the views' rays reaches sin^2 of this "
+        "angle keeps its forecast motion; below, its displacement is scaled by that mean over sin^2 of it",
+        exclusive_minimum=0,
+        maximum=90,
+    )
     refit_networks: int = setting(
         1,
         "networks the learned candidate fits on every observed frame (each from its own seed), whose rollouts it "
@@ -415,6 +433,9 @@ def _unread_by_mogaf(net: MogafSettings, own: StructuredSettings, changed: Mappi
     if own.nonrigid_motion != "rigid_parts":
         for k in ("rigid_parts", "parts_unexplained"):
             why.setdefault(f"structured.{k}", f"nonrigid_motion is {own.nonrigid_motion}, not rigid_parts")
+    if own.unobserved_motion == "keep":
+        for k in ("view_window", "observed_spread_deg"):
+            why.setdefault(f"structured.{k}", "unobserved_motion is keep")
     if own.combine == "select":
         why.setdefault("structured.backtest_neighbors", "combine is select, which decides per group")
         why.setdefault("structured.backtest_origins", "combine is select, which scores one window")

@@ -15,8 +15,10 @@ Schema of forecast/{method}.h5:
   group_id (N,)
 attrs: method, groupwise, job_layout (forecast.jobs), num_groups_trained, flags (per job), params.
 
-No forecast job opens the scene: the future (ground truth included) is read
-only by the evaluation stage, which also computes the quick 3D check.
+A forecast job reads of the scene only the camera poses of the last observed
+frames (the structured MoGaF's unobserved_motion: mogaf.forecast.observability):
+the future (ground truth included) is read only by the evaluation stage, which
+also computes the quick 3D check.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from ..errors import MogafError, input_error
 from ..representation import Model4D, load_model, quat_sign_continuity
 from ..split import read_split
 from .coherence import coherence
+from .observability import observed_view_centres, suppress_unobserved, unobserved_scaling, view_information
 from .params import INLINE_METHODS, JOB_LAYOUTS, param_section, section_params
 from .registry import fit_and_rollout, load_settings
 
@@ -167,6 +170,28 @@ def _load_inputs(model_h5, groups_h5, split_h5):
     return model, group_id, group_static, split
 
 
+def _suppressed_structured(settings: Any) -> Any:
+    """The structured settings of a MoGaF run that suppresses unobserved motion, else None."""
+    own, net = getattr(settings, "own", None), getattr(settings, "net", None)
+    if own is None or net is None or net.mode != "structured" or own.unobserved_motion != "suppress":
+        return None
+    return own
+
+
+def job_view_centres(settings: Any, scene_h5: str | os.PathLike | None, split: Any, method: str) -> np.ndarray | None:
+    """The camera centres a method's jobs weigh their forecast motion by
+    (structured MoGaF, unobserved_motion: suppress), else None."""
+    own = _suppressed_structured(settings)
+    if own is None:
+        return None
+    if scene_h5 is None:
+        raise MogafError(
+            f"forecast {method}: forecast.mogaf.structured.unobserved_motion: suppress reads the observed frames' "
+            "camera poses: give the scene (--scene-h5), or set unobserved_motion: keep"
+        )
+    return observed_view_centres(scene_h5, split, own.view_window)
+
+
 def forecast_job(
     model: Model4D,
     members: np.ndarray,
@@ -177,11 +202,13 @@ def forecast_job(
     seed: int,
     rigid: bool | None = None,
     device: str = "cpu",
+    view_centres: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, Any], float]:
     """Fit `method` on the members' observed trajectories; (poses (G, horizon, 7), info, wall seconds).
     `settings`: the method's, loaded once for the job (registry.load_settings);
     `rigid`: the grouping's rigid flag of the job's group (None for the job of every dynamic Gaussian);
-    `device`: auto | cpu | cuda, where a torch-based method computes. The
+    `device`: auto | cpu | cuda, where a torch-based method computes;
+    `view_centres`: job_view_centres' (None: the forecast as fitted). The
     forecaster refuses non-finite poses (Forecaster.rollout)."""
     observed = observed_states(model, members)
     start = time.perf_counter()
@@ -189,8 +216,28 @@ def forecast_job(
     wall = time.perf_counter() - start
     poses = np.asarray(result.poses, np.float64)
     info = {k: v for k, v in dict(result.info).items() if isinstance(v, (int, float, str, bool)) or v is None}
+    if view_centres is not None:
+        poses = _suppress_unobserved_motion(poses, observed[:, -1, :3], view_centres, settings, info)
     log.info("forecast %s job %s: %d Gaussians, %.1f s, info %s", method, job, members.size, wall, info)
     return poses, info, wall
+
+
+def _suppress_unobserved_motion(
+    poses: np.ndarray, last_means: np.ndarray, view_centres: np.ndarray, settings: Any, info: dict[str, Any]
+) -> np.ndarray:
+    """poses with their displacement scaled down along the directions the views
+    did not see across (mogaf.forecast.observability); info records the views'
+    least mean squared sine and the smallest scale."""
+    own = _suppressed_structured(settings)
+    information = view_information(last_means.mean(axis=0), view_centres)
+    scaling = unobserved_scaling(information, own.observed_spread_deg)
+    info["view_spread_min"] = float(np.linalg.eigvalsh(information)[0])
+    info["unobserved_scale_min"] = 1.0 if scaling is None else float(np.linalg.eigvalsh(scaling)[0])
+    if scaling is None:
+        return poses
+    out = poses.copy()
+    out[..., :3] = suppress_unobserved(last_means, poses[..., :3], scaling, bool(info.get("rigid")))
+    return out
 
 
 def run_forecast_group(
@@ -204,12 +251,15 @@ def run_forecast_group(
     job: str,
     seed: int,
     device: str = "cpu",
+    scene_h5: str | None = None,
 ) -> Path:
     """One forecast_group job. Its settings are loaded and checked here, once
-    (values without effect are said when the workflow starts: mogaf.config.inert_forecaster_settings)."""
+    (values without effect are said when the workflow starts: mogaf.config.inert_forecaster_settings).
+    `scene_h5`: where the observed frames' camera poses are read (job_view_centres)."""
     settings = load_settings(method, method_params(params, method))
     model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
     members = job_members(job, group_id, group_static, groups_h5)
+    view_centres = job_view_centres(settings, scene_h5, split, method)
     poses, info, wall = forecast_job(
         model,
         members,
@@ -220,6 +270,7 @@ def run_forecast_group(
         seed,
         job_rigid_hint(job, group_rigid_flags(groups_h5)),
         device,
+        view_centres,
     )
     return write_artefact(
         out,
@@ -257,6 +308,7 @@ def run_forecast_merge(
     seed: int = 0,
     device: str | None = None,
     threads: int | None = None,
+    scene_h5: str | None = None,
 ) -> Path:
     """Merge the group jobs' poses into forecast/{method}.h5. INLINE_METHODS,
     and every method under forecast.jobs: per_method, are computed here, group
@@ -292,6 +344,7 @@ def run_forecast_merge(
         if parts:
             raise MogafError(f"forecast {method}: computed in the merge job ({layout}), it takes no group files")
         settings = load_settings(method, method_params(params, method))  # once for every job of the merge
+        view_centres = job_view_centres(settings, scene_h5, split, method)
         jobs = _job_names(group_id, group_static, bool(params.get("groupwise", True)))
         untrained = method in INLINE_METHODS
         trained = 0 if untrained else len(jobs)
@@ -308,6 +361,7 @@ def run_forecast_merge(
                     seed,
                     job_rigid_hint(job, group_rigid),
                     "cpu" if untrained else device,
+                    view_centres,
                 )
                 means[members] = poses[..., :3]
                 quats[members] = poses[..., 3:]

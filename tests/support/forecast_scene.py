@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mogaf.grouping.core import Groups
 from mogaf.representation import GaussianSet, Model4D, save_model
 from mogaf.scene import SPLIT_CODES, Scene, save_scene
 from mogaf.split import split_scene, write_split
@@ -114,3 +115,18 @@ def write_model(path: Path, observed_timesteps: np.ndarray, last_step_shift: flo
         trajectory_quats=np.repeat(quats[:, None], Tm, axis=1).astype(np.float32),
     )
     return save_model(path, "refine", model, config_digest="fc-test")
+
+
+def groups_of(group_id: np.ndarray, static: list[int], rigid: list[int]) -> Groups:
+    """A grouping of the model's Gaussians: group_id per Gaussian, a static and a rigid flag per group."""
+    K = len(static)
+    return Groups(
+        group_id=np.asarray(group_id, np.int64),
+        rigid=np.asarray(rigid, np.int8),
+        static=np.asarray(static, np.int8),
+        instance_id=-np.ones(K, np.int64),
+        names=[f"g{k}" for k in range(K)],
+        rigid_source=["config"] * K,
+        method="ours",
+        params={"seed": 0},
+    )
