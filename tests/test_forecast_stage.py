@@ -419,18 +419,20 @@ def test_evaluation_quick_epe_measures_the_error(inputs, tmp_path):
     pos, quats, _ = world()
     q = np.repeat(quats[:, None], T - T_OBS, axis=1)
     scene = str(inputs["scene"])
-    assert tracking_section(model, {"means": pos[:, T_OBS:], "quats": q}, scene, split, EVAL_PARAMS)[
-        1
-    ] == pytest.approx(0.0, abs=1e-5)
+    exact = tracking_section(model, {"means": pos[:, T_OBS:], "quats": q}, scene, split, EVAL_PARAMS)[1]
+    assert exact["epe_3d_quick"] == pytest.approx(0.0, abs=1e-5)
+    assert exact == {"epe_3d_quick": exact["epe_3d_quick"], "still_points": 0}  # the GT points all move
     shifted = pos[:, T_OBS:] + np.array([0.0, 0.3, 0.0])
-    assert tracking_section(model, {"means": shifted, "quats": q}, scene, split, EVAL_PARAMS)[1] == pytest.approx(
-        0.3, abs=1e-5
-    )
+    assert tracking_section(model, {"means": shifted, "quats": q}, scene, split, EVAL_PARAMS)[1][
+        "epe_3d_quick"
+    ] == pytest.approx(0.3, abs=1e-5)
     # frozen leaves the GT points riding the rigid group behind by 1..4 steps of its velocity
     frozen = read_artefact(_merge(inputs, tmp_path / "frozen.h5", [], "frozen"), "forecast")
     fc = {"means": np.asarray(frozen["means"]), "quats": np.asarray(frozen["quats"])}
     expected = np.linalg.norm(RIGID_VELOCITY) * np.mean(np.arange(1, T - T_OBS + 1))
-    assert tracking_section(model, fc, scene, split, EVAL_PARAMS)[1] == pytest.approx(expected, rel=1e-3)
+    assert tracking_section(model, fc, scene, split, EVAL_PARAMS)[1]["epe_3d_quick"] == pytest.approx(
+        expected, rel=1e-3
+    )
     assert "epe_3d_quick" not in frozen.attrs
     scene_h5, _ = write_scene(tmp_path / "nogt", with_gt=False)
     assert tracking_section(model, fc, str(scene_h5), split, EVAL_PARAMS) == (None, None)

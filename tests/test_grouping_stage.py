@@ -267,6 +267,19 @@ def test_observed_motion_carries_ground_truth_points_with_the_model():
     unknown = truth.copy()
     unknown[:10, 2] = np.nan  # points without a position at some step are left out
     assert observed_motion(model, unknown, 4) == pytest.approx(observed_motion(model, truth[10:], 4))
+    assert "still_jitter" not in exact  # every point moves
+    # a still body beside it: its points carried by still Gaussians that jitter by +-1 mm along x
+    body = rng.uniform(-0.5, 0.5, (40, 3)) + [3.0, 0.0, 0.0]
+    wobble = np.zeros((40, T, 3))
+    wobble[:, :, 0] = 0.001 * (-1.0) ** np.arange(T)
+    both = SimpleNamespace(
+        trajectory_means=np.concatenate([model.trajectory_means, body[:, None] + wobble]),
+        trajectory_quats=np.concatenate([model.trajectory_quats, np.tile([1.0, 0, 0, 0], (40, T, 1))]),
+    )
+    still = observed_motion(both, np.concatenate([truth, np.repeat(body[:5, None], T, axis=1)]), 1)
+    assert still["still_points"] == 5
+    jitter = np.abs(0.001 * (-1.0) ** np.arange(T) - 0.001 * np.mean((-1.0) ** np.arange(T))).mean()
+    assert still["still_jitter"] == pytest.approx(jitter, rel=1e-9)
 
 
 def test_rigid_init_stage(toy_files):

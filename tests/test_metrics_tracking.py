@@ -143,3 +143,30 @@ def test_malformed_inputs():
         average_jaccard(pred, gt, vis, None)
     with pytest.raises(MogafError, match="both"):
         tracking_metrics(gt_vis=vis, pred_2d=pred)
+
+
+def test_still_points_and_how_far_a_forecast_moves_them():
+    """Ground-truth points that never move (observed and forecast steps), and
+    the mean distance of their carried positions from where they rest: 0 for
+    a forecast that leaves them, the shift for one that moves them."""
+    from mogaf.evaluate.tracking import STILL_TOLERANCE, still_points, still_points_displacement
+
+    rng = np.random.default_rng(0)
+    rest = rng.normal(size=(6, 3))
+    observed = np.repeat(rest[:, None], 5, axis=1)
+    future = np.repeat(rest[:, None], 3, axis=1)
+    observed[0, 1] += 0.01  # moved while observed, back at the last step
+    future[1, 2] += 0.02  # moves after the split
+    observed[2, 3, 0] += 0.5 * STILL_TOLERANCE  # within the tolerance
+    future[3, 0] = np.nan  # no position: not still
+    assert still_points(observed, future).tolist() == [False, False, True, False, True, True]
+    assert still_points(observed).tolist() == [False, True, True, True, True, True]
+    pred = future.copy()
+    pred[3] = rest[3]
+    assert still_points_displacement(np.nan_to_num(pred), observed, future) == {
+        "still_points": 3,
+        "still_points_displacement": pytest.approx(0.0, abs=1e-15),
+    }
+    moved = pred + np.array([0.0, 0.03, 0.04])
+    assert still_points_displacement(moved, observed, future)["still_points_displacement"] == pytest.approx(0.05)
+    assert still_points_displacement(moved, observed + 1.0, future) == {"still_points": 0}

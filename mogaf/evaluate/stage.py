@@ -124,10 +124,8 @@ def run_evaluate_stage(
                     for f in range(frames.num_frames)
                 ],
             }
-            section["tracking"], epe_3d_quick = tracking_section(m4, fc, scene, sp, p)
-            section["forecast"] = forecast_summary(fc["attrs"])
-            if epe_3d_quick is not None:
-                section["forecast"]["epe_3d_quick"] = epe_3d_quick
+            section["tracking"], quick = tracking_section(m4, fc, scene, sp, p)
+            section["forecast"] = {**forecast_summary(fc["attrs"]), **(quick or {})}
             if p.save_renders:
                 for f in range(frames.num_frames):
                     _save_png(renders_tmp / method / f"{frames.frame_names[f]}.png", renders[f])

@@ -56,6 +56,36 @@ def carry_points(
     return np.einsum("pk,pkti->pti", weights, pos)
 
 
+# m: a ground-truth point whose positions stay this close to its last observed
+# one never moves (a synthetic scene's ground truth is exact)
+STILL_TOLERANCE = 1e-6
+
+
+def still_points(observed: np.ndarray, *later: np.ndarray) -> np.ndarray:
+    """(P,) ground-truth points that never move: every position of `observed`
+    (P, T, 3) and of the `later` arrays (P, T', 3) within STILL_TOLERANCE of
+    the last observed one (a point without a finite position is not still)."""
+    ref = np.asarray(observed, np.float64)[:, -1:]
+    still = np.ones(ref.shape[0], bool)
+    for positions in (observed, *later):
+        gap = np.linalg.norm(np.asarray(positions, np.float64) - ref, axis=-1)
+        still &= np.all(np.isfinite(gap) & (gap <= STILL_TOLERANCE), axis=1)
+    return still
+
+
+def still_points_displacement(pred3d: np.ndarray, observed: np.ndarray, future: np.ndarray) -> dict[str, Any]:
+    """How far a forecast moves what does not move: of the ground-truth points
+    still over the observed (P, T, 3) and forecast (P, T_fc, 3) steps, their
+    number and their carried positions' (pred3d) mean distance from where
+    they rest over the forecast steps (without such points, the number alone)."""
+    still = still_points(observed, future)
+    out: dict[str, Any] = {"still_points": int(still.sum())}
+    if still.any():
+        rest = np.asarray(observed, np.float64)[still, -1:]
+        out["still_points_displacement"] = float(np.linalg.norm(pred3d[still] - rest, axis=-1).mean())
+    return out
+
+
 def predicted_gt_tracks(model: Model4D, fc: dict[str, Any], gt_observed: Mapping[str, Any], k: int) -> np.ndarray:
     """Forecast positions (P, T_fc, 3) of the ground-truth surface points."""
     last = model.trajectory_means.shape[1] - 1
@@ -71,10 +101,11 @@ def predicted_gt_tracks(model: Model4D, fc: dict[str, Any], gt_observed: Mapping
 
 def tracking_section(
     model: Model4D, fc: dict[str, Any], scene_h5: str, split: Split, params: Mapping[str, Any] | EvaluateSettings
-) -> tuple[dict[str, Any] | None, float | None]:
+) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
     """Tracking metrics of the GT surface points carried by the forecast, and
-    the quick 3D check: their mean distance from the GT over every point and
-    forecast step (no visibility, no unit scaling). (None, None) without GT."""
+    the quick 3D checks: `epe_3d_quick`, their mean distance from the GT over
+    every point and forecast step (no visibility, no unit scaling), and
+    still_points_displacement's. (None, None) without GT."""
     settings = load_settings(params)
     gt_obs = load_ground_truth(scene_h5, split, "observed")
     if "points3d" not in gt_obs:
@@ -82,7 +113,10 @@ def tracking_section(
     gt_fc = load_ground_truth(scene_h5, split, "forecast")
     pred3d = predicted_gt_tracks(model, fc, gt_obs, int(settings.tracking_neighbors))
     gt3d = np.asarray(gt_fc["points3d"], np.float64)
-    epe_3d_quick = float(np.mean(np.linalg.norm(pred3d - gt3d, axis=-1)))
+    quick = {
+        "epe_3d_quick": float(np.mean(np.linalg.norm(pred3d - gt3d, axis=-1))),
+        **still_points_displacement(pred3d, gt_obs["points3d"], gt3d),
+    }
     P, T = gt3d.shape[:2]
     gt_vis = np.asarray(gt_fc.get("visible", np.ones((P, T), bool)), bool)
     pred2d = gt2d = pred_vis = None
@@ -121,4 +155,4 @@ def tracking_section(
         pck_thresholds=tuple(settings.delta_thresholds),
         strict=False,
     )
-    return {k: (None if v is None else float(v)) for k, v in res.items()}, epe_3d_quick
+    return {k: (None if v is None else float(v)) for k, v in res.items()}, quick

@@ -25,8 +25,10 @@ def observed_motion(
     metrics attach it) and carried back by their trajectories: the mean 3D
     error over the observed steps, and the mean error of the points' velocity
     (one step's displacement) over every step and over the last one, the
-    velocity the forecasts start from, beside the points' mean true speed."""
-    from ..evaluate.tracking import predicted_gt_tracks  # local: torch
+    velocity the forecasts start from, beside the points' mean true speed;
+    where some points never move, their number and `still_jitter`, the mean
+    distance of their carried positions from their mean position."""
+    from ..evaluate.tracking import predicted_gt_tracks, still_points  # local: torch
 
     gt = np.asarray(gt_points, np.float64)
     means = np.asarray(model.trajectory_means, np.float64)
@@ -43,12 +45,19 @@ def observed_motion(
     # the forecasts' tracking metrics' attachment, carried by the observed poses instead of a forecast's
     carried = predicted_gt_tracks(model, {"means": means, "quats": quats}, {"points3d": gt}, neighbors)  # (P, T, 3)
     velocity_error = np.linalg.norm(np.diff(carried, axis=1) - np.diff(gt, axis=1), axis=-1)  # (P, T - 1)
-    return {
+    out = {
         "epe_3d": float(np.linalg.norm(carried - gt, axis=-1).mean()),
         "velocity_error": float(velocity_error.mean()),
         "last_velocity_error": float(velocity_error[:, -1].mean()),
         "speed": float(np.linalg.norm(np.diff(gt, axis=1), axis=-1).mean()),
     }
+    still = still_points(gt)
+    if still.any():
+        # the model's own jitter where nothing moves: the forecasts' still_points_displacement is judged against it
+        rest = carried[still]
+        out["still_points"] = float(still.sum())
+        out["still_jitter"] = float(np.linalg.norm(rest - rest.mean(axis=1, keepdims=True), axis=-1).mean())
+    return out
 
 
 def measure_reconstruction_quality(
