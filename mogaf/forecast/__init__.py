@@ -28,7 +28,8 @@ rollout(n_steps) rolls out (structured MoGaF needs the horizon at fit time).
 
 Modules: params (METHODS, the config section of each method), registry
 (load_settings, make_forecaster, defaults, fit_and_rollout), stage (the
-pipeline stage), base (Forecaster), one module per forecaster (classical,
+pipeline stage; observability: the views' directions it scales the
+structured forecast by), base (Forecaster), one module per forecaster (classical,
 gcn, ode, transformer: the paper mode, structured: the default mode), and the
 structured mode's parts: mogaf_settings (MogafRun), trajectory, group_motion,
 channel_net, candidates. Import a name from the module defining it.

@@ -13,9 +13,9 @@ displacement down along such directions:
 u^T M u is the mean squared sine of the angle between a unit direction u and
 the rays: 1 for a direction every view sees across, 0 along every ray. Along
 each eigenvector of M the displacement is scaled by min(1, lambda /
-sin^2(min_spread)), so a direction the views saw from `min_spread` apart or
-more keeps its forecast motion; views spread around the scene (D-NeRF-style
-renders) leave every direction as it is.
+sin^2(min_spread)): a direction the rays meet at `min_spread` or more (in
+mean squared sine) keeps its forecast motion; views spread around the scene
+(D-NeRF-style renders) leave every direction as it is.
 """
 
 from __future__ import annotations
