@@ -3,9 +3,12 @@ forecast scaled down along the others (mogaf.forecast.observability)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
+from mogaf.errors import MogafError
 from mogaf.forecast.observability import (
     observed_view_centres,
     suppress_unobserved,
@@ -40,57 +43,105 @@ def test_view_information_is_the_mean_squared_sine_with_the_rays():
 
 def test_unobserved_scaling_leaves_views_spread_around_the_scene_alone():
     # three orthogonal views: every direction has mean squared sine 2/3
-    centres = np.eye(3) * 4.0
-    assert unobserved_scaling(view_information(np.zeros(3), centres), 30.0) is None
+    maps, scaled, smallest = unobserved_scaling(view_information(np.zeros(3), np.eye(3) * 4.0), 30.0)
+    assert not scaled and smallest == 1.0
+    np.testing.assert_array_equal(maps, np.eye(3))
     # one camera: the ray's direction scaled to zero, the others kept, symmetric
     ray = np.array([0.0, 0.0, 1.0])
-    scaling = unobserved_scaling(view_information(np.zeros(3), -3.0 * ray[None]), 30.0)
-    np.testing.assert_allclose(scaling, np.diag([1.0, 1.0, 0.0]), atol=1e-12)
+    maps, scaled, smallest = unobserved_scaling(view_information(np.zeros(3), -3.0 * ray[None]), 30.0)
+    assert scaled and smallest == pytest.approx(0.0, abs=1e-12)
+    np.testing.assert_allclose(maps, np.diag([1.0, 1.0, 0.0]), atol=1e-12)
     # views 10 degrees apart: along the mean ray, sin^2(5 deg) / sin^2(30 deg)
     a = np.radians(5.0)
     centres = -3.0 * np.array([[np.sin(a), 0.0, np.cos(a)], [-np.sin(a), 0.0, np.cos(a)]])
-    scaling = unobserved_scaling(view_information(np.zeros(3), centres), 30.0)
-    assert scaling[2, 2] == pytest.approx(np.sin(a) ** 2 / 0.25, rel=1e-9)
-    assert scaling[0, 0] == pytest.approx(1.0) and scaling[1, 1] == pytest.approx(1.0)
+    maps, _, smallest = unobserved_scaling(view_information(np.zeros(3), centres), 30.0)
+    assert maps[2, 2] == pytest.approx(np.sin(a) ** 2 / 0.25, rel=1e-9) == pytest.approx(smallest)
+    assert maps[0, 0] == pytest.approx(1.0) and maps[1, 1] == pytest.approx(1.0)
+    # no view of the point: nothing known, nothing scaled
+    maps, scaled, _ = unobserved_scaling(view_information(np.zeros(3), np.zeros((1, 3))), 30.0)
+    assert not scaled
+    np.testing.assert_array_equal(maps, np.eye(3))
+    # batched over points: each its own rays
+    points = np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
+    maps, scaled, _ = unobserved_scaling(view_information(points, -3.0 * ray[None]), 30.0)
+    assert maps.shape == (2, 3, 3) and scaled.tolist() == [True, True]
+    d = points[1] + 3.0 * ray
+    d /= np.linalg.norm(d)
+    np.testing.assert_allclose(maps[1] @ d, 0.0, atol=1e-12)
 
 
-def test_rigid_groups_stay_rigid_and_still_members_still():
-    rng = np.random.default_rng(1)
-    last = rng.normal(size=(40, 3))
-    T = 5
-    angles = np.linspace(0.05, 0.25, T)
-    shift = np.outer(np.arange(1, T + 1), [0.1, 0.05, 0.3])
+def _turning(last: np.ndarray, T: int, axis: int, shift: np.ndarray) -> np.ndarray:
+    """(G, T, 3): the points turning about their centroid (about `axis`) and shifted, step by step."""
     centre = last.mean(axis=0)
-    means = np.empty((40, T, 3))
-    for t, a in enumerate(angles):
-        c, s = np.cos(a), np.sin(a)
-        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        means[:, t] = (last - centre) @ rot.T + centre + shift[t]
-    means[:5] = last[:5, None]  # members the forecast keeps still
-    scaling = np.diag([1.0, 1.0, 0.0])
-    out = suppress_unobserved(last, means, scaling, rigid=True)
-    np.testing.assert_array_equal(out[:5], means[:5])
-    moving = out[5:]
-    for t in range(T):
-        before = np.linalg.norm(means[5:, t, None] - means[None, 5:, t], axis=-1)
-        after = np.linalg.norm(moving[:, t, None] - moving[None, :, t], axis=-1)
-        np.testing.assert_allclose(after, before, atol=1e-12)
-    # the moving members' mean displacement keeps no component along z
-    mean_disp = (moving - last[5:, None]).mean(axis=0)
-    np.testing.assert_allclose(mean_disp[:, 2], 0.0, atol=1e-12)
-    np.testing.assert_allclose(mean_disp[:, :2], (means[5:] - last[5:, None]).mean(axis=0)[:, :2], atol=1e-12)
+    out = np.empty((last.shape[0], T, 3))
+    for t, angle in enumerate(np.linspace(0.05, 0.25, T)):
+        c, s = np.cos(angle), np.sin(angle)
+        rot = np.roll(np.roll(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), axis, 0), axis, 1)
+        out[:, t] = (last - centre) @ rot.T + centre + (t + 1) * shift
+    return out
 
 
-def test_nonrigid_members_are_scaled_one_by_one():
-    rng = np.random.default_rng(3)
-    last = rng.normal(size=(10, 3))
-    means = last[:, None] + rng.normal(size=(10, 4, 3))
-    R = _rotation(4)
-    scaling = R @ np.diag([1.0, 0.5, 0.0]) @ R.T
-    out = suppress_unobserved(last, means, scaling, rigid=False)
-    np.testing.assert_allclose(out - last[:, None], (means - last[:, None]) @ scaling.T, atol=1e-12)
-    # the identity changes nothing
-    np.testing.assert_allclose(suppress_unobserved(last, means, np.eye(3), rigid=False), means, atol=1e-15)
+def test_bodies_stay_rigid_members_on_their_own_are_scaled_and_still_ones_stay():
+    rng = np.random.default_rng(1)
+    T = 5
+    camera = np.array([[0.0, 0.0, -40.0]])
+    a, b, c = rng.normal(size=(12, 3)), rng.normal(size=(9, 3)) + 3.0, rng.normal(size=(7, 3)) - 3.0
+    last = np.concatenate([a, b, c])
+    means = np.concatenate(
+        [_turning(a, T, 0, np.array([0.1, 0.05, 0.3])), _turning(b, T, 1, np.array([-0.2, 0.0, 0.2])), c[:, None] + rng.normal(size=(7, T, 3))]
+    )  # fmt: skip
+    means[:3] = last[:3, None]  # members the forecast keeps still
+    bodies = np.repeat([0, 1, -1], [12, 9, 7])
+    out, figures = suppress_unobserved(last, means, bodies, camera, 30.0)
+    np.testing.assert_array_equal(out[:3], means[:3])
+    for members in (np.arange(3, 12), np.arange(12, 21)):
+        for t in range(T):
+            before = np.linalg.norm(means[members, t, None] - means[None, members, t], axis=-1)
+            after = np.linalg.norm(out[members, t, None] - out[None, members, t], axis=-1)
+            np.testing.assert_allclose(after, before, atol=1e-12)
+        ray = last[members].mean(axis=0) - camera[0]
+        ray /= np.linalg.norm(ray)
+        np.testing.assert_allclose((out[members] - last[members, None]).mean(axis=0) @ ray, 0.0, atol=1e-12)
+    rays = last[21:] - camera[0]
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    moved = out[21:] - last[21:, None]
+    np.testing.assert_allclose(np.einsum("gti,gi->gt", moved, rays), 0.0, atol=1e-12)
+    across = (means[21:] - last[21:, None]) - np.einsum("gti,gi->gt", means[21:] - last[21:, None], rays)[
+        ..., None
+    ] * rays[:, None]
+    np.testing.assert_allclose(moved, across, atol=1e-12)
+    assert figures["unobserved_scale_min"] == pytest.approx(0.0, abs=1e-12) and figures["view_spread_min"] < 1e-2
+    # views all around: nothing scaled, the same values
+    around = 40.0 * np.concatenate([np.eye(3), -np.eye(3)])
+    same, figures = suppress_unobserved(last, means, bodies, around, 30.0)
+    np.testing.assert_array_equal(same, means)
+    assert figures["unobserved_scale_min"] == 1.0
+
+
+def test_the_structured_forecaster_names_the_bodies_it_moves():
+    """bodies(): a rigid group one body, rigid parts each theirs, per Gaussian -1."""
+    from mogaf.forecast.registry import fit_and_rollout
+
+    rng = np.random.default_rng(2)
+    T = 24
+    a, b = rng.normal(size=(10, 3)), rng.normal(size=(10, 3)) + 4.0
+    pos = np.concatenate(
+        [_turning(a, T, 2, np.array([0.02, 0.0, 0.0])), _turning(b, T, 0, np.array([0.0, -0.03, 0.01]))]
+    )
+    quats = np.tile([1.0, 0.0, 0.0, 0.0], (20, T, 1))
+    observed = np.concatenate([pos, quats], axis=-1)
+    quick = {"iterations": 3}
+
+    def bodies(structured, rigid):
+        params = {**quick, "structured": {"gate": False, **structured}}
+        return fit_and_rollout("mogaf", observed, 4, params, seed=0, rigid=rigid).bodies
+
+    assert bodies({}, True).tolist() == [0] * 20
+    assert bodies({"nonrigid_motion": "rigid_body"}, False).tolist() == [0] * 20
+    assert bodies({"nonrigid_motion": "per_gaussian"}, False).tolist() == [-1] * 20
+    parts = bodies({"nonrigid_motion": "rigid_parts", "rigid_parts": 2}, False)
+    assert sorted(set(parts[:10])) == [parts[0]] and sorted(set(parts[10:])) == [parts[10]] and parts[0] != parts[10]
+    assert fit_and_rollout("mogaf_paper", observed, 4, quick, seed=0).bodies is None
 
 
 def test_observed_view_centres_read_the_last_observed_steps_only(tmp_path):
@@ -106,6 +157,11 @@ def test_observed_view_centres_read_the_last_observed_steps_only(tmp_path):
         observed_view_centres(scene_h5, split, 2), camera_centers(np.asarray(frames.w2c)[recent]), atol=1e-12
     )
     assert observed_view_centres(scene_h5, split, 100).shape[0] == frames.num_frames
+    # a split whose observed frames lie outside its observed steps (made for another scene) is refused
+    other = dataclasses.replace(split, observed_timesteps=split.observed_timesteps[:-1])
+    with pytest.raises(MogafError, match="observed frame .* is at a time step the split does not observe") as err:
+        observed_view_centres(scene_h5, other, 2)
+    assert str(scene_h5) in str(err.value)
 
 
 def test_the_stage_scales_structured_mogaf_only_and_needs_the_scene(tmp_path, monkeypatch):
@@ -113,7 +169,6 @@ def test_the_stage_scales_structured_mogaf_only_and_needs_the_scene(tmp_path, mo
     displacement along z in a rigid group and the same across; 'keep' and
     the paper's mode are left as fitted; without the scene it says so."""
     from mogaf.artefact import read_artefact
-    from mogaf.errors import MogafError
     from mogaf.forecast import stage as forecast_stage
     from mogaf.grouping.stage import write_groups
     from mogaf.representation import load_model
@@ -148,8 +203,14 @@ def test_the_stage_scales_structured_mogaf_only_and_needs_the_scene(tmp_path, mo
     np.testing.assert_allclose(
         shift_cut - np.outer(shift_cut @ ray, ray), shift_kept - np.outer(shift_kept @ ray, ray), atol=1e-6
     )
-    paper, _ = run("paper.h5", {}, method="mogaf_paper")  # the paper's mode reads no view
-    assert paper.shape == kept.shape
+    # the paper's mode and the baselines read no view: the same arrays with the scene as without
+    for method in ("mogaf_paper", "constant_velocity"):
+        with_scene, _ = run(f"{method}_s.h5", {}, method=method, scene_h5=str(scene_h5))
+        np.testing.assert_array_equal(with_scene, run(f"{method}.h5", {}, method=method)[0])
+    # views all around the group: the forecast as fitted, bit for bit
+    around = 50.0 * np.concatenate([np.eye(3), -np.eye(3)])
+    monkeypatch.setattr(forecast_stage, "observed_view_centres", lambda *a: around)
+    np.testing.assert_array_equal(run("around.h5", {}, method="mogaf", scene_h5=str(scene_h5))[0], kept)
     with pytest.raises(MogafError, match="unobserved_motion: suppress reads the observed frames' camera poses"):
         run("none.h5", {}, method="mogaf")
     assert not (tmp_path / "none.h5").exists()

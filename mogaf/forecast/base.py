@@ -28,10 +28,12 @@ class ForecastResult:
         continuity from the (sign-canonicalised) observation.
     info: train_time_s, rollout_time_s, final_loss, epochs, iterations, and
         method-specific flags (e.g. ode_step_cap_hit).
+    bodies: Forecaster.bodies(), or None.
     """
 
     poses: np.ndarray
     info: dict[str, Any]
+    bodies: np.ndarray | None = None
 
 
 def merge_params(method: str, defaults: Mapping[str, Any], params: Mapping[str, Any] | None) -> dict[str, Any]:
@@ -229,6 +231,12 @@ class Forecaster:
         self.info.setdefault("final_loss", None)
         self.info.setdefault("epochs", 0)
         return self
+
+    def bodies(self) -> np.ndarray | None:
+        """(G,) which rigid body the fitted forecast moves each member with
+        (labels from 0; -1: a member moved on its own), or None where the
+        method has no such notion."""
+        return None
 
     def rollout(self, n_steps: int) -> np.ndarray:
         """(G, n_steps, 7) poses after the observed ones; n_steps: the fit's

@@ -15,7 +15,8 @@ the rays: 1 for a direction every view sees across, 0 along every ray. Along
 each eigenvector of M the displacement is scaled by min(1, lambda /
 sin^2(min_spread)): a direction the rays meet at `min_spread` or more (in
 mean squared sine) keeps its forecast motion; views spread around the scene
-(D-NeRF-style renders) leave every direction as it is.
+(as the MuJoCo grid's renders) leave every direction as it is. Each rigid
+body the forecast moves is scaled as one (suppress_unobserved).
 """
 
 from __future__ import annotations
@@ -53,43 +54,76 @@ def observed_view_centres(scene_h5: str | os.PathLike, split: Split, steps: int)
     return camera_centers(np.asarray(w2c, np.float64))
 
 
-def view_information(point: np.ndarray, camera_centres: np.ndarray) -> np.ndarray:
-    """(3, 3) mean over the views of I - d d^T, d the unit ray from each camera
-    centre (V, 3) to `point` (3,); a view at the point itself is left out."""
-    rays = np.asarray(point, np.float64)[None] - np.asarray(camera_centres, np.float64)
-    length = np.linalg.norm(rays, axis=1)
-    rays = rays[length > 1e-12] / length[length > 1e-12, None]
-    if rays.shape[0] == 0:
-        return np.zeros((3, 3))
-    return np.eye(3) - np.einsum("vi,vj->ij", rays, rays) / rays.shape[0]
+def view_information(points: np.ndarray, camera_centres: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) for points (..., 3): the mean over the views of I - d d^T,
+    d the unit ray from each camera centre (V, 3) to the point; a view at the
+    point itself is left out, and a point no view sees gets zeros."""
+    rays = np.asarray(points, np.float64)[..., None, :] - np.asarray(camera_centres, np.float64)
+    length = np.linalg.norm(rays, axis=-1, keepdims=True)
+    valid = length[..., 0] > 1e-12
+    unit = np.where(valid[..., None], rays / np.where(length > 1e-12, length, 1.0), 0.0)
+    count = valid.sum(axis=-1)[..., None, None]
+    mean_outer = np.einsum("...vi,...vj->...ij", unit, unit) / np.maximum(count, 1)
+    return np.where(count > 0, np.eye(3) - mean_outer, 0.0)
 
 
-def unobserved_scaling(information: np.ndarray, min_spread_deg: float) -> np.ndarray | None:
-    """(3, 3) symmetric map scaling a displacement by min(1, lambda / sin^2(min_spread))
-    along each eigenvector of `information`; None where it scales nothing (every
-    direction seen from at least `min_spread` apart), so such forecasts keep their values."""
-    lam, vectors = np.linalg.eigh(np.asarray(information, np.float64))
-    floor = np.sin(np.radians(float(min_spread_deg))) ** 2
-    scale = np.minimum(1.0, np.clip(lam, 0.0, None) / floor) if floor > 0 else np.ones(3)
-    if np.all(scale >= 1.0):
-        return None
-    return (vectors * scale) @ vectors.T
+def unobserved_scaling(information: np.ndarray, min_spread_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For information (..., 3, 3): the symmetric maps (..., 3, 3) scaling a
+    displacement by min(1, lambda / sin^2(min_spread)) along each eigenvector,
+    whether each scales anything (...,), and its smallest scale (...,). Where
+    every direction is seen at `min_spread` or more, or no view sees the point
+    (nothing known), the map is the identity and scales nothing."""
+    info = np.asarray(information, np.float64)
+    lam, vectors = np.linalg.eigh(info)
+    scale = np.minimum(1.0, np.clip(lam, 0.0, None) / np.sin(np.radians(float(min_spread_deg))) ** 2)
+    scaled = (np.trace(info, axis1=-2, axis2=-1) > 0) & np.any(scale < 1.0, axis=-1)
+    scale = np.where(scaled[..., None], scale, 1.0)
+    maps = np.einsum("...ik,...k,...jk->...ij", vectors, scale, vectors)
+    return np.where(scaled[..., None, None], maps, np.eye(3)), scaled, scale.min(axis=-1)
 
 
-def suppress_unobserved(last_means: np.ndarray, means: np.ndarray, scaling: np.ndarray, rigid: bool) -> np.ndarray:
-    """Forecast positions (G, T, 3) with each displacement from the last observed
-    position (G, 3) scaled by `scaling`. A rigid group's moving members all take
-    their centroid's correction, so the body stays rigid (its turn is seen
-    across the rays); other groups' members are scaled one by one. Members the
-    forecast keeps still stay still."""
+def suppress_unobserved(
+    last_means: np.ndarray,
+    means: np.ndarray,
+    bodies: np.ndarray | None,
+    camera_centres: np.ndarray,
+    min_spread_deg: float,
+) -> tuple[np.ndarray, dict[str, float]]:
+    """Forecast positions (G, T, 3) with each displacement from the last
+    observed position (G, 3) scaled down along the directions the views
+    (camera centres (V, 3)) did not see across, and the figures: the least
+    mean squared sine of a direction with the rays (`view_spread_min`) and the
+    smallest scale applied (`unobserved_scale_min`).
+
+    `bodies` (G,): Forecaster.bodies(). A rigid body's moving members share
+    the correction of their mean displacement, scaled at their centroid, so
+    the body stays rigid (its turn is seen across the rays); a member moved
+    on its own (-1, or bodies None) is scaled at its own position. Members the
+    forecast keeps still stay still; where nothing is scaled, the positions
+    are returned as they are."""
     last = np.asarray(last_means, np.float64)
-    pos = np.asarray(means, np.float64)
-    removed = np.eye(3) - np.asarray(scaling, np.float64)
-    displacement = pos - last[:, None]
-    if not rigid:
-        return pos - displacement @ removed.T
+    out = np.array(means, np.float64)
+    displacement = out - last[:, None]
     moving = np.any(displacement != 0.0, axis=(1, 2))
-    out = pos.copy()
-    if moving.any():
-        out[moving] -= (displacement[moving].mean(axis=0) @ removed.T)[None]
-    return out
+    labels = np.full(last.shape[0], -1, np.int64) if bodies is None else np.asarray(bodies, np.int64)
+    spreads, scales = [], []
+    for body in np.unique(labels[labels >= 0]):
+        members = np.flatnonzero((labels == body) & moving)
+        if members.size == 0:
+            continue
+        information = view_information(last[members].mean(axis=0), camera_centres)
+        scaling, scaled, smallest = unobserved_scaling(information, min_spread_deg)
+        spreads.append(np.linalg.eigvalsh(information)[0])
+        scales.append(smallest)
+        if scaled:
+            out[members] -= (displacement[members].mean(axis=0) @ (np.eye(3) - scaling).T)[None]
+    own = np.flatnonzero((labels < 0) & moving)
+    if own.size:
+        information = view_information(last[own], camera_centres)
+        scaling, scaled, smallest = unobserved_scaling(information, min_spread_deg)
+        spreads.append(np.linalg.eigvalsh(information)[:, 0].min())
+        scales.append(smallest.min())
+        pick = own[scaled]
+        out[pick] = last[pick, None] + np.einsum("gij,gtj->gti", scaling[scaled], displacement[pick])
+    figures = {"view_spread_min": float(min(spreads)), "unobserved_scale_min": float(min(scales))} if spreads else {}
+    return out, figures

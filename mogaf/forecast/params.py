@@ -165,7 +165,8 @@ class StructuredSettings:
         "motion along directions the views of the last `view_window` observed steps did not see across (along the "
         "rays of one camera filming from one side, where a reconstruction's velocity rests on depth cues alone): "
         "'suppress' scales each forecast displacement down along them, 'keep' forecasts it as the candidates do. "
-        "Views spread around the scene change nothing (mogaf.forecast.observability; docs/forecasting.md, variant "
+        "Views spread around the scene, as the MuJoCo grid's, change nothing (mogaf.forecast.observability; "
+        "docs/forecasting.md, variant "
         "keep_unobserved_motion)",
     )
     view_window: int = setting(

@@ -62,4 +62,4 @@ def fit_and_rollout(
     fc = make_forecaster(method, params, seed, device)
     fc.fit(observed, rigid=rigid, horizon=n_steps)
     poses = fc.rollout(n_steps)
-    return ForecastResult(poses=poses, info=dict(fc.info))
+    return ForecastResult(poses=poses, info=dict(fc.info), bodies=fc.bodies())

@@ -15,8 +15,8 @@ Schema of forecast/{method}.h5:
   group_id (N,)
 attrs: method, groupwise, job_layout (forecast.jobs), num_groups_trained, flags (per job), params.
 
-A forecast job reads of the scene only the camera poses of the last observed
-frames (the structured MoGaF's unobserved_motion: mogaf.forecast.observability):
+A forecast job uses of the scene only the observed frames' camera poses (the
+structured MoGaF's unobserved_motion: mogaf.forecast.observability):
 the future (ground truth included) is read only by the evaluation stage, which
 also computes the quick 3D check.
 """
@@ -39,7 +39,7 @@ from ..errors import MogafError, input_error
 from ..representation import Model4D, load_model, quat_sign_continuity
 from ..split import read_split
 from .coherence import coherence
-from .observability import observed_view_centres, suppress_unobserved, unobserved_scaling, view_information
+from .observability import observed_view_centres, suppress_unobserved
 from .params import INLINE_METHODS, JOB_LAYOUTS, param_section, section_params
 from .registry import fit_and_rollout, load_settings
 
@@ -217,26 +217,28 @@ def forecast_job(
     poses = np.asarray(result.poses, np.float64)
     info = {k: v for k, v in dict(result.info).items() if isinstance(v, (int, float, str, bool)) or v is None}
     if view_centres is not None:
-        poses = _suppress_unobserved_motion(poses, observed[:, -1, :3], view_centres, settings, info)
+        poses = _suppress_unobserved_motion(poses, observed[:, -1, :3], view_centres, settings, info, result.bodies)
     log.info("forecast %s job %s: %d Gaussians, %.1f s, info %s", method, job, members.size, wall, info)
     return poses, info, wall
 
 
 def _suppress_unobserved_motion(
-    poses: np.ndarray, last_means: np.ndarray, view_centres: np.ndarray, settings: Any, info: dict[str, Any]
+    poses: np.ndarray,
+    last_means: np.ndarray,
+    view_centres: np.ndarray,
+    settings: Any,
+    info: dict[str, Any],
+    bodies: np.ndarray | None,
 ) -> np.ndarray:
     """poses with their displacement scaled down along the directions the views
-    did not see across (mogaf.forecast.observability); info records the views'
-    least mean squared sine and the smallest scale."""
-    own = _suppressed_structured(settings)
-    information = view_information(last_means.mean(axis=0), view_centres)
-    scaling = unobserved_scaling(information, own.observed_spread_deg)
-    info["view_spread_min"] = float(np.linalg.eigvalsh(information)[0])
-    info["unobserved_scale_min"] = 1.0 if scaling is None else float(np.linalg.eigvalsh(scaling)[0])
-    if scaling is None:
-        return poses
+    did not see across, body by body (mogaf.forecast.observability); info
+    records the views' least mean squared sine and the smallest scale."""
+    means, figures = suppress_unobserved(
+        last_means, poses[..., :3], bodies, view_centres, _suppressed_structured(settings).observed_spread_deg
+    )
+    info.update(figures)
     out = poses.copy()
-    out[..., :3] = suppress_unobserved(last_means, poses[..., :3], scaling, bool(info.get("rigid")))
+    out[..., :3] = means
     return out
 
 

@@ -567,6 +567,16 @@ class StructuredMoGaF(Forecaster):
         info["iterations"] = int(sum(i.get("iterations", 0) for i in infos)) + (shared.iterations if shared else 0)
         self.info.update(info)
 
+    def bodies(self) -> np.ndarray:
+        """A rigid group (or one forecast as one body): every member on body 0;
+        rigid parts: each its part; per Gaussian: -1."""
+        if self.parts is not None:
+            labels = np.full(self._obs.shape[0], -1, np.int64)
+            for p, (members, _) in enumerate(self.parts):
+                labels[members] = p
+            return labels
+        return np.full(self._obs.shape[0], 0 if self.motion.rigid else -1, np.int64)
+
     def _rollout(self, n_steps: int) -> np.ndarray:
         if self.parts is not None:
             poses = np.empty((self._obs.shape[0], n_steps, 7))
