@@ -413,7 +413,7 @@ def test_merge_refuses_missing_overlapping_and_foreign_parts(inputs, mogaf_parts
 
 
 def test_evaluation_quick_epe_measures_the_error(inputs, tmp_path):
-    """The quick 3D check lives in evaluation: the forecast stage never opens the scene (its future)."""
+    """The quick 3D checks live in evaluation, the only stage that reads the scene's future."""
     model = load_model(inputs["model"])
     split = read_split(inputs["split"])
     pos, quats, _ = world()
@@ -436,6 +436,13 @@ def test_evaluation_quick_epe_measures_the_error(inputs, tmp_path):
     assert "epe_3d_quick" not in frozen.attrs
     scene_h5, _ = write_scene(tmp_path / "nogt", with_gt=False)
     assert tracking_section(model, fc, str(scene_h5), split, EVAL_PARAMS) == (None, None)
+    # points resting on the static group: frozen leaves them, a shifted forecast moves them by its shift
+    still_h5, _ = write_scene(tmp_path / "still", with_gt=True, still_gt=True)
+    quick = tracking_section(model, fc, str(still_h5), split, EVAL_PARAMS)[1]
+    assert quick["still_points"] == N_PER and quick["still_points_displacement"] == pytest.approx(0.0, abs=1e-6)
+    moved = {"means": np.asarray(frozen["means"]) + np.array([0.0, 0.3, 0.4]), "quats": fc["quats"]}
+    quick = tracking_section(model, moved, str(still_h5), split, EVAL_PARAMS)[1]
+    assert quick["still_points_displacement"] == pytest.approx(0.5, abs=1e-6)
 
 
 # ------------------------------------------------------------------ determinism

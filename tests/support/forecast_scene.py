@@ -48,7 +48,9 @@ def world(seed: int = 0):
     return pos, quats, velocity
 
 
-def write_scene(folder: Path, *, with_gt: bool) -> tuple[Path, Path]:
+def write_scene(folder: Path, *, with_gt: bool, still_gt: bool = False) -> tuple[Path, Path]:
+    """scene.h5 and split.h5 of world(); `with_gt`: ground-truth points riding
+    the rigid group, `still_gt`: and points resting on the static group."""
     pos, _, _ = world()
     names, K, w2c, time, tidx, cams, splits = [], [], [], [], [], [], []
     for t in range(T):
@@ -67,6 +69,9 @@ def write_scene(folder: Path, *, with_gt: bool) -> tuple[Path, Path]:
     if with_gt:
         # surface points riding exactly on the rigid group's Gaussians
         gt = {"points3d": pos[members(RIGID)].astype(np.float64) + np.array([0.01, 0.0, 0.0])}
+        if still_gt:
+            resting = pos[members(STATIC)].astype(np.float64) + np.array([0.0, 0.01, 0.0])
+            gt["points3d"] = np.concatenate([gt["points3d"], resting])
     scene = Scene(
         dataset="test",
         name="fc",
