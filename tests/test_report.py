@@ -764,6 +764,9 @@ def test_scenes_table_gives_mogafs_margin_over_the_better_of_frozen_and_constant
         data["reconstruction"] = {"heldout_observed": {"psnr": psnr}} if psnr else {}
         if psnr:  # and its velocity error at the last observed step against the GT points' speed
             data["reconstruction"]["observed_motion"] = {"last_velocity_error": psnr / 1000, "speed": 0.01}
+        if psnr == 23.0:  # and points that never move: how far MoGaF moves them, against the jitter on them
+            data["reconstruction"]["observed_motion"]["still_jitter"] = 0.02
+            data["methods"]["mogaf"]["forecast"]["still_points_displacement"] = 0.005
         f.write_text(json.dumps(data))
     text = scenes_table(load_metrics(files))
     rows = md_rows(text)
@@ -775,6 +778,8 @@ def test_scenes_table_gives_mogafs_margin_over_the_better_of_frozen_and_constant
     assert [r[recon] for r in rows[1:5]] == ["–", "21.00", "23.00", "22.00"]  # the mean over the scenes that have it
     velocity = rows[0].index("reconstruction: GT points' velocity error at the last observed step / their speed")
     assert [r[velocity] for r in rows[1:5]] == ["–", "0.0210 / 0.0100", "0.0230 / 0.0100", "0.0220 / 0.0100"]
+    still = rows[0].index("GT points that never move: MoGaF moves them / the reconstruction's jitter (m)")
+    assert [r[still] for r in rows[1:5]] == ["–", "–", "0.0050 / 0.0200", "0.0050 / 0.0200"]
     assert len({len(r) for r in rows}) == 1  # the mean row has every column
     assert (
         "MoGaF is more than 0.3 dB PSNR below the better of frozen and constant velocity on 1 of 3 scenes "

@@ -80,8 +80,17 @@ def recon_velocity(result: dict[str, Any]) -> tuple[float, float] | None:
     return float(motion["last_velocity_error"]), float(motion["speed"])
 
 
+def still_points(result: dict[str, Any]) -> tuple[float, float] | None:
+    """How far MoGaF's forecast moves the ground-truth points that never move
+    (still_points_displacement) and the reconstruction's own jitter on them
+    (observed_motion's still_jitter), or None where the scene has no such points."""
+    moved = forecast_record(result, "mogaf").get("still_points_displacement")
+    jitter = ((result.get("reconstruction") or {}).get("observed_motion") or {}).get("still_jitter")
+    return None if moved is None or jitter is None else (float(moved), float(jitter))
+
+
 def _velocity_cell(pairs: list[tuple[float, float] | None]) -> str:
-    """The mean velocity error / mean speed over the pairs that are there, or –."""
+    """The mean of each side of the pairs that are there ("a / b"), or –."""
     there = [p for p in pairs if p is not None]
     if not there:
         return "–"
@@ -145,12 +154,14 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
     ious = any((r.get("grouping") or {}).get("per_object_iou") for r in results)
     recon = any(recon_psnr(r) is not None for r in results)
     velocity = any(recon_velocity(r) is not None for r in results)
+    still = any(still_points(r) is not None for r in results)
     starred = {m: any(budget_differences(r, m) for r in results) for m in methods}
     header = ["scene"] + [method_label(results[0], m) + ("*" if starred[m] else "") for m in methods]
     header += ["MoGaF − best of frozen, const. velocity (dB)"] if margin else []
     header += ["grouping IoU per object"] if ious else []
     header += ["reconstruction PSNR, held-out views of observed times"] if recon else []
     header += ["reconstruction: GT points' velocity error at the last observed step / their speed"] if velocity else []
+    header += ["GT points that never move: MoGaF moves them / the reconstruction's jitter (m)"] if still else []
     header += ["MoGaF's choice per group (weight)", "MoGaF coherence: rigid / still (m, still count)"] if mogaf else []
     datasets = ", ".join(sorted({r["dataset"] for r in results}))
     caption = f"Ratio {float(results[0]['ratio']):g} ({datasets}; {' / '.join(CELL_NAMES[k] for k in metrics)}):"
@@ -164,6 +175,7 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
         cells += [_object_ious(r)] if ious else []
         cells += [fmt(recon_psnr(r), "psnr")] if recon else []
         cells += [_velocity_cell([recon_velocity(r)])] if velocity else []
+        cells += [_velocity_cell([still_points(r)])] if still else []
         cells += [_choices(r), _coherence(r)] if mogaf else []
         lines.append("| " + " | ".join(cells) + " |")
     (best,) = _best([means], metrics)
@@ -171,6 +183,7 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
     cells += [""] * (margin + ious)
     cells += [fmt(_mean([recon_psnr(r) for r in results]), "psnr")] if recon else []
     cells += [_velocity_cell([recon_velocity(r) for r in results])] if velocity else []
+    cells += [_velocity_cell([still_points(r) for r in results])] if still else []
     cells += ["", ""] if mogaf else []
     lines.append("| " + " | ".join(cells) + " |")
     if margin:
