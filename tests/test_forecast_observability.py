@@ -159,7 +159,9 @@ def test_observed_view_centres_read_the_last_observed_steps_only(tmp_path):
     assert observed_view_centres(scene_h5, split, 100).shape[0] == frames.num_frames
     # a split whose observed frames lie outside its observed steps (made for another scene) is refused
     other = dataclasses.replace(split, observed_timesteps=split.observed_timesteps[:-1])
-    with pytest.raises(MogafError, match="observed frame .* is at a time step the split does not observe") as err:
+    with pytest.raises(
+        MogafError, match=r"frame \d+ of split role 'observed' is at time step \d+, outside the role's steps"
+    ) as err:
         observed_view_centres(scene_h5, other, 2)
     assert str(scene_h5) in str(err.value)
 

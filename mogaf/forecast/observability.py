@@ -25,7 +25,6 @@ import os
 
 import numpy as np
 
-from ..errors import input_error
 from ..split import Split
 
 
@@ -37,18 +36,13 @@ def observed_view_centres(scene_h5: str | os.PathLike, split: Split, steps: int)
     from ..artefact.reader import read_rows
     from ..camera import camera_centers
     from ..scene import SCENE_STAGE, check_scene_file
+    from ..split.frames import check_role_steps
 
     ids = np.asarray(split.frame_ids["observed"], np.int64)
     with open_artefact(scene_h5, SCENE_STAGE) as fh:
         check_scene_file(fh, scene_h5)
         time_index = read_rows(fh, "frames/time_index", ids)
-        outside = ~np.isin(time_index, split.observed_timesteps)
-        if outside.any():
-            raise input_error(
-                scene_h5,
-                f"observed frame {int(ids[np.flatnonzero(outside)[0]])} is at a time step the split does not observe: "
-                "the split was made for another scene",
-            )
+        check_role_steps(scene_h5, split, "observed", time_index)
         recent = np.sort(np.unique(time_index))[-int(steps) :]
         w2c = read_rows(fh, "frames/w2c", ids[np.isin(time_index, recent)])
     return camera_centers(np.asarray(w2c, np.float64))

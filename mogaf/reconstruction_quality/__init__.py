@@ -17,7 +17,8 @@ reconstruction_quality/{model}.h5 (stage "reconstruction_quality"):
     observed_motion (JSON, scenes with ground-truth surface points, else {}:
     the model's observed trajectories against them, measure.observed_motion:
     epe_3d, velocity_error, last_velocity_error and the points' speed, in
-    scene units per step)
+    scene units per step; still_points and still_jitter where some points
+    never move)
 metrics.json["reconstruction"] copies it: {"heldout_observed": ..., "num_frames": F,
 "observed_motion": ...}, without the first two where the split has no
 held-out view at an observed step, without the last without ground truth.

@@ -89,7 +89,7 @@ def still_points(result: dict[str, Any]) -> tuple[float, float] | None:
     return None if moved is None or jitter is None else (float(moved), float(jitter))
 
 
-def _velocity_cell(pairs: list[tuple[float, float] | None]) -> str:
+def _pair_cell(pairs: list[tuple[float, float] | None]) -> str:
     """The mean of each side of the pairs that are there ("a / b"), or –."""
     there = [p for p in pairs if p is not None]
     if not there:
@@ -174,16 +174,16 @@ def ratio_table(results: list[dict[str, Any]]) -> str:
         cells += [f"{psnr_margin(r):+.2f}"] if margin else []
         cells += [_object_ious(r)] if ious else []
         cells += [fmt(recon_psnr(r), "psnr")] if recon else []
-        cells += [_velocity_cell([recon_velocity(r)])] if velocity else []
-        cells += [_velocity_cell([still_points(r)])] if still else []
+        cells += [_pair_cell([recon_velocity(r)])] if velocity else []
+        cells += [_pair_cell([still_points(r)])] if still else []
         cells += [_choices(r), _coherence(r)] if mogaf else []
         lines.append("| " + " | ".join(cells) + " |")
     (best,) = _best([means], metrics)
     cells = ["**mean**"] + [_cell(means[m], best, metrics) for m in methods]
     cells += [""] * (margin + ious)
     cells += [fmt(_mean([recon_psnr(r) for r in results]), "psnr")] if recon else []
-    cells += [_velocity_cell([recon_velocity(r) for r in results])] if velocity else []
-    cells += [_velocity_cell([still_points(r) for r in results])] if still else []
+    cells += [_pair_cell([recon_velocity(r) for r in results])] if velocity else []
+    cells += [_pair_cell([still_points(r) for r in results])] if still else []
     cells += ["", ""] if mogaf else []
     lines.append("| " + " | ".join(cells) + " |")
     if margin:

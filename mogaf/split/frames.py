@@ -34,16 +34,23 @@ def load_frames(scene_h5: str | os.PathLike, split: Split | str | os.PathLike, r
             f"has {frames.num_timesteps} time steps, the split has {sp.num_timesteps}: "
             "the split was made for another scene",
         )
-    steps = sp.observed_timesteps if role in ("observed", "evaluation_observed") else sp.forecast_timesteps
-    outside = ~np.isin(frames.time_index, steps)
+    check_role_steps(scene_h5, sp, role, frames.time_index)
+    return frames
+
+
+def check_role_steps(scene_h5: str | os.PathLike, split: Split, role: str, time_index: np.ndarray) -> None:
+    """The time steps (scene.h5's frames/time_index) of the split's frames of
+    `role`, in its order, must be the role's own (observed or forecast) steps;
+    otherwise the split was made for another scene."""
+    steps = split.observed_timesteps if role in ("observed", "evaluation_observed") else split.forecast_timesteps
+    outside = ~np.isin(time_index, steps)
     if outside.any():
         f = int(np.flatnonzero(outside)[0])
         raise input_error(
             scene_h5,
-            f"frame {int(sp.frame_ids[role][f])} of split role '{role}' is at time step "
-            f"{int(frames.time_index[f])}, outside the role's steps: the split was made for another scene",
+            f"frame {int(split.frame_ids[role][f])} of split role '{role}' is at time step "
+            f"{int(time_index[f])}, outside the role's steps: the split was made for another scene",
         )
-    return frames
 
 
 def evenly_spaced_frame_ids(split: Split, role: str, limit: int) -> np.ndarray:
