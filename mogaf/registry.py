@@ -183,6 +183,7 @@ SCENE = _in("scene", "ingest")
 SCENE_OPTIONAL = _in("scene", "ingest", required=False)
 SPLIT = _in("split", "split")
 PRIORS = _in("priors", "priors")
+PRIORS_OPTIONAL = _in("priors", "priors", required=False)
 
 STAGES: tuple[StageSpec, ...] = (
     StageSpec(
@@ -333,8 +334,15 @@ STAGES: tuple[StageSpec, ...] = (
         "forecast_group",
         wrapper="forecast_group",
         output="forecast/{method}/group{group}.h5",
-        # the scene: the observed frames' camera poses (structured MoGaF's unobserved_motion)
-        inputs=(_in("model", forecast_input), _in("groups", "group", checkpoint=True), SPLIT, SCENE_OPTIONAL),
+        # the scene: the observed frames' camera poses (structured MoGaF's unobserved_motion);
+        # the priors: the 2D tracks at two observed steps (its track_agreement)
+        inputs=(
+            _in("model", forecast_input),
+            _in("groups", "group", checkpoint=True),
+            SPLIT,
+            SCENE_OPTIONAL,
+            PRIORS_OPTIONAL,
+        ),
         settings="forecast",
         seed="kwarg",
         device="kwarg",
@@ -353,6 +361,7 @@ STAGES: tuple[StageSpec, ...] = (
             _in("groups", "group", checkpoint=True),
             SPLIT,
             SCENE_OPTIONAL,
+            PRIORS_OPTIONAL,
             _in("parts", None, option="parts", required=False, many=True),
         ),
         settings="forecast",

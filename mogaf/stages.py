@@ -377,15 +377,26 @@ def forecast_group(
     seed: int,
     device: str = "cpu",
     scene: str | None = None,
+    priors: str | None = None,
 ) -> Path:
     from .forecast.stage import run_forecast_group  # local: a stage's package (and torch) loads only when it runs
 
-    inputs = [model, groups, split, *([scene] if scene else [])]
+    inputs = [model, groups, split, *([scene] if scene else []), *([priors] if priors else [])]
     check_outputs({"out": out}, inputs)
     with stage_inputs(*inputs):
         check_groups_cover(model, groups)
         return run_forecast_group(
-            model, groups, split, out, dict(params), method=method, job=group, seed=seed, device=device, scene_h5=scene
+            model,
+            groups,
+            split,
+            out,
+            dict(params),
+            method=method,
+            job=group,
+            seed=seed,
+            device=device,
+            scene_h5=scene,
+            priors_h5=priors,
         )
 
 
@@ -401,10 +412,11 @@ def forecast_merge(
     device: str | None = None,
     job_threads: int | None = None,
     scene: str | None = None,
+    priors: str | None = None,
 ) -> Path:
     from .forecast.stage import run_forecast_merge  # local: a stage's package (and torch) loads only when it runs
 
-    inputs = [model, groups, split, *([scene] if scene else []), *parts]
+    inputs = [model, groups, split, *([scene] if scene else []), *([priors] if priors else []), *parts]
     check_outputs({"out": out}, inputs)
     with stage_inputs(*inputs):
         check_groups_cover(model, groups)
@@ -420,6 +432,7 @@ def forecast_merge(
             device=device,
             threads=job_threads,
             scene_h5=scene,
+            priors_h5=priors,
         )
 
 

@@ -185,7 +185,7 @@ def test_the_stage_scales_structured_mogaf_only_and_needs_the_scene(tmp_path, mo
     monkeypatch.setattr(forecast_stage, "observed_view_centres", lambda *a: np.array([[0.0, 0.0, -50.0]]))
 
     def run(name, structured, **kw):
-        params = {"mogaf": {"iterations": 5, "structured": {"gate": False, **structured}}}
+        params = {"mogaf": {"iterations": 5, "structured": {"gate": False, "track_agreement": "keep", **structured}}}
         out = forecast_stage.run_forecast_group(
             str(model_h5), str(groups_h5), str(split_h5), str(tmp_path / name), params, job=str(RIGID), seed=0, **kw
         )
@@ -238,7 +238,7 @@ def test_view_settings_said_to_have_no_effect_change_no_forecast(tmp_path, monke
     monkeypatch.setattr(forecast_stage, "observed_view_centres", lambda *args: views)
 
     def means(name, structured):
-        params = {"mogaf": {"iterations": 5, "structured": {"gate": False, **structured}}}
+        params = {"mogaf": {"iterations": 5, "structured": {"gate": False, "track_agreement": "keep", **structured}}}
         out = forecast_stage.run_forecast_group(
             str(model_h5), str(groups_h5), str(split_h5), str(tmp_path / name), params,
             method="mogaf", job=str(NONRIGID), seed=0, scene_h5=str(scene_h5),

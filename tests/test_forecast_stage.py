@@ -45,6 +45,7 @@ from support.forecast_scene import (
     members,
     world,
     write_model,
+    write_priors,
     write_scene,
 )
 from support.forecast_scene import (
@@ -65,7 +66,15 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     model_h5 = write_model(folder / "refined.h5", split.observed_timesteps)
     group_id = np.repeat([STATIC, RIGID, NONRIGID], N_PER)
     groups_h5 = write_groups(folder / "groups.h5", _groups(group_id, static=[1, 0, 0], rigid=[1, 1, 0]))
-    return {"folder": folder, "scene": scene_h5, "split": split_h5, "model": model_h5, "groups": groups_h5}
+    priors_h5 = write_priors(folder / "priors.h5", scene_h5, split_h5)  # no tracks: every forecast as fitted
+    return {
+        "folder": folder,
+        "scene": scene_h5,
+        "split": split_h5,
+        "model": model_h5,
+        "groups": groups_h5,
+        "priors": priors_h5,
+    }
 
 
 @pytest.fixture(scope="module")
@@ -82,6 +91,7 @@ def mogaf_parts(inputs, tmp_path_factory) -> list[Path]:
             job=j,
             seed=7,
             scene_h5=str(inputs["scene"]),
+            priors_h5=str(inputs["priors"]),
         )
         for j in forecast_jobs(inputs["groups"], groupwise=True)
     ]
@@ -98,6 +108,7 @@ def _merge(inputs, out: Path, parts: list, method: str, params=None, seed: int =
         method=method,
         seed=seed,
         scene_h5=str(inputs["scene"]),
+        priors_h5=str(inputs["priors"]),
     )
 
 
@@ -174,6 +185,7 @@ def test_group_job_mogaf_all(inputs, tmp_path):
         seed=0,
         device="auto",
         scene_h5=str(inputs["scene"]),
+        priors_h5=str(inputs["priors"]),
     )
     art = read_artefact(out, "forecast_group")
     assert art.attrs["info"]["device"] in ("cpu", "cuda")  # the device the network ran on, recorded
@@ -262,6 +274,7 @@ def test_a_job_loads_and_checks_its_settings_once(inputs, tmp_path, monkeypatch,
         job=str(RIGID),
         seed=0,
         scene_h5=str(inputs["scene"]),
+        priors_h5=str(inputs["priors"]),
     )
     assert calls == {"check": 1, "load_mogaf": 1 if method == "mogaf" else 0}
 
@@ -369,6 +382,7 @@ def test_merge_per_method_is_the_group_jobs_forecast(inputs, mogaf_parts, tmp_pa
             method="mogaf",
             seed=7,
             scene_h5=str(inputs["scene"]),
+            priors_h5=str(inputs["priors"]),
             threads=1,
         )
         assert torch.get_num_threads() == 3  # restored
@@ -403,6 +417,7 @@ def test_merge_refuses_missing_overlapping_and_foreign_parts(inputs, mogaf_parts
         job="all",
         seed=7,
         scene_h5=str(inputs["scene"]),
+        priors_h5=str(inputs["priors"]),
     )
     with pytest.raises(MogafError, match="overlaps"):
         _merge(inputs, tmp_path / "d.h5", [mogaf_parts[0], whole], "mogaf", MOGAF_FAST)
@@ -457,6 +472,7 @@ def test_same_inputs_same_seed_same_arrays(inputs, mogaf_parts, tmp_path):
         job=Path(mogaf_parts[0]).stem.removeprefix("group"),
         seed=7,
         scene_h5=str(inputs["scene"]),
+        priors_h5=str(inputs["priors"]),
     )
     a, b = _arrays(mogaf_parts[0]), _arrays(again)
     assert a.keys() == b.keys()
@@ -481,6 +497,7 @@ def test_same_inputs_same_seed_same_arrays(inputs, mogaf_parts, tmp_path):
         job=Path(mogaf_parts[0]).stem.removeprefix("group"),
         seed=8,
         scene_h5=str(inputs["scene"]),
+        priors_h5=str(inputs["priors"]),
     )
     assert not np.array_equal(_arrays(other)["means"], a["means"])
 

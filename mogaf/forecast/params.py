@@ -179,6 +179,24 @@ class StructuredSettings:
         exclusive_minimum=0,
         maximum=90,
     )
+    track_agreement: Literal["shrink", "keep"] = setting(
+        "shrink",
+        "how far each rigid body's image motion over the last `track_steps` observed steps agrees with the 2D "
+        "tracks on it: 'shrink' scales its forecast motion from its last observed pose by m^2 / (m^2 + e^2), m the "
+        "tracks' own motion and e the model's error against them, in pixels (the least-squares scale of a velocity "
+        "known to that error); 'keep' forecasts it as the candidates do. Without tracks (the multi-view layouts, as "
+        "the MuJoCo grid's) nothing changes (mogaf.forecast.track_agreement; docs/forecasting.md, variant "
+        "keep_track_disagreement)",
+    )
+    track_steps: int = setting(
+        3, "track_agreement: shrink: the observed steps the motion is compared over, back from the last", minimum=1
+    )
+    min_tracks: int = setting(
+        5,
+        "track_agreement: shrink: tracks a body needs for its own scale; with fewer it takes its group's (every "
+        "track on the group's members), and a group with fewer keeps its forecast",
+        minimum=1,
+    )
     refit_networks: int = setting(
         1,
         "networks the learned candidate fits on every observed frame (each from its own seed), whose rollouts it "
@@ -431,12 +449,16 @@ def _unread_by_mogaf(net: MogafSettings, own: StructuredSettings, changed: Mappi
         why.setdefault("structured.trend_window", "candidates has neither linear_trend nor damped_trend")
     if "damped_trend" not in own.candidates:
         why.setdefault("structured.trend_half_life", "candidates has no damped_trend")
-    if own.nonrigid_motion != "rigid_parts":
-        for k in ("rigid_parts", "parts_unexplained"):
-            why.setdefault(f"structured.{k}", f"nonrigid_motion is {own.nonrigid_motion}, not rigid_parts")
-    if own.unobserved_motion == "keep":
-        for k in ("view_window", "observed_spread_deg"):
-            why.setdefault(f"structured.{k}", "unobserved_motion is keep")
+    # a switch's own settings, unread where it is off
+    for switch, off, keys in (
+        ("nonrigid_motion", ("per_gaussian", "rigid_body"), ("rigid_parts", "parts_unexplained")),
+        ("unobserved_motion", ("keep",), ("view_window", "observed_spread_deg")),
+        ("track_agreement", ("keep",), ("track_steps", "min_tracks")),
+    ):
+        value = getattr(own, switch)
+        for k in keys if value in off else ():
+            reason = f"{switch} is {value}" + (", not rigid_parts" if switch == "nonrigid_motion" else "")
+            why.setdefault(f"structured.{k}", reason)
     if own.combine == "select":
         why.setdefault("structured.backtest_neighbors", "combine is select, which decides per group")
         why.setdefault("structured.backtest_origins", "combine is select, which scores one window")

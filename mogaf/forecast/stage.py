@@ -16,7 +16,9 @@ Schema of forecast/{method}.h5:
 attrs: method, groupwise, job_layout (forecast.jobs), num_groups_trained, flags (per job), params.
 
 A forecast job uses of the scene only the observed frames' camera poses (the
-structured MoGaF's unobserved_motion: mogaf.forecast.observability):
+structured MoGaF's unobserved_motion: mogaf.forecast.observability), and of
+the priors the 2D tracks at two observed steps (its track_agreement:
+mogaf.forecast.track_agreement):
 the future (ground truth included) is read only by the evaluation stage, which
 also computes the quick 3D check.
 """
@@ -42,6 +44,7 @@ from .coherence import coherence
 from .observability import observed_view_centres, suppress_unobserved
 from .params import INLINE_METHODS, JOB_LAYOUTS, param_section, section_params
 from .registry import fit_and_rollout, load_settings
+from .track_agreement import TrackWindow, body_scales, observed_track_window, scale_motion, track_motion_errors
 
 log = logging.getLogger(__name__)
 
@@ -170,10 +173,11 @@ def _load_inputs(model_h5, groups_h5, split_h5):
     return model, group_id, group_static, split
 
 
-def _suppressed_structured(settings: Any) -> Any:
-    """The structured settings of a MoGaF run that suppresses unobserved motion, else None."""
+def _structured_switched_on(settings: Any, switch: str, on: str) -> Any:
+    """The structured settings of a MoGaF run whose `switch` is `on`
+    (unobserved_motion: suppress, track_agreement: shrink), else None."""
     own, net = getattr(settings, "own", None), getattr(settings, "net", None)
-    if own is None or net is None or net.mode != "structured" or own.unobserved_motion != "suppress":
+    if own is None or net is None or net.mode != "structured" or getattr(own, switch) != on:
         return None
     return own
 
@@ -181,7 +185,7 @@ def _suppressed_structured(settings: Any) -> Any:
 def job_view_centres(settings: Any, scene_h5: str | os.PathLike | None, split: Any, method: str) -> np.ndarray | None:
     """The camera centres a method's jobs weigh their forecast motion by
     (structured MoGaF, unobserved_motion: suppress), else None."""
-    own = _suppressed_structured(settings)
+    own = _structured_switched_on(settings, "unobserved_motion", "suppress")
     if own is None:
         return None
     if scene_h5 is None:
@@ -190,6 +194,28 @@ def job_view_centres(settings: Any, scene_h5: str | os.PathLike | None, split: A
             "camera poses: give the scene (--scene-h5), or set unobserved_motion: keep"
         )
     return observed_view_centres(scene_h5, split, own.view_window)
+
+
+def job_track_window(
+    settings: Any,
+    priors_h5: str | os.PathLike | None,
+    scene_h5: str | os.PathLike | None,
+    split: Any,
+    method: str,
+) -> TrackWindow | None:
+    """The tracks a method's jobs compare their bodies' last observed motion
+    with (structured MoGaF, track_agreement: shrink), else None (also when the
+    priors have no tracks)."""
+    own = _structured_switched_on(settings, "track_agreement", "shrink")
+    if own is None:
+        return None
+    if priors_h5 is None or scene_h5 is None:
+        raise MogafError(
+            f"forecast {method}: forecast.mogaf.structured.track_agreement: shrink reads the priors' 2D tracks and "
+            "the observed frames' cameras: give the priors (--priors-h5) and the scene (--scene-h5), or set "
+            "track_agreement: keep"
+        )
+    return observed_track_window(priors_h5, scene_h5, split, own.track_steps)
 
 
 def forecast_job(
@@ -203,12 +229,14 @@ def forecast_job(
     rigid: bool | None = None,
     device: str = "cpu",
     view_centres: np.ndarray | None = None,
+    track_window: TrackWindow | None = None,
 ) -> tuple[np.ndarray, dict[str, Any], float]:
     """Fit `method` on the members' observed trajectories; (poses (G, horizon, 7), info, wall seconds).
     `settings`: the method's, loaded once for the job (registry.load_settings);
     `rigid`: the grouping's rigid flag of the job's group (None for the job of every dynamic Gaussian);
     `device`: auto | cpu | cuda, where a torch-based method computes;
-    `view_centres`: job_view_centres' (None: the forecast as fitted). The
+    `view_centres`: job_view_centres' (None: the forecast as fitted);
+    `track_window`: job_track_window's (None: the forecast as fitted). The
     forecaster refuses non-finite poses (Forecaster.rollout)."""
     observed = observed_states(model, members)
     start = time.perf_counter()
@@ -218,6 +246,10 @@ def forecast_job(
     info = {k: v for k, v in dict(result.info).items() if isinstance(v, (int, float, str, bool)) or v is None}
     if view_centres is not None:
         poses = _suppress_unobserved_motion(poses, observed[:, -1, :3], view_centres, settings, info, result.bodies)
+    if track_window is not None:
+        poses = _scale_by_track_agreement(
+            model, members, poses, observed[:, -1], track_window, settings, info, result.bodies
+        )
     log.info("forecast %s job %s: %d Gaussians, %.1f s, info %s", method, job, members.size, wall, info)
     return poses, info, wall
 
@@ -234,12 +266,42 @@ def _suppress_unobserved_motion(
     did not see across, body by body (mogaf.forecast.observability); info
     records the views' least mean squared sine and the smallest scale."""
     means, figures = suppress_unobserved(
-        last_means, poses[..., :3], bodies, view_centres, _suppressed_structured(settings).observed_spread_deg
+        last_means,
+        poses[..., :3],
+        bodies,
+        view_centres,
+        _structured_switched_on(settings, "unobserved_motion", "suppress").observed_spread_deg,
     )
     info.update(figures)
     out = poses.copy()
     out[..., :3] = means
     return out
+
+
+def _scale_by_track_agreement(
+    model: Model4D,
+    members: np.ndarray,
+    poses: np.ndarray,
+    last: np.ndarray,
+    window: TrackWindow,
+    settings: Any,
+    info: dict[str, Any],
+    bodies: np.ndarray | None,
+) -> np.ndarray:
+    """poses with each body's motion scaled by its agreement with the 2D
+    tracks (mogaf.forecast.track_agreement); info records the job's tracks,
+    their error and motion (pixels) and the smallest scale of its bodies."""
+    labels = np.full(members.size, -1, np.int64) if bodies is None else np.asarray(bodies, np.int64)
+    figures = track_motion_errors(model, members, labels, window)
+    scales = body_scales(figures, int(_structured_switched_on(settings, "track_agreement", "shrink").min_tracks))
+    error, motion, count = figures[-1]
+    info.update(
+        track_count=count,
+        track_error_px=round(error, 4),
+        track_motion_px=round(motion, 4),
+        track_scale_min=round(min(scales.values()), 4),
+    )
+    return scale_motion(last, poses, labels, scales)
 
 
 def run_forecast_group(
@@ -254,14 +316,17 @@ def run_forecast_group(
     seed: int,
     device: str = "cpu",
     scene_h5: str | None = None,
+    priors_h5: str | None = None,
 ) -> Path:
     """One forecast_group job. Its settings are loaded and checked here, once
     (values without effect are said when the workflow starts: mogaf.config.inert_forecaster_settings).
-    `scene_h5`: where the observed frames' camera poses are read (job_view_centres)."""
+    `scene_h5`: where the observed frames' camera poses are read (job_view_centres);
+    `priors_h5`: where the 2D tracks are (job_track_window)."""
     settings = load_settings(method, method_params(params, method))
     model, group_id, group_static, split = _load_inputs(model_h5, groups_h5, split_h5)
     members = job_members(job, group_id, group_static, groups_h5)
     view_centres = job_view_centres(settings, scene_h5, split, method)
+    track_window = job_track_window(settings, priors_h5, scene_h5, split, method)
     poses, info, wall = forecast_job(
         model,
         members,
@@ -273,6 +338,7 @@ def run_forecast_group(
         job_rigid_hint(job, group_rigid_flags(groups_h5)),
         device,
         view_centres,
+        track_window,
     )
     return write_artefact(
         out,
@@ -311,6 +377,7 @@ def run_forecast_merge(
     device: str | None = None,
     threads: int | None = None,
     scene_h5: str | None = None,
+    priors_h5: str | None = None,
 ) -> Path:
     """Merge the group jobs' poses into forecast/{method}.h5. INLINE_METHODS,
     and every method under forecast.jobs: per_method, are computed here, group
@@ -347,6 +414,7 @@ def run_forecast_merge(
             raise MogafError(f"forecast {method}: computed in the merge job ({layout}), it takes no group files")
         settings = load_settings(method, method_params(params, method))  # once for every job of the merge
         view_centres = job_view_centres(settings, scene_h5, split, method)
+        track_window = job_track_window(settings, priors_h5, scene_h5, split, method)
         jobs = _job_names(group_id, group_static, bool(params.get("groupwise", True)))
         untrained = method in INLINE_METHODS
         trained = 0 if untrained else len(jobs)
@@ -364,6 +432,7 @@ def run_forecast_merge(
                     job_rigid_hint(job, group_rigid),
                     "cpu" if untrained else device,
                     view_centres,
+                    track_window,
                 )
                 means[members] = poses[..., :3]
                 quats[members] = poses[..., 3:]

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mogaf.artefact import write_artefact
 from mogaf.grouping.core import Groups
 from mogaf.representation import GaussianSet, Model4D, save_model
 from mogaf.scene import SPLIT_CODES, Scene, save_scene
@@ -92,6 +93,32 @@ def write_scene(folder: Path, *, with_gt: bool, still_gt: bool = False) -> tuple
     scene_h5 = save_scene(folder / "scene.h5", scene, config_digest="fc-test")
     split_h5 = write_split(folder / "split.h5", split_scene(scene_h5, RATIO))
     return scene_h5, split_h5
+
+
+def write_priors(
+    path: Path, scene_h5: Path, split_h5: Path, xy: np.ndarray | None = None, visible: np.ndarray | None = None
+) -> Path:
+    """A priors.h5 over the split's observed frames: their ids and time steps,
+    and 2D tracks (N, frames, 2) with their visibility (none by default)."""
+    from mogaf.split import load_frames, read_split
+
+    split = read_split(split_h5)
+    frames = load_frames(scene_h5, split, "observed")
+    F = len(split.frame_ids["observed"])
+    xy = np.zeros((0, F, 2), np.float32) if xy is None else np.asarray(xy, np.float32)
+    visible = np.ones(xy.shape[:2], np.uint8) if visible is None else np.asarray(visible, np.uint8)
+    n = xy.shape[0]
+    data = {
+        "frame_ids": np.asarray(split.frame_ids["observed"], np.int64),
+        "timesteps": np.asarray(frames.time_index, np.int64),
+        "tracks": {
+            "query_index": np.zeros(n, np.int64),
+            "xy": xy,
+            "visible": visible,
+            "confidence": np.ones(xy.shape[:2], np.float32),
+        },
+    }
+    return write_artefact(path, "priors", data, config_digest="fc-test")
 
 
 def write_model(path: Path, observed_timesteps: np.ndarray, last_step_shift: float = 0.0) -> Path:
