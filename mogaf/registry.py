@@ -184,6 +184,16 @@ SCENE_OPTIONAL = _in("scene", "ingest", required=False)
 SPLIT = _in("split", "split")
 PRIORS = _in("priors", "priors")
 PRIORS_OPTIONAL = _in("priors", "priors", required=False)
+# A forecast job's inputs. The scene: the observed frames' camera poses
+# (structured MoGaF's unobserved_motion); the priors: the 2D tracks at two
+# observed steps (its track_agreement).
+FORECAST_INPUTS = (
+    _in("model", forecast_input),
+    _in("groups", "group", checkpoint=True),
+    SPLIT,
+    SCENE_OPTIONAL,
+    PRIORS_OPTIONAL,
+)
 
 STAGES: tuple[StageSpec, ...] = (
     StageSpec(
@@ -334,15 +344,7 @@ STAGES: tuple[StageSpec, ...] = (
         "forecast_group",
         wrapper="forecast_group",
         output="forecast/{method}/group{group}.h5",
-        # the scene: the observed frames' camera poses (structured MoGaF's unobserved_motion);
-        # the priors: the 2D tracks at two observed steps (its track_agreement)
-        inputs=(
-            _in("model", forecast_input),
-            _in("groups", "group", checkpoint=True),
-            SPLIT,
-            SCENE_OPTIONAL,
-            PRIORS_OPTIONAL,
-        ),
+        inputs=FORECAST_INPUTS,
         settings="forecast",
         seed="kwarg",
         device="kwarg",
@@ -356,14 +358,7 @@ STAGES: tuple[StageSpec, ...] = (
         wrapper="forecast_merge",
         output="forecast/{method}.h5",
         # parts: forecast/{method}/group{k}.h5 of the method's jobs (the rule lists them)
-        inputs=(
-            _in("model", forecast_input),
-            _in("groups", "group", checkpoint=True),
-            SPLIT,
-            SCENE_OPTIONAL,
-            PRIORS_OPTIONAL,
-            _in("parts", None, option="parts", required=False, many=True),
-        ),
+        inputs=(*FORECAST_INPUTS, _in("parts", None, option="parts", required=False, many=True)),
         settings="forecast",
         seed="kwarg",
         device="kwarg",

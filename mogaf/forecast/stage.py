@@ -299,7 +299,7 @@ def _scale_by_track_agreement(
         track_count=count,
         track_error_px=round(error, 4),
         track_motion_px=round(motion, 4),
-        track_scale_min=round(min(scales.values()), 4),
+        track_scale_min=round(min(scales.get(int(b), scales[-1]) for b in np.unique(labels)), 4),
     )
     return scale_motion(last, poses, labels, scales)
 

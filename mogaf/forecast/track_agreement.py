@@ -75,23 +75,19 @@ def observed_track_window(
             return None
         frame_ids = np.asarray(fh["frame_ids"][()], np.int64)
         timesteps = np.asarray(fh["timesteps"][()], np.int64)
-        unknown = ~np.isin(frame_ids, np.asarray(split.frame_ids["observed"], np.int64))
-        if unknown.any():
-            raise input_error(
-                priors_h5,
-                f"frame {int(frame_ids[unknown][0])} is not an observed frame of the split: made for another split",
-            )
-        rows = []
-        for step in (step_start, step_end):
-            hits = np.flatnonzero(timesteps == step)
-            if hits.size == 0:
-                return None
-            rows.append(int(hits[0]))
-        xy = np.asarray(fh["tracks/xy"][:, rows], np.float64)
-        visible = np.asarray(fh["tracks/visible"][:, rows], bool)
+        if not np.array_equal(np.sort(frame_ids), np.sort(np.asarray(split.frame_ids["observed"], np.int64))):
+            raise input_error(priors_h5, "its frames are not the split's observed frames: made for another split")
+        rows = [int(np.flatnonzero(timesteps == step)[0]) for step in (step_start, step_end)]
+        order = np.argsort(rows)  # h5py reads columns in increasing order only
+        picked = np.asarray(rows)[order]
+        back = np.argsort(order)
+        xy = np.asarray(fh["tracks/xy"][:, picked], np.float64)[:, back]
+        visible = np.asarray(fh["tracks/visible"][:, picked], bool)[:, back]
     ids = frame_ids[rows]
     with open_artefact(scene_h5, SCENE_STAGE) as fh:
         check_scene_file(fh, scene_h5)
+        if not np.array_equal(read_rows(fh, "frames/time_index", ids), [step_start, step_end]):
+            raise input_error(priors_h5, f"its frames' time steps are not those of {scene_h5}: made for another scene")
         K = np.asarray(read_rows(fh, "frames/K", ids), np.float64)
         w2c = np.asarray(read_rows(fh, "frames/w2c", ids), np.float64)
         width, height = int(fh.attrs["width"]), int(fh.attrs["height"])
@@ -185,14 +181,14 @@ def _mean(x: np.ndarray) -> float:
     return float(x.mean()) if x.size else 0.0
 
 
-# Below this (pixels) an error is the float32 render's rounding, not a disagreement.
-NO_ERROR_PX = 1e-3
+# A member turned by less (radians) is still: its quaternion's renormalisation.
+TURN_TOLERANCE = 1e-9
 
 
 def agreement_scale(error: float, motion: float) -> float:
     """m^2 / (m^2 + e^2): the scale of an estimated motion whose error is e
     against the motion's own size m (1 where the error is none)."""
-    if error < NO_ERROR_PX:
+    if error <= 0.0:
         return 1.0
     return float(motion * motion / (motion * motion + error * error))
 
@@ -222,7 +218,10 @@ def scale_motion(
     last = np.asarray(last, np.float64)
     out = np.array(poses, np.float64)
     labels = np.full(last.shape[0], -1, np.int64) if bodies is None else np.asarray(bodies, np.int64)
-    moving = np.any(out != last[:, None], axis=(1, 2))
+    # positions compared bit for bit; orientations by angle (the forecaster renormalises them)
+    moving = np.any(out[..., :3] != last[:, None, :3], axis=(1, 2)) | np.any(
+        quat.angle_between(last[:, None, 3:], out[..., 3:]) > TURN_TOLERANCE, axis=1
+    )
     on_own = (labels < 0) & moving
     for body in np.unique(labels[labels >= 0]):
         members = np.flatnonzero((labels == body) & moving)

@@ -96,10 +96,16 @@ def write_scene(folder: Path, *, with_gt: bool, still_gt: bool = False) -> tuple
 
 
 def write_priors(
-    path: Path, scene_h5: Path, split_h5: Path, xy: np.ndarray | None = None, visible: np.ndarray | None = None
+    path: Path,
+    scene_h5: Path,
+    split_h5: Path,
+    xy: np.ndarray | None = None,
+    visible: np.ndarray | None = None,
+    reverse: bool = False,
 ) -> Path:
     """A priors.h5 over the split's observed frames: their ids and time steps,
-    and 2D tracks (N, frames, 2) with their visibility (none by default)."""
+    and 2D tracks (N, frames, 2) with their visibility (none by default);
+    `reverse`: the frames stored last first."""
     from mogaf.split import load_frames, read_split
 
     split = read_split(split_h5)
@@ -108,13 +114,14 @@ def write_priors(
     xy = np.zeros((0, F, 2), np.float32) if xy is None else np.asarray(xy, np.float32)
     visible = np.ones(xy.shape[:2], np.uint8) if visible is None else np.asarray(visible, np.uint8)
     n = xy.shape[0]
+    order = np.arange(F)[::-1] if reverse else np.arange(F)
     data = {
-        "frame_ids": np.asarray(split.frame_ids["observed"], np.int64),
-        "timesteps": np.asarray(frames.time_index, np.int64),
+        "frame_ids": np.asarray(split.frame_ids["observed"], np.int64)[order],
+        "timesteps": np.asarray(frames.time_index, np.int64)[order],
         "tracks": {
             "query_index": np.zeros(n, np.int64),
-            "xy": xy,
-            "visible": visible,
+            "xy": xy[:, order],
+            "visible": visible[:, order],
             "confidence": np.ones(xy.shape[:2], np.float32),
         },
     }
