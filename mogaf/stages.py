@@ -381,7 +381,7 @@ def forecast_group(
 ) -> Path:
     from .forecast.stage import run_forecast_group  # local: a stage's package (and torch) loads only when it runs
 
-    inputs = [model, groups, split, *([scene] if scene else []), *([priors] if priors else [])]
+    inputs = [model, groups, split, scene, priors]  # an optional input not given is None: skipped by both checks
     check_outputs({"out": out}, inputs)
     with stage_inputs(*inputs):
         check_groups_cover(model, groups)
@@ -416,7 +416,7 @@ def forecast_merge(
 ) -> Path:
     from .forecast.stage import run_forecast_merge  # local: a stage's package (and torch) loads only when it runs
 
-    inputs = [model, groups, split, *([scene] if scene else []), *([priors] if priors else []), *parts]
+    inputs = [model, groups, split, scene, priors, *parts]  # None: an optional input not given
     check_outputs({"out": out}, inputs)
     with stage_inputs(*inputs):
         check_groups_cover(model, groups)

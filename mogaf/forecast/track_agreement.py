@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..camera import project
 from ..errors import input_error
 from ..split import Split
 from . import quat
@@ -113,8 +114,6 @@ def sample_bilinear(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 
 def _project(points: np.ndarray, K: np.ndarray, w2c: np.ndarray) -> np.ndarray:
-    from ..camera import project
-
     return project(points, K, w2c)[0]
 
 
