@@ -794,3 +794,60 @@ def test_scene_table_names_each_rigid_parts_decision():
     info = {"choice": "rigid_parts", "part_choices": "frozen linear_trend linear_trend"}
     assert _choice_text(info) == "rigid parts (frozen, linear trend x2)"
     assert _choice_text({"choice": "linear_trend", "backtest_weight_linear_trend": 0.75}) == "linear trend 0.75"
+
+
+def test_a_scene_rows_file_keeps_the_tables_of_its_metrics_files(tmp_path, metrics_files, capsys):
+    """`scenes --json FILE --run TEXT`: the same tables from the file as from the
+    metrics.json files, a record per line without the per-view metrics, and the
+    results page prints them under the run's description."""
+    from mogaf.report.__main__ import main
+    from mogaf.report.results_page import read_bench_dir, results_page
+    from mogaf.report.scenes import read_scene_rows, scenes_table
+
+    bench = tmp_path / "bench"
+    bench.mkdir()
+    kept = bench / "scenes_test.json"
+    assert main(["scenes", *map(str, metrics_files), "--json", str(kept), "--run", "a test machine"]) == 0
+    printed = capsys.readouterr().out
+    assert printed == scenes_table(load_metrics(metrics_files))
+    run, records = read_scene_rows(kept)
+    assert run == "a test machine" and len(records) == len(metrics_files)
+    assert scenes_table(records) == printed
+    text = kept.read_text()
+    assert "per_view" not in text and len(text.splitlines()) == len(metrics_files) + 3
+    assert [(r["scene"], r["ratio"]) for r in records] == [("a", 0.6), ("b", 0.6), ("c", 0.8)]  # table order
+
+    assert read_bench_dir(bench) == ([], [], [kept])
+    page = results_page(tmp_path / "out.md", bench)
+    assert f"| `{kept.as_posix()}` | `python -m mogaf.report scenes --json` | – | – | – | 3 | – |" in page
+    section = page.split(f"## Forecasts per scene: `{kept.as_posix()}`\n\nThe run: a test machine. ")[1]
+    assert scenes_table(records).rstrip("\n") in section
+
+
+def test_a_bad_scene_rows_file_is_one_line_naming_it(tmp_path, metrics_files, capsys):
+    from mogaf.errors import MogafError
+    from mogaf.report.__main__ import main
+    from mogaf.report.scenes import read_scene_rows
+
+    kept = tmp_path / "scenes.json"
+    assert main(["scenes", *map(str, metrics_files), "--json", str(kept)]) == 1
+    assert "say where the results were measured (--run)" in capsys.readouterr().err and not kept.exists()
+    assert main(["scenes", *map(str, metrics_files), "--run", "here"]) == 1
+    assert "give --json" in capsys.readouterr().err
+    assert main(["scenes", *map(str, metrics_files), "--json", str(kept), "--run", "here"]) == 0
+    doc = json.loads(kept.read_text())
+
+    def broken(change) -> str:
+        bad = json.loads(json.dumps(doc))
+        change(bad)
+        kept.write_text(json.dumps(bad))
+        with pytest.raises(MogafError) as err:
+            read_scene_rows(kept)
+        assert str(kept) in str(err.value)
+        return str(err.value)
+
+    assert "'ratio' must be a number in (0, 1)" in broken(lambda d: d["scenes"][1].update(ratio=2.0))
+    assert "scenes[1]" in broken(lambda d: d["scenes"][1].update(ratio=2.0))
+    assert "scenes[3] holds the same result as scenes[0]" in broken(lambda d: d["scenes"].append(d["scenes"][0]))
+    assert "'run' must say where" in broken(lambda d: d.pop("run"))
+    assert "non-empty list" in broken(lambda d: d.update(scenes=[]))

@@ -1,5 +1,5 @@
 """`python -m mogaf.report glance METRICS.json... [--write FILE | --check FILE]`,
-`python -m mogaf.report scenes METRICS.json...`,
+`python -m mogaf.report scenes METRICS.json... [--json FILE --run TEXT]`,
 `python -m mogaf.report timing PIPELINE.json [--write FILE | --check FILE]` and
 `python -m mogaf.report results [METRICS.json...] [--bench DIR] [--write FILE | --check FILE]`.
 
@@ -7,7 +7,8 @@ glance: print the results-at-a-glance table (mogaf.report.glance) made from
 metrics.json files; --write puts it between the `<!-- glance:start -->` and
 `<!-- glance:end -->` markers of a Markdown file (the README), --check exits 1
 when that section differs from what the files give. scenes: print a table
-per observation ratio, a row per scene (mogaf.report.scenes). results: the
+per observation ratio, a row per scene (mogaf.report.scenes); --json also
+keeps the results in a scene-rows file for results/bench/. results: the
 measured-results page (docs/results.md) from the benchmark rows in
 results/bench/ and any metrics.json files (mogaf.report.results_page);
 --write rewrites FILE with it, --check exits 1 when FILE differs. timing:
@@ -22,8 +23,9 @@ import sys
 
 from ..errors import MogafError
 from .glance import glance, section_matches, write_section
+from .metrics_files import load_metrics
 from .results_page import BENCH_DIR, command, page_matches, results_page, write_page
-from .scenes import scenes
+from .scenes import scenes_table, write_scene_rows
 from .timing import MARKERS, timing_line
 
 
@@ -37,6 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     out.add_argument("--check", metavar="FILE", help="exit 1 if FILE's glance section differs from the table")
     p = sub.add_parser("scenes", help="per-scene PSNR / LPIPS of every method, a table per ratio, with the mean")
     p.add_argument("metrics", nargs="+", help="metrics.json files (written by the evaluate stage)")
+    p.add_argument("--json", metavar="FILE", help="also keep the results in this scene-rows file (results/bench/)")
+    p.add_argument("--run", default="", help="with --json: where and how they were measured (machine, commit, date)")
     p = sub.add_parser("results", help="the measured-results page (docs/results.md) from results/bench/ rows")
     p.add_argument("metrics", nargs="*", help="metrics.json files to add (glance and per-scene tables)")
     p.add_argument("--bench", default=str(BENCH_DIR), metavar="DIR", help=f"benchmark rows (default: {BENCH_DIR})")
@@ -52,7 +56,13 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         if args.command == "scenes":
-            sys.stdout.write(scenes(args.metrics))
+            if args.run and not args.json:
+                raise MogafError("scenes: --run says where the results of a --json file were measured; give --json")
+            results = load_metrics(args.metrics)
+            sys.stdout.write(scenes_table(results))
+            if args.json:
+                write_scene_rows(args.json, results, args.run)
+                print(f"{args.json}: {len(results)} results kept", file=sys.stderr)
             return 0
         if args.command == "results":
             return _results(args)

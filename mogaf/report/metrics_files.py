@@ -157,6 +157,39 @@ def _result_key(data: dict[str, Any]) -> tuple[str, str, float, str]:
     return (data["dataset"], data["scene"], float(data["ratio"]), data.get("variant") or "default")
 
 
+def read_json(path: str | os.PathLike) -> Any:
+    """A JSON file as evaluate writes it (no NaN or Infinity); one line naming the file otherwise."""
+    p = Path(path)
+    try:
+        return json.loads(p.read_bytes(), parse_constant=_no_constants)
+    except (OSError, ValueError, RecursionError) as exc:  # ValueError: also malformed UTF-8, NaN, Infinity
+        raise input_error(
+            p, f"not readable JSON ({exc.__class__.__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+        ) from None
+
+
+def checked_records(path: str | os.PathLike, records: Any) -> list[dict[str, Any]]:
+    """The metrics.json records kept in one file (a scene-rows file,
+    mogaf.report.scenes), each checked as load_metrics checks a metrics.json:
+    one line naming the file and the record for a bad one or a repeated result."""
+    if not isinstance(records, list) or not records:
+        raise input_error(path, "'scenes' must be a non-empty list of metrics.json records")
+    seen: dict[tuple[str, str, float, str], int] = {}
+    out = []
+    for i, data in enumerate(records):
+        if not isinstance(data, dict) or "methods" not in data:
+            raise input_error(path, f"scenes[{i}] is not a metrics.json record (no 'methods' section)")
+        problem = _metrics_problem(data)
+        if problem:
+            raise input_error(path, f"scenes[{i}]: {problem}")
+        key = _result_key(data)
+        if key in seen:
+            raise input_error(path, f"scenes[{i}] holds the same result as scenes[{seen[key]}]")
+        seen[key] = i
+        out.append({**data, "_path": f"{Path(path).as_posix()}#scenes[{i}]"})
+    return out
+
+
 def load_metrics(paths: list[str | os.PathLike]) -> list[dict[str, Any]]:
     """Read metrics.json files; a malformed one, or two files of one result
     (one row each in every table), fail with one line naming the file."""
@@ -166,12 +199,7 @@ def load_metrics(paths: list[str | os.PathLike]) -> list[dict[str, Any]]:
         p = Path(path)
         if not p.is_file():
             raise input_error(p, "no such metrics file")
-        try:
-            data = json.loads(p.read_bytes(), parse_constant=_no_constants)
-        except (OSError, ValueError, RecursionError) as exc:  # ValueError: also malformed UTF-8, NaN, Infinity
-            raise input_error(
-                p, f"not readable JSON ({exc.__class__.__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
-            ) from None
+        data = read_json(p)
         if not isinstance(data, dict) or "methods" not in data:
             raise input_error(p, "not a mogaf metrics.json (no 'methods' section)")
         problem = _metrics_problem(data)

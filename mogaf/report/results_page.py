@@ -14,7 +14,10 @@ Reads every JSON file of `results/bench/` (--bench DIR):
   `forecast.mogaf.structured` variant) a column each beside that method's
   default;
 * rows of `python -m mogaf.bench pipeline --json` ("budgets" and "jobs"): its
-  tables (`mogaf.bench.pipeline.render`).
+  tables (`mogaf.bench.pipeline.render`);
+* scene-rows files of `python -m mogaf.report scenes --json` ("scenes"): the
+  per-scene tables of a pipeline run over many scenes (`mogaf.report.scenes`),
+  e.g. the scene family.
 
 metrics.json files add the glance and per-scene tables (mogaf.report.glance,
 mogaf.report.scenes). The page names the command and every file it was made
@@ -40,11 +43,14 @@ REFERENCES = ("constant_velocity", "frozen")  # what the win counts compare agai
 
 
 # ------------------------------------------------------------------ reading
-def read_bench_dir(bench_dir: str | os.PathLike) -> tuple[list[tuple[Path, dict[str, Any]]], list[Path]]:
-    """(forecast files with their headers, pipeline files) of `bench_dir`, by name."""
+def read_bench_dir(
+    bench_dir: str | os.PathLike,
+) -> tuple[list[tuple[Path, dict[str, Any]]], list[Path], list[Path]]:
+    """(forecast files with their headers, pipeline files, scene-rows files) of `bench_dir`, by name."""
     from ..bench._forecast_report import read_rows
+    from .scenes import SCENE_ROWS
 
-    forecast, pipeline = [], []
+    forecast, pipeline, scenes = [], [], []
     paths = sorted(Path(bench_dir).glob("*.json"))
     if not paths:
         raise input_error(bench_dir, "holds no benchmark .json file")
@@ -54,9 +60,15 @@ def read_bench_dir(bench_dir: str | os.PathLike) -> tuple[list[tuple[Path, dict[
             forecast.append((path, read_rows(path)[0]))
         elif "budgets" in doc and "jobs" in doc:
             pipeline.append(path)
+        elif SCENE_ROWS in doc:
+            scenes.append(path)
         else:
-            raise input_error(path, "is neither `python -m mogaf.bench forecast --json` nor `pipeline --json` output")
-    return forecast, pipeline
+            raise input_error(
+                path,
+                "is none of `python -m mogaf.bench forecast --json`, `python -m mogaf.bench pipeline --json` "
+                "and `python -m mogaf.report scenes --json` output",
+            )
+    return forecast, pipeline, scenes
 
 
 def _load_json(path: Path) -> dict[str, Any]:
@@ -128,11 +140,15 @@ def _sources(paths: Sequence[Path]) -> str:
 
 # ------------------------------------------------------------------ sections
 def inputs_table(
-    files: Sequence[tuple[Path, Mapping[str, Any]]], pipeline: Sequence[Path], metrics: Sequence[str | os.PathLike] = ()
+    files: Sequence[tuple[Path, Mapping[str, Any]]],
+    pipeline: Sequence[Path],
+    metrics: Sequence[str | os.PathLike] = (),
+    scenes: Sequence[Path] = (),
 ) -> str:
     """A row per forecast benchmark file: budget, device, seed, rows and what it
-    changed; a row per pipeline file and per metrics.json."""
+    changed; a row per pipeline file, per scene-rows file and per metrics.json."""
     from ..bench._forecast_report import read_rows
+    from .scenes import read_scene_rows
 
     lines = [
         "| file | written by | budget | device | seed | rows | settings beyond the defaults |",
@@ -149,6 +165,9 @@ def inputs_table(
         )
     for path in pipeline:
         lines.append(f"| `{_posix(path)}` | `python -m mogaf.bench pipeline --json` | – | – | – | – | – |")
+    for path in scenes:
+        rows = len(read_scene_rows(path)[1])
+        lines.append(f"| `{_posix(path)}` | `python -m mogaf.report scenes --json` | – | – | – | {rows} | – |")
     for path in metrics:
         lines.append(f"| `{_posix(path)}` | the pipeline's evaluate stage | – | – | – | – | – |")
     return "\n".join(lines)
@@ -319,6 +338,23 @@ def pipeline_section(path: Path) -> str:
     )
 
 
+def scenes_section(path: Path) -> str:
+    """The per-scene tables of a scene-rows file (`python -m mogaf.report scenes --json`)."""
+    from .scenes import read_scene_rows, scenes_table
+
+    run, results = read_scene_rows(path)
+    return "\n\n".join(
+        [
+            f"## Forecasts per scene: `{_posix(path)}`",
+            f"The run: {run}. Image metrics at held-out views of the forecast frames (and the tracking EPE in "
+            "metres where every scene has ground-truth tracks), the best per row in bold; the mean over the "
+            "scenes; MoGaF's PSNR against the better of the two forecasts that learn nothing; what the grouping "
+            "and the reconstruction gave (`python -m mogaf.report scenes`):",
+            scenes_table(results).rstrip("\n"),
+        ]
+    )
+
+
 def metrics_section(metrics_files: Sequence[str | os.PathLike]) -> str:
     from .glance import glance_table
     from .metrics_files import load_metrics
@@ -353,14 +389,14 @@ def results_page(
     target: str | os.PathLike, bench_dir: str | os.PathLike = BENCH_DIR, metrics: Sequence[str | os.PathLike] = ()
 ) -> str:
     """The whole page (Markdown, ending in a newline) that `target` should hold."""
-    files, pipeline = read_bench_dir(bench_dir)
+    files, pipeline, scenes = read_bench_dir(bench_dir)
     kinds = classify(files)
     sections = [
         "# Measured results",
         f"Generated by `{command(target, bench_dir, metrics)}` from the files below; do not edit it by hand "
         f"(`--check {_posix(target)}` in place of `--write` exits 1 when the page is not what they give). What "
         "each benchmark measures: [benchmarks.md](benchmarks.md); the methods: [forecasting.md](forecasting.md).",
-        inputs_table(files, pipeline, metrics),
+        inputs_table(files, pipeline, metrics, scenes),
     ]
     if kinds["main"]:
         sections.append(main_forecast_section(kinds["main"]))
@@ -369,6 +405,7 @@ def results_page(
     if kinds["main"] and kinds["variant"]:
         sections.append(variants_section(kinds["main"], kinds["variant"]))
     sections += [pipeline_section(p) for p in pipeline]
+    sections += [scenes_section(p) for p in scenes]
     if metrics:
         sections.append(metrics_section(metrics))
     return "\n\n".join(sections) + "\n"

@@ -8,19 +8,30 @@ MoGaF's backtest chose per motion group and its coherence figures
 
 Only methods that every scene of a ratio ran are compared: a mean over
 different scenes would not compare.
+
+A run's results can be kept beside the code as a scene-rows file (`--json`,
+e.g. results/bench/scenes_family_cpu.json): its metrics.json records without
+their per-view metrics, and a line saying where they were measured. The
+measured-results page (docs/results.md) prints its tables from it:
+
+    python -m mogaf.report scenes results/synthetic/f*/ratio*/metrics.json \
+        --json results/bench/scenes_family_cpu.json --run "2-core ..., commit ..."
 """
 
 from __future__ import annotations
 
+import json
 import os
 from collections import Counter
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..errors import MogafError
+from ..artefact import atomic_path
+from ..errors import MogafError, input_error
 from .glance import _methods, best_text
-from .metrics_files import load_metrics
+from .metrics_files import checked_records, load_metrics, read_json
 from .tables import _mean, _metric, _variant, budget_differences, fmt, forecast_record, method_label, steps_note
 
 
@@ -211,3 +222,43 @@ def scenes_table(results: list[dict[str, Any]]) -> str:
 
 def scenes(metrics_files: list[str | os.PathLike]) -> str:
     return scenes_table(load_metrics(metrics_files))
+
+
+# ------------------------------------------------------------------ scene-rows files
+SCENE_ROWS = "scenes"  # the key that makes a JSON file a scene-rows file
+
+
+def scene_records(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The results as a scene-rows file keeps them, in table order: each
+    metrics.json without its per-view metrics (the tables read the means) and
+    without the path it was read from."""
+    out = []
+    for r in sorted(results, key=lambda r: (float(r["ratio"]), r["dataset"], r["scene"], _variant(r))):
+        record = {k: v for k, v in r.items() if k != "_path"}
+        record["methods"] = {
+            m: {k: v for k, v in section.items() if k != "per_view"} for m, section in r["methods"].items()
+        }
+        out.append(record)
+    return out
+
+
+def write_scene_rows(path: str | os.PathLike, results: list[dict[str, Any]], run: str) -> None:
+    """Write a scene-rows file (whole file or nothing): `run` says where and how
+    the results were measured; a record per line, so a change diffs per scene."""
+    if not run.strip():
+        raise MogafError("scenes --json: say where the results were measured (--run)")
+    records = [json.dumps(r, sort_keys=True, allow_nan=False) for r in scene_records(results)]
+    text = "{" + f'"run": {json.dumps(run)},\n"{SCENE_ROWS}": [\n' + ",\n".join(records) + "\n]}\n"
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(text, encoding="utf-8")
+
+
+def read_scene_rows(path: str | os.PathLike) -> tuple[str, list[dict[str, Any]]]:
+    """(where they were measured, the checked records) of a scene-rows file."""
+    doc = read_json(path)
+    if not isinstance(doc, dict) or SCENE_ROWS not in doc:
+        raise input_error(path, f"is not a scene-rows file (no '{SCENE_ROWS}' list)")
+    run = doc.get("run")
+    if not isinstance(run, str) or not run.strip():
+        raise input_error(path, "'run' must say where the results were measured")
+    return run, checked_records(path, doc[SCENE_ROWS])
