@@ -830,10 +830,15 @@ def test_a_bad_scene_rows_file_is_one_line_naming_it(tmp_path, metrics_files, ca
     from mogaf.report.scenes import read_scene_rows
 
     kept = tmp_path / "scenes.json"
-    assert main(["scenes", *map(str, metrics_files), "--json", str(kept)]) == 1
-    assert "say where the results were measured (--run)" in capsys.readouterr().err and not kept.exists()
-    assert main(["scenes", *map(str, metrics_files), "--run", "here"]) == 1
-    assert "give --json" in capsys.readouterr().err
+    for half in (["--json", str(kept)], ["--run", "here"], ["--json", str(kept), "--run", " "]):
+        assert main(["scenes", *map(str, metrics_files), *half]) == 1
+        out = capsys.readouterr()
+        assert out.out == "" and "go together" in out.err and not kept.exists()  # nothing printed, nothing written
+    assert main(["scenes", *map(str, metrics_files), "--json", str(kept), "--run", "here\n## a heading"]) == 1
+    out = capsys.readouterr()
+    assert out.out == "" and "--run must be one line" in out.err and not kept.exists()
+    assert main(["scenes", *map(str, metrics_files), "--json", str(tmp_path / "scenes.md"), "--run", "here"]) == 1
+    assert "must end in .json" in capsys.readouterr().err
     assert main(["scenes", *map(str, metrics_files), "--json", str(kept), "--run", "here"]) == 0
     doc = json.loads(kept.read_text())
 
@@ -846,8 +851,48 @@ def test_a_bad_scene_rows_file_is_one_line_naming_it(tmp_path, metrics_files, ca
         assert str(kept) in str(err.value)
         return str(err.value)
 
-    assert "'ratio' must be a number in (0, 1)" in broken(lambda d: d["scenes"][1].update(ratio=2.0))
-    assert "scenes[1]" in broken(lambda d: d["scenes"][1].update(ratio=2.0))
+    assert "scenes[1]: 'ratio' must be a number in (0, 1)" in broken(lambda d: d["scenes"][1].update(ratio=2.0))
+    assert "scenes[0]: 'methods' must be an object" in broken(lambda d: d["scenes"][0].update(methods=[1]))
+    assert "'reconstruction.heldout_observed.psnr' must be a number or null" in broken(
+        lambda d: d["scenes"][0]["reconstruction"]["heldout_observed"].update(psnr="x")
+    )
+    assert "'methods.mogaf.forecast.coherence' must be an object" in broken(
+        lambda d: d["scenes"][0]["methods"]["mogaf"]["forecast"].update(coherence="x")
+    )
     assert "scenes[3] holds the same result as scenes[0]" in broken(lambda d: d["scenes"].append(d["scenes"][0]))
     assert "'run' must say where" in broken(lambda d: d.pop("run"))
+    assert "'run' must be one line" in broken(lambda d: d.update(run="a\n## b"))
     assert "non-empty list" in broken(lambda d: d.update(scenes=[]))
+    kept.write_text("[1, 2]")
+    with pytest.raises(MogafError, match="is not a scene-rows file"):
+        read_scene_rows(kept)
+    kept.write_text(json.dumps(doc).replace('"psnr": 25.0', '"psnr": 1e400', 1))
+    with pytest.raises(MogafError, match="1e400 is beyond the range of a float"):
+        read_scene_rows(kept)
+
+
+def test_a_scene_rows_file_orders_variants_as_the_live_table(tmp_path):
+    """A scene with a variant (ablation/<v>/metrics.json, which sorts before the
+    default's path): the default's row first, from the files and from the rows."""
+    from mogaf.report.scenes import read_scene_rows, scenes_table, write_scene_rows
+
+    def result(path: str, variant: str, psnr: float) -> Path:
+        methods = {m: method_section({"psnr": psnr, "lpips": 0.2}, method=m, wall=1.0) for m in ("mogaf", "frozen")}
+        return write_metrics(
+            tmp_path / path,
+            dataset="synthetic",
+            scene="a",
+            ratio=0.6,
+            protocol="dnerf",
+            methods=methods,
+            variant=variant,
+        )
+
+    files = [
+        result("a/ratio0.6/metrics.json", "default", 17.0),
+        result("a/ratio0.6/ablation/v/metrics.json", "v", 16.0),
+    ]
+    live = scenes_table(load_metrics(files))
+    assert [r[0] for r in md_rows(live)[1:3]] == ["a", "a (v)"]
+    write_scene_rows(tmp_path / "rows.json", load_metrics(files), "here")
+    assert scenes_table(read_scene_rows(tmp_path / "rows.json")[1]) == live

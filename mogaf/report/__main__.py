@@ -56,13 +56,14 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         if args.command == "scenes":
-            if args.run and not args.json:
-                raise MogafError("scenes: --run says where the results of a --json file were measured; give --json")
+            if bool(args.run.strip()) != bool(args.json):
+                raise MogafError("scenes: --json FILE and --run TEXT (where the results were measured) go together")
             results = load_metrics(args.metrics)
-            sys.stdout.write(scenes_table(results))
-            if args.json:
+            table = scenes_table(results)
+            if args.json:  # first: a bad --json or --run prints nothing
                 write_scene_rows(args.json, results, args.run)
                 print(f"{args.json}: {len(results)} results kept", file=sys.stderr)
+            sys.stdout.write(table)
             return 0
         if args.command == "results":
             return _results(args)

@@ -139,6 +139,43 @@ def _grouping_problem(grouping: Any) -> str | None:
     return None
 
 
+def _numbers_problem(where: str, section: Any, names: tuple[str, ...]) -> str | None:
+    """What is wrong with an optional object whose `names` are numbers or null, or None."""
+    if section is None:
+        return None
+    if not isinstance(section, dict):
+        return f"'{where}' must be an object"
+    for name in names:
+        value = section.get(name)
+        if value is not None and not is_number(value):
+            return f"'{where}.{name}' must be a number or null, got {value!r}"
+    return None
+
+
+def _reconstruction_problem(data: dict[str, Any]) -> str | None:
+    """What is wrong with the reconstruction figures and MoGaF's coherence
+    figures the per-scene table reads (mogaf.report.scenes), or None."""
+    recon = data.get("reconstruction")
+    if recon is not None and not isinstance(recon, dict):
+        return "'reconstruction' must be an object"
+    for part, names in (("heldout_observed", ("psnr",)), ("observed_motion", MOTION_FIGURES)):
+        problem = _numbers_problem(f"reconstruction.{part}", (recon or {}).get(part), names)
+        if problem:
+            return problem
+    for method, section in data["methods"].items():
+        forecast = section.get("forecast") or {}
+        problem = _numbers_problem(f"methods.{method}.forecast.coherence", forecast.get("coherence"), COHERENCE)
+        problem = problem or _numbers_problem(f"methods.{method}.forecast", forecast, ("still_points_displacement",))
+        if problem:
+            return problem
+    return None
+
+
+# The figures of the reconstruction's observed motion and of a forecast's coherence the tables read.
+MOTION_FIGURES = ("last_velocity_error", "speed", "still_jitter")
+COHERENCE = ("rigid_distance_change", "still_displacement")
+
+
 def _metrics_problem(data: dict[str, Any]) -> str | None:
     """What makes a parsed metrics.json unusable for the tables, or None."""
     problem = _header_problem(data)
@@ -150,18 +187,26 @@ def _metrics_problem(data: dict[str, Any]) -> str | None:
         problem = _method_problem(method, section)
         if problem:
             return problem
-    return _grouping_problem(data.get("grouping"))
+    return _grouping_problem(data.get("grouping")) or _reconstruction_problem(data)
 
 
 def _result_key(data: dict[str, Any]) -> tuple[str, str, float, str]:
     return (data["dataset"], data["scene"], float(data["ratio"]), data.get("variant") or "default")
 
 
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"{text} is beyond the range of a float (evaluate never writes it)")
+    return value
+
+
 def read_json(path: str | os.PathLike) -> Any:
-    """A JSON file as evaluate writes it (no NaN or Infinity); one line naming the file otherwise."""
+    """A JSON file as evaluate writes it (no NaN, Infinity or number beyond a
+    float's range); one line naming the file otherwise."""
     p = Path(path)
     try:
-        return json.loads(p.read_bytes(), parse_constant=_no_constants)
+        return json.loads(p.read_bytes(), parse_constant=_no_constants, parse_float=_finite_float)
     except (OSError, ValueError, RecursionError) as exc:  # ValueError: also malformed UTF-8, NaN, Infinity
         raise input_error(
             p, f"not readable JSON ({exc.__class__.__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"

@@ -215,9 +215,16 @@ def scenes_table(results: list[dict[str, Any]]) -> str:
         raise MogafError("scenes: no metrics.json given")
     out = []
     for ratio in sorted({float(r["ratio"]) for r in results}):
-        of_ratio = sorted((r for r in results if float(r["ratio"]) == ratio), key=lambda r: r["scene"])
+        of_ratio = sorted((r for r in results if float(r["ratio"]) == ratio), key=row_order)
         out += [ratio_table(of_ratio), ""]
     return "\n".join(out)
+
+
+def row_order(result: dict[str, Any]) -> tuple[str, str, bool, str]:
+    """A ratio's rows: by scene, then dataset, the default before its variants
+    (a complete order, so the table does not depend on the files' order)."""
+    variant = _variant(result)
+    return (result["scene"], result["dataset"], variant != "default", variant)
 
 
 def scenes(metrics_files: list[str | os.PathLike]) -> str:
@@ -233,7 +240,7 @@ def scene_records(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
     metrics.json without its per-view metrics (the tables read the means) and
     without the path it was read from."""
     out = []
-    for r in sorted(results, key=lambda r: (float(r["ratio"]), r["dataset"], r["scene"], _variant(r))):
+    for r in sorted(results, key=lambda r: (float(r["ratio"]), *row_order(r))):
         record = {k: v for k, v in r.items() if k != "_path"}
         record["methods"] = {
             m: {k: v for k, v in section.items() if k != "per_view"} for m, section in r["methods"].items()
@@ -245,8 +252,11 @@ def scene_records(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def write_scene_rows(path: str | os.PathLike, results: list[dict[str, Any]], run: str) -> None:
     """Write a scene-rows file (whole file or nothing): `run` says where and how
     the results were measured; a record per line, so a change diffs per scene."""
-    if not run.strip():
-        raise MogafError("scenes --json: say where the results were measured (--run)")
+    problem = _run_problem(run)
+    if problem:
+        raise MogafError(f"scenes --json: --run {problem}")
+    if Path(path).suffix != ".json":
+        raise MogafError(f"scenes --json: {path} must end in .json (results/bench/ reads only .json files)")
     records = [json.dumps(r, sort_keys=True, allow_nan=False) for r in scene_records(results)]
     text = "{" + f'"run": {json.dumps(run)},\n"{SCENE_ROWS}": [\n' + ",\n".join(records) + "\n]}\n"
     with atomic_path(path) as tmp:
@@ -258,7 +268,16 @@ def read_scene_rows(path: str | os.PathLike) -> tuple[str, list[dict[str, Any]]]
     doc = read_json(path)
     if not isinstance(doc, dict) or SCENE_ROWS not in doc:
         raise input_error(path, f"is not a scene-rows file (no '{SCENE_ROWS}' list)")
-    run = doc.get("run")
+    problem = _run_problem(doc.get("run"))
+    if problem:
+        raise input_error(path, f"'run' {problem}")
+    return doc["run"], checked_records(path, doc[SCENE_ROWS])
+
+
+def _run_problem(run: Any) -> str | None:
+    """What is wrong with a scene-rows file's run description (one line of text), or None."""
     if not isinstance(run, str) or not run.strip():
-        raise input_error(path, "'run' must say where the results were measured")
-    return run, checked_records(path, doc[SCENE_ROWS])
+        return "must say where the results were measured"
+    if "\n" in run or "\r" in run:
+        return "must be one line (it is printed in a sentence of docs/results.md)"
+    return None
