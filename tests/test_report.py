@@ -817,7 +817,7 @@ def test_a_scene_rows_file_keeps_the_tables_of_its_metrics_files(tmp_path, metri
     assert "per_view" not in text and len(text.splitlines()) == len(metrics_files) + 3
     assert [(r["scene"], r["ratio"]) for r in records] == [("a", 0.6), ("b", 0.6), ("c", 0.8)]  # table order
 
-    assert read_bench_dir(bench) == ([], [], [kept])
+    assert read_bench_dir(bench) == ([], [], [(kept, run, records)])
     page = results_page(tmp_path / "out.md", bench)
     assert f"| `{kept.as_posix()}` | `python -m mogaf.report scenes --json` | – | – | – | 3 | – |" in page
     section = page.split(f"## Forecasts per scene: `{kept.as_posix()}`\n\nThe run: a test machine. ")[1]

@@ -139,6 +139,11 @@ def _grouping_problem(grouping: Any) -> str | None:
     return None
 
 
+# The figures of the reconstruction's observed motion and of a forecast's coherence the tables read.
+MOTION_FIGURES = ("last_velocity_error", "speed", "still_jitter")
+COHERENCE = ("rigid_distance_change", "still_displacement")
+
+
 def _numbers_problem(where: str, section: Any, names: tuple[str, ...]) -> str | None:
     """What is wrong with an optional object whose `names` are numbers or null, or None."""
     if section is None:
@@ -169,11 +174,6 @@ def _reconstruction_problem(data: dict[str, Any]) -> str | None:
         if problem:
             return problem
     return None
-
-
-# The figures of the reconstruction's observed motion and of a forecast's coherence the tables read.
-MOTION_FIGURES = ("last_velocity_error", "speed", "still_jitter")
-COHERENCE = ("rigid_distance_change", "still_displacement")
 
 
 def _metrics_problem(data: dict[str, Any]) -> str | None:

@@ -43,12 +43,16 @@ REFERENCES = ("constant_velocity", "frozen")  # what the win counts compare agai
 
 
 # ------------------------------------------------------------------ reading
+# A scene-rows file read and checked once: (path, where it was measured, its results).
+SceneRows = tuple[Path, str, list[dict[str, Any]]]
+
+
 def read_bench_dir(
     bench_dir: str | os.PathLike,
-) -> tuple[list[tuple[Path, dict[str, Any]]], list[Path], list[Path]]:
-    """(forecast files with their headers, pipeline files, scene-rows files) of `bench_dir`, by name."""
+) -> tuple[list[tuple[Path, dict[str, Any]]], list[Path], list[SceneRows]]:
+    """(forecast files with their headers, pipeline files, scene-rows files read) of `bench_dir`, by name."""
     from ..bench._forecast_report import read_rows
-    from .scenes import SCENE_ROWS
+    from .scenes import SCENE_ROWS, read_scene_rows
 
     forecast, pipeline, scenes = [], [], []
     paths = sorted(Path(bench_dir).glob("*.json"))
@@ -61,7 +65,7 @@ def read_bench_dir(
         elif "budgets" in doc and "jobs" in doc:
             pipeline.append(path)
         elif SCENE_ROWS in doc:
-            scenes.append(path)
+            scenes.append((path, *read_scene_rows(path)))
         else:
             raise input_error(
                 path,
@@ -143,12 +147,11 @@ def inputs_table(
     files: Sequence[tuple[Path, Mapping[str, Any]]],
     pipeline: Sequence[Path],
     metrics: Sequence[str | os.PathLike] = (),
-    scenes: Sequence[Path] = (),
+    scenes: Sequence[SceneRows] = (),
 ) -> str:
     """A row per forecast benchmark file: budget, device, seed, rows and what it
     changed; a row per pipeline file, per scene-rows file and per metrics.json."""
     from ..bench._forecast_report import read_rows
-    from .scenes import read_scene_rows
 
     lines = [
         "| file | written by | budget | device | seed | rows | settings beyond the defaults |",
@@ -165,9 +168,8 @@ def inputs_table(
         )
     for path in pipeline:
         lines.append(f"| `{_posix(path)}` | `python -m mogaf.bench pipeline --json` | – | – | – | – | – |")
-    for path in scenes:
-        rows = len(read_scene_rows(path)[1])
-        lines.append(f"| `{_posix(path)}` | `python -m mogaf.report scenes --json` | – | – | – | {rows} | – |")
+    for path, _, results in scenes:
+        lines.append(f"| `{_posix(path)}` | `python -m mogaf.report scenes --json` | – | – | – | {len(results)} | – |")
     for path in metrics:
         lines.append(f"| `{_posix(path)}` | the pipeline's evaluate stage | – | – | – | – | – |")
     return "\n".join(lines)
@@ -338,11 +340,11 @@ def pipeline_section(path: Path) -> str:
     )
 
 
-def scenes_section(path: Path) -> str:
+def scenes_section(rows: SceneRows) -> str:
     """The per-scene tables of a scene-rows file (`python -m mogaf.report scenes --json`)."""
-    from .scenes import read_scene_rows, scenes_table
+    from .scenes import scenes_table
 
-    run, results = read_scene_rows(path)
+    path, run, results = rows
     return "\n\n".join(
         [
             f"## Forecasts per scene: `{_posix(path)}`",
@@ -405,7 +407,7 @@ def results_page(
     if kinds["main"] and kinds["variant"]:
         sections.append(variants_section(kinds["main"], kinds["variant"]))
     sections += [pipeline_section(p) for p in pipeline]
-    sections += [scenes_section(p) for p in scenes]
+    sections += [scenes_section(rows) for rows in scenes]
     if metrics:
         sections.append(metrics_section(metrics))
     return "\n\n".join(sections) + "\n"
