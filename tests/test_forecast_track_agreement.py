@@ -249,6 +249,10 @@ def test_observed_track_window_reads_two_observed_frames_only(tmp_path):
     with pytest.raises(MogafError) as err:
         observed_track_window(priors_h5, scene_h5, other, 2)
     assert str(priors_h5) in str(err.value)
+    # priors whose time steps miss an observed step: one line naming the file, not an IndexError
+    shifted = write_priors(tmp_path / "shifted.h5", scene_h5, split_h5, xy, visible, step_shift=100)
+    with pytest.raises(MogafError, match=f"{shifted}: has no frame at observed time step {T_OBS - 3}"):
+        observed_track_window(shifted, scene_h5, split, 2)
 
 
 def test_only_structured_mogaf_reads_tracks_and_it_needs_the_priors(tmp_path):

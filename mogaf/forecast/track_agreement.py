@@ -78,6 +78,9 @@ def observed_track_window(
         timesteps = np.asarray(fh["timesteps"][()], np.int64)
         if not np.array_equal(np.sort(frame_ids), np.sort(np.asarray(split.frame_ids["observed"], np.int64))):
             raise input_error(priors_h5, "its frames are not the split's observed frames: made for another split")
+        missing = [step for step in (step_start, step_end) if step not in timesteps]
+        if missing:
+            raise input_error(priors_h5, f"has no frame at observed time step {missing[0]}: made for another scene")
         rows = [int(np.flatnonzero(timesteps == step)[0]) for step in (step_start, step_end)]
         order = np.argsort(rows)  # h5py reads columns in increasing order only
         picked = np.asarray(rows)[order]

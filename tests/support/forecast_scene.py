@@ -102,10 +102,11 @@ def write_priors(
     xy: np.ndarray | None = None,
     visible: np.ndarray | None = None,
     reverse: bool = False,
+    step_shift: int = 0,
 ) -> Path:
     """A priors.h5 over the split's observed frames: their ids and time steps,
     and 2D tracks (N, frames, 2) with their visibility (none by default);
-    `reverse`: the frames stored last first."""
+    `reverse`: the frames stored last first; `step_shift`: time steps off by this."""
     from mogaf.split import load_frames, read_split
 
     split = read_split(split_h5)
@@ -117,7 +118,7 @@ def write_priors(
     order = np.arange(F)[::-1] if reverse else np.arange(F)
     data = {
         "frame_ids": np.asarray(split.frame_ids["observed"], np.int64)[order],
-        "timesteps": np.asarray(frames.time_index, np.int64)[order],
+        "timesteps": np.asarray(frames.time_index, np.int64)[order] + int(step_shift),
         "tracks": {
             "query_index": np.zeros(n, np.int64),
             "xy": xy[:, order],
