@@ -119,6 +119,13 @@ def test_cli_resume_keeps_finished_rows_and_only_filters(tmp_path, capsys):
     del doc["device"]
     out_json.write_text(json.dumps(doc))
     assert bench.main(base + ["--methods", "frozen", "--resume"]) == 0
+    # rows of other code (or of code before digests were recorded) are never kept beside this code's
+    assert doc["code"] == bench.code_digest()
+    for older in ({**doc, "code": "0" * 16}, {k: v for k, v in doc.items() if k != "code"}):
+        out_json.write_text(json.dumps(older))
+        assert bench.main(base + ["--methods", "frozen", "--resume"]) == 1
+        assert "its rows were computed by other mogaf code" in capsys.readouterr().err
+    out_json.write_text(json.dumps(doc))
     assert bench.main(base + ["--methods", "frozen"]) == 1  # no silent overwrite without --resume
     assert "exists; pass --resume" in capsys.readouterr().err
     longer = [a if a != "20" else "30" for a in base]  # other trajectories under the same set name

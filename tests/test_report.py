@@ -819,7 +819,7 @@ def test_a_scene_rows_file_keeps_the_tables_of_its_metrics_files(tmp_path, metri
 
     assert read_bench_dir(bench) == ([], [], [(kept, run, records)])
     page = results_page(tmp_path / "out.md", bench)
-    assert f"| `{kept.as_posix()}` | `python -m mogaf.report scenes --json` | – | – | – | 3 | – |" in page
+    assert f"| `{kept.as_posix()}` | `python -m mogaf.report scenes --json` | – | – | – | – | 3 | – |" in page
     section = page.split(f"## Forecasts per scene: `{kept.as_posix()}`\n\nThe run: a test machine. ")[1]
     assert scenes_table(records).rstrip("\n") in section
 

@@ -20,7 +20,9 @@ an hour (GCN: 2001 epochs of a 6-block GCN over 100 control points) and 5-33 min
 (ODE: 40 epochs of a 4-layer d=128 transformer encoder over every (window,
 Gaussian) pair of a 256-Gaussian set, 36-72 observed frames) per group on one
 loaded CPU core (--device auto runs them on a GPU where torch sees one); --json with
---resume keeps finished rows across runs. The default --budget cpu shortens only their
+--resume keeps finished rows across runs of the same code (the file records a
+digest of mogaf's sources: rows of older code kept beside new ones would
+compare two programs). The default --budget cpu shortens only their
 epochs (REDUCED in _forecast_report.py) and marks them with '*' in the table; MoGaF always runs
 at its defaults.
 
@@ -33,6 +35,7 @@ paper budget from another; --only keeps the rows of the sets it names.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 import time
@@ -71,6 +74,16 @@ from ._forecast_sources import (  # noqa: F401  (the synthetic_* --source functi
     synthetic_hard,
     synthetic_scene_sets,
 )
+
+
+def code_digest() -> str:
+    """A digest (16 hex digits of sha256) of the mogaf package's Python
+    sources: the code a --json file's rows were computed by."""
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
 
 
 def split(traj: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
@@ -370,7 +383,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         sources = _select_sources(args, patterns)
         # the device the rows are computed on ("auto" resolved: a CPU-only machine's rows are CPU rows)
         device = resolve_device(args.device, "bench forecast").type
-        header = {"budget": args.budget, "params": params, "seed": args.seed, "device": device}
+        header = {"budget": args.budget, "params": params, "seed": args.seed, "device": device, "code": code_digest()}
         done = _done_rows(args, header)
         if args.json:
             check_writable(args.json)  # not after the first row's minutes of training
@@ -419,6 +432,12 @@ def _resumable_rows(path: Path, header: dict[str, Any]) -> list[dict[str, Any]]:
     if old.get("device", "cpu") != want["device"]:
         raise MogafError(
             f"{path}: written with another device ({old.get('device', 'cpu')!r}); remove it or drop --resume"
+        )
+    if old.get("code") != want["code"]:
+        made = f"code {old['code']}" if "code" in old else "code from before digests were recorded"
+        raise MogafError(
+            f"{path}: its rows were computed by other mogaf code ({made}; this is {want['code']}); "
+            "remove it or drop --resume"
         )
     old_params = old.get("params") or {}
     for method, p in want["params"].items():

@@ -149,13 +149,15 @@ def inputs_table(
     metrics: Sequence[str | os.PathLike] = (),
     scenes: Sequence[SceneRows] = (),
 ) -> str:
-    """A row per forecast benchmark file: budget, device, seed, rows and what it
-    changed; a row per pipeline file, per scene-rows file and per metrics.json."""
+    """A row per forecast benchmark file: budget, device, seed, the code its rows
+    were computed by (mogaf.bench.forecast.code_digest; '–': older files), rows
+    and what it changed; a row per pipeline file, per scene-rows file and per
+    metrics.json."""
     from ..bench._forecast_report import read_rows
 
     lines = [
-        "| file | written by | budget | device | seed | rows | settings beyond the defaults |",
-        "|---|---|---|---|---|---|---|",
+        "| file | written by | budget | device | seed | code | rows | settings beyond the defaults |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for path, header in files:
         changed = {m: changed_params(header, m) for m in _methods(header)}
@@ -163,15 +165,18 @@ def inputs_table(
         notes += [f"{m}: steps {_steps(header, m)}" for m in _methods(header) if _steps(header, m)]
         lines.append(
             f"| `{_posix(path)}` | `python -m mogaf.bench forecast --json` | {header.get('budget', '–')} | "
-            f"{header.get('device', '–')} | {header.get('seed', '–')} | {len(read_rows(path)[1])} | "
+            f"{header.get('device', '–')} | {header.get('seed', '–')} | {header.get('code', '–')} | "
+            f"{len(read_rows(path)[1])} | "
             f"{'; '.join(notes) or '–'} |"
         )
     for path in pipeline:
-        lines.append(f"| `{_posix(path)}` | `python -m mogaf.bench pipeline --json` | – | – | – | – | – |")
+        lines.append(f"| `{_posix(path)}` | `python -m mogaf.bench pipeline --json` | – | – | – | – | – | – |")
     for path, _, results in scenes:
-        lines.append(f"| `{_posix(path)}` | `python -m mogaf.report scenes --json` | – | – | – | {len(results)} | – |")
+        lines.append(
+            f"| `{_posix(path)}` | `python -m mogaf.report scenes --json` | – | – | – | – | {len(results)} | – |"
+        )
     for path in metrics:
-        lines.append(f"| `{_posix(path)}` | the pipeline's evaluate stage | – | – | – | – | – |")
+        lines.append(f"| `{_posix(path)}` | the pipeline's evaluate stage | – | – | – | – | – | – |")
     return "\n".join(lines)
 
 
