@@ -121,10 +121,17 @@ def test_cli_resume_keeps_finished_rows_and_only_filters(tmp_path, capsys):
     assert bench.main(base + ["--methods", "frozen", "--resume"]) == 0
     # rows of other code (or of code before digests were recorded) are never kept beside this code's
     assert doc["code"] == bench.code_digest()
-    for older in ({**doc, "code": "0" * 16}, {k: v for k, v in doc.items() if k != "code"}):
+    other = "its rows were computed by other mogaf code"
+    for older, why in (
+        ({**doc, "code": "0" * 16}, f"{other} (code '0000000000000000'; this is {doc['code']})"),
+        ({k: v for k, v in doc.items() if k != "code"}, f"{other} (code from before digests were recorded;"),
+    ):
         out_json.write_text(json.dumps(older))
         assert bench.main(base + ["--methods", "frozen", "--resume"]) == 1
-        assert "its rows were computed by other mogaf code" in capsys.readouterr().err
+        assert why in capsys.readouterr().err
+    out_json.write_text(json.dumps({**doc, "code": "a|b"}))  # a hand-edited digest breaks no results table
+    with pytest.raises(MogafError, match=r"has code 'a\|b', not a digest of 16 hex digits"):
+        bench.read_rows(out_json)
     out_json.write_text(json.dumps(doc))
     assert bench.main(base + ["--methods", "frozen"]) == 1  # no silent overwrite without --resume
     assert "exists; pass --resume" in capsys.readouterr().err

@@ -12,6 +12,7 @@ from __future__ import annotations
 import fnmatch
 import json
 import math
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -69,6 +70,10 @@ def _column_order(columns: set[str]) -> list[str]:
     return sorted(columns, key=lambda c: (METHODS.index(method_of(c)) if method_of(c) in METHODS else 99, c))
 
 
+# A --json file's "code": mogaf.bench.forecast.code_digest's 16 hex digits.
+CODE_DIGEST = "[0-9a-f]{16}"
+
+
 def read_rows(path: Path, only: Sequence[str] = ()) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """(header, rows) of a --json file written by this benchmark; with `only`
     (glob patterns), just the rows of the sets whose name matches one."""
@@ -84,6 +89,9 @@ def read_rows(path: Path, only: Sequence[str] = ()) -> tuple[dict[str, Any], lis
         for key in ("ratio", "epe", "train_s"):  # NaN stands for a failed fit
             if not isinstance(r[key], (int, float)) or isinstance(r[key], bool):
                 raise MogafError(f"{path}: row {i} has {key} {r[key]!r}, not a number")
+    code = doc.get("code")
+    if code is not None and not (isinstance(code, str) and re.fullmatch(CODE_DIGEST, code)):
+        raise MogafError(f"{path}: has code {code!r}, not a digest of 16 hex digits (mogaf.bench.forecast.code_digest)")
     if only:
         rows = [r for r in rows if set_selected(str(r["set"]), only)]
     return {k: v for k, v in doc.items() if k != "rows"}, rows

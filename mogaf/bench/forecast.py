@@ -81,7 +81,7 @@ def code_digest() -> str:
     sources: the code a --json file's rows were computed by."""
     root = Path(__file__).resolve().parents[1]
     h = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")):
+    for path in sorted(p for p in root.rglob("*.py") if p.is_file()):  # not an editor's dangling link
         h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
     return h.hexdigest()[:16]
 
@@ -227,7 +227,7 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--resume",
         action="store_true",
-        help="keep the rows already in --json (same budget, parameters and seed) and compute only the missing ones",
+        help="keep the rows already in --json (same budget, parameters, seed, device and code) and compute only the missing ones",
     )
     ap.add_argument(
         "--from-json",
@@ -434,7 +434,7 @@ def _resumable_rows(path: Path, header: dict[str, Any]) -> list[dict[str, Any]]:
             f"{path}: written with another device ({old.get('device', 'cpu')!r}); remove it or drop --resume"
         )
     if old.get("code") != want["code"]:
-        made = f"code {old['code']}" if "code" in old else "code from before digests were recorded"
+        made = f"code {old['code']!r}" if "code" in old else "code from before digests were recorded"
         raise MogafError(
             f"{path}: its rows were computed by other mogaf code ({made}; this is {want['code']}); "
             "remove it or drop --resume"

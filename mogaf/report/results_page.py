@@ -165,7 +165,7 @@ def inputs_table(
         notes += [f"{m}: steps {_steps(header, m)}" for m in _methods(header) if _steps(header, m)]
         lines.append(
             f"| `{_posix(path)}` | `python -m mogaf.bench forecast --json` | {header.get('budget', '–')} | "
-            f"{header.get('device', '–')} | {header.get('seed', '–')} | {header.get('code', '–')} | "
+            f"{header.get('device', '–')} | {header.get('seed', '–')} | {header.get('code') or '–'} | "
             f"{len(read_rows(path)[1])} | "
             f"{'; '.join(notes) or '–'} |"
         )
