@@ -94,7 +94,7 @@ def _forecast_file(path: Path, params: dict, rows: list[tuple[str, str, float]],
 
 
 def test_results_page_sections_come_from_the_files(tmp_path, monkeypatch, capsys):
-    from mogaf.bench._forecast_report import markdown_report
+    from mogaf.bench._forecast_report import comparison_table, markdown_report
     from mogaf.report.__main__ import main
     from mogaf.report.results_page import classify, read_bench_dir, results_page
 
@@ -140,6 +140,14 @@ def test_results_page_sections_come_from_the_files(tmp_path, monkeypatch, capsys
     )
     assert main(["results", "--bench", "bench", "--check", "out.md"]) == 1
     assert "rewrite it with: python -m mogaf.report results --bench bench --write out.md" in capsys.readouterr().err
+    # files computed by different code say so, beside their tables (code: mogaf.bench.forecast.code_digest)
+    assert "Rows computed by different code" not in page
+    for path in (select, steps):
+        path.write_text(json.dumps({**json.loads(path.read_text()), "code": "0123456789abcdef"}))
+    page = results_page("out.md", bench)
+    note = "Rows computed by different code: `bench/forecast_gt_defaults.json` –, `bench/forecast_gt_{}.json` 0123456789abcdef"
+    assert note.format("combine_select") in page.split("## Settings of a forecaster against its defaults")[1]
+    assert note.format("steps_ode") in comparison_table([defaults, steps])
     (bench / "notes.json").write_text("{}")
     assert main(["results", "--bench", "bench"]) == 1
     assert "notes.json: is none of" in capsys.readouterr().err

@@ -97,6 +97,16 @@ def read_rows(path: Path, only: Sequence[str] = ()) -> tuple[dict[str, Any], lis
     return {k: v for k, v in doc.items() if k != "rows"}, rows
 
 
+def code_note(paths: Sequence[str | Path]) -> str:
+    """A line naming each file's code (mogaf.bench.forecast.code_digest; '–':
+    written before digests) where the files were not all computed by the same
+    code, else ''."""
+    codes = {Path(p).as_posix(): read_rows(Path(p))[0].get("code") or "–" for p in paths}
+    if len(set(codes.values())) <= 1:
+        return ""
+    return "Rows computed by different code: " + ", ".join(f"`{p}` {c}" for p, c in codes.items())
+
+
 def _same_number(a: float, b: float) -> bool:
     return a == b or (math.isnan(a) and math.isnan(b))
 
@@ -152,6 +162,9 @@ def comparison_table(paths: Sequence[str | Path], only: Sequence[str] = ()) -> s
     if any(c.endswith("*") for c in order):
         lines.append("")
         lines.append("\\* shortened training (--budget cpu): " + "; ".join(f"{m}: {REDUCED[m]}" for m in REDUCED))
+    note = code_note(paths)
+    if note:
+        lines += ["", note]
     budgets = [c for c in order if "@" in c]
     if budgets:
         lines.append("")

@@ -294,7 +294,7 @@ def epe_summary(columns: Sequence[str], cells: Mapping[tuple[str, float], Mappin
 
 
 def variants_section(main: Sequence[Path], variants: Sequence[Path]) -> str:
-    from ..bench._forecast_report import read_rows
+    from ..bench._forecast_report import code_note, read_rows
 
     columns, cells, used = _epe_cells(main, variants)
     notes = []
@@ -314,6 +314,7 @@ def variants_section(main: Sequence[Path], variants: Sequence[Path]) -> str:
             "\n".join(notes),
             epe_table(columns, cells),
             epe_summary(columns, cells),
+            *filter(None, [code_note([*used, *variants])]),
         ]
     )
 
