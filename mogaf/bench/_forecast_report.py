@@ -97,11 +97,15 @@ def read_rows(path: Path, only: Sequence[str] = ()) -> tuple[dict[str, Any], lis
     return {k: v for k, v in doc.items() if k != "rows"}, rows
 
 
-def code_note(paths: Sequence[str | Path]) -> str:
-    """A line naming each file's code (mogaf.bench.forecast.code_digest; '–':
-    written before digests) where the files were not all computed by the same
-    code, else ''."""
-    codes = {Path(p).as_posix(): read_rows(Path(p))[0].get("code") or "–" for p in paths}
+def code_of(header: Mapping[str, Any]) -> str:
+    """The code a file's rows were computed by (mogaf.bench.forecast.code_digest; '–': before digests)."""
+    return header.get("code") or "–"
+
+
+def code_note(headers: Mapping[str | Path, Mapping[str, Any]]) -> str:
+    """A line naming each file's code (file -> its header, as read_rows gives
+    it) where the files were not all computed by the same code, else ''."""
+    codes = {Path(p).as_posix(): code_of(h) for p, h in headers.items()}
     if len(set(codes.values())) <= 1:
         return ""
     return "Rows computed by different code: " + ", ".join(f"`{p}` {c}" for p, c in codes.items())
@@ -120,8 +124,10 @@ def comparison_table(paths: Sequence[str | Path], only: Sequence[str] = ()) -> s
     origin: dict[tuple[str, float, str], str] = {}
     shapes: dict[tuple[str, float], tuple[Any, Any]] = {}
     columns: set[str] = set()
+    headers: dict[str | Path, dict[str, Any]] = {}
     for path in paths:
         header, rows = read_rows(Path(path), only)
+        headers[path] = header
         if header.get("budget") not in ("cpu", "paper"):
             raise MogafError(f"{path}: has no budget 'cpu' or 'paper' (written before budgets were recorded?)")
         for r in rows:
@@ -162,7 +168,7 @@ def comparison_table(paths: Sequence[str | Path], only: Sequence[str] = ()) -> s
     if any(c.endswith("*") for c in order):
         lines.append("")
         lines.append("\\* shortened training (--budget cpu): " + "; ".join(f"{m}: {REDUCED[m]}" for m in REDUCED))
-    note = code_note(paths)
+    note = code_note(headers)
     if note:
         lines += ["", note]
     budgets = [c for c in order if "@" in c]

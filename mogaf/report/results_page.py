@@ -153,7 +153,7 @@ def inputs_table(
     were computed by (mogaf.bench.forecast.code_digest; '–': older files), rows
     and what it changed; a row per pipeline file, per scene-rows file and per
     metrics.json."""
-    from ..bench._forecast_report import read_rows
+    from ..bench._forecast_report import code_of, read_rows
 
     lines = [
         "| file | written by | budget | device | seed | code | rows | settings beyond the defaults |",
@@ -165,7 +165,7 @@ def inputs_table(
         notes += [f"{m}: steps {_steps(header, m)}" for m in _methods(header) if _steps(header, m)]
         lines.append(
             f"| `{_posix(path)}` | `python -m mogaf.bench forecast --json` | {header.get('budget', '–')} | "
-            f"{header.get('device', '–')} | {header.get('seed', '–')} | {header.get('code') or '–'} | "
+            f"{header.get('device', '–')} | {header.get('seed', '–')} | {code_of(header)} | "
             f"{len(read_rows(path)[1])} | "
             f"{'; '.join(notes) or '–'} |"
         )
@@ -297,9 +297,10 @@ def variants_section(main: Sequence[Path], variants: Sequence[Path]) -> str:
     from ..bench._forecast_report import code_note, read_rows
 
     columns, cells, used = _epe_cells(main, variants)
+    headers = {path: read_rows(path)[0] for path in [*used, *variants]}
     notes = []
     for path in variants:
-        header = read_rows(path)[0]
+        header = headers[path]
         for m in _methods(header):
             if changed_params(header, m):
                 notes.append(
@@ -314,7 +315,7 @@ def variants_section(main: Sequence[Path], variants: Sequence[Path]) -> str:
             "\n".join(notes),
             epe_table(columns, cells),
             epe_summary(columns, cells),
-            *filter(None, [code_note([*used, *variants])]),
+            *filter(None, [code_note(headers)]),
         ]
     )
 
