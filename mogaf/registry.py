@@ -139,7 +139,8 @@ class StageSpec:
     wildcards: tuple[str, ...] = ()  # wildcards of the target path passed as arguments (CLI options)
     guards: tuple[Guard, ...] = ()
     fixed: tuple[tuple[str, Any], ...] = ()  # constant keyword arguments of the function
-    # torch's thread count follows the rule's `threads` (False: torch's default, as these stages always ran)
+    # torch's thread count follows the rule's `threads` (False: the stage never imports torch, or runs
+    # with torch's default as it always did)
     torch_threads: bool = True
     # the rule's `threads` (the CLI's --threads) passed as `job_threads`, for a stage that sets torch's count only where it uses torch
     threads_argument: bool = False
@@ -263,6 +264,7 @@ STAGES: tuple[StageSpec, ...] = (
         settings="grouping",
         settings_class="mogaf.grouping.params:GroupingSettings",
         seed="params",
+        torch_threads=False,
         digest_sections=("grouping",),
         upstream=("recon", "priors"),
         runtime=True,

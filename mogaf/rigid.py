@@ -1,9 +1,10 @@
 """Weighted Procrustes (Kabsch/Umeyama without scale) and rigid-fit residuals.
 
-Used by the grouping stage (rigidity estimate), the rigid_init stage
-(supplementary "Group-wise Optimization": per rigid group and observed time,
-the SE(3) that best maps canonical means to deformed means), refinement and
-reconstruction initialisation.
+Differentiable, in torch: used by refinement, reconstruction initialisation
+and the structured forecaster. The group stage (rigidity estimate) and the
+rigid_init stage (supplementary "Group-wise Optimization": per rigid group and
+observed time, the SE(3) that best maps canonical means to deformed means)
+solve the same problem in NumPy (mogaf.rigid_fit) and never import torch.
 
 Conventions: points are rows, dst ~= src @ R.T + t, i.e. y = R x + t.
 
@@ -30,9 +31,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-IDENTITY_BIAS = 1e-12
+# the same constants as the NumPy solver of the stages without torch
+from .rigid_fit import IDENTITY_BIAS
+from .rigid_fit import TINY as _TINY
+
 GRADIENT_EPS = 1e-7
-_TINY = 1e-200  # added under square roots (representable in float64)
 
 
 def _as_tensor(x) -> torch.Tensor:

@@ -445,6 +445,36 @@ def test_a_segment_label_past_the_named_segments_is_one_line(toy_files, tmp_path
     np.testing.assert_array_equal(load_segments(scene_h5, np.array([1])).label, segments.label[[1]])
 
 
+def test_the_group_and_rigid_init_stages_do_not_import_torch():
+    """Grouping a scene and fitting its rigid groups is NumPy work (the rigid
+    fits: mogaf.rigid_fit): their jobs do not pay torch's import (about a
+    second each; Snakemake sets no torch thread count for them: registry
+    `torch_threads`)."""
+    import subprocess
+    import sys
+
+    from mogaf import registry
+    from support.paths import REPO
+
+    assert not registry.spec("group").torch_threads and not registry.spec("rigid_init").torch_threads
+    code = (
+        "import sys; sys.path.insert(0, 'tests')\n"
+        "import numpy as np\n"
+        "from mogaf.grouping.stage import rigid_init, run_group_stage, run_rigid_init_stage\n"
+        "from mogaf.grouping.api import group_gaussians\n"
+        "from support.toy_grouping import two_object_scene\n"
+        "sc = two_object_scene(seed=0)\n"
+        "groups = group_gaussians(sc.model, sc.masks, sc.frames, sc.instances, {'method': 'ours'})\n"
+        "groups.rigid[:] = 1\n"
+        "fit = rigid_init(sc.model, groups, {})\n"
+        "assert fit['group_ids'].size == 2 and np.isfinite(fit['rotations']).all()\n"
+        "print('torch' in sys.modules)"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.strip() == "False"
+
+
 def test_the_grouping_stages_do_not_import_scikit_learn():
     """scikit-learn (with the SciPy and pandas parts it pulls, one to two
     seconds per process) is not needed by grouping: the motion features' PCA

@@ -1,4 +1,5 @@
-"""Weighted Procrustes and rigid-fit residuals (mogaf.rigid)."""
+"""Weighted Procrustes and rigid-fit residuals (mogaf.rigid, and its NumPy
+solver mogaf.rigid_fit against it)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from hypothesis import strategies as st
 
 from mogaf.eager_roma import load as load_roma
 from mogaf.rigid import apply_rigid, procrustes_numpy, rigid_fit_residual, weighted_procrustes
+from mogaf.rigid_fit import fit_residual, procrustes
 
 roma = load_roma()  # as the pipeline imports it (without torch's compiler)
 
@@ -158,6 +160,61 @@ def test_numpy_wrapper():
     R_true = _rot([0.0, 0.0, 1.0], 1.0).numpy()
     R, t = procrustes_numpy(src, src @ R_true.T + 2.0)
     assert np.allclose(R, R_true, atol=1e-9) and np.allclose(t, 2.0, atol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n=st.integers(3, 40),
+    frames=st.integers(1, 4),
+    weighted=st.booleans(),
+    planar=st.booleans(),
+    noise=st.sampled_from([0.0, 1e-3, 0.3]),
+    log_scale=st.floats(-4.0, 3.0),
+)
+def test_numpy_solver_equals_the_torch_one_on_well_posed_fits(seed, n, frames, weighted, planar, noise, log_scale):
+    """mogaf.rigid_fit (NumPy, SVD; the group and rigid_init stages) against
+    mogaf.rigid (torch, roma): the same R, t and residual to float64 rounding
+    wherever the fit has one answer (three or more points not on a line;
+    flat sets included), with weights, a batch of frames and noisy targets."""
+    rng = np.random.default_rng(seed)
+    src = rng.normal(size=(n, 3)) * 10.0**log_scale
+    if planar:
+        src[:, 2] = 0.0
+    rot = np.stack([_rot(rng.normal(size=3), rng.uniform(0.0, math.pi)).numpy() for _ in range(frames)])
+    dst = (
+        src @ rot.transpose(0, 2, 1)
+        + rng.normal(size=(frames, 1, 3))
+        + noise * 10.0**log_scale * rng.normal(size=(frames, n, 3))
+    )
+    w = rng.uniform(0.1, 1.0, n) if weighted else None
+    tw = None if w is None else torch.from_numpy(w)
+    R_t, t_t = weighted_procrustes(torch.from_numpy(src), torch.from_numpy(dst), tw)
+    R_n, t_n = procrustes(src, dst, w)
+    size = 1.0 + 10.0**log_scale
+    assert np.allclose(R_n, R_t.numpy(), rtol=0.0, atol=1e-9)
+    assert np.allclose(t_n, t_t.numpy(), rtol=0.0, atol=1e-9 * size)
+    assert np.allclose(np.linalg.det(R_n), 1.0, atol=1e-12)
+    for squared in (False, True):
+        r_t = rigid_fit_residual(torch.from_numpy(src), torch.from_numpy(dst), tw, squared=squared).numpy()
+        r_n = fit_residual(src, dst, w, squared=squared)
+        assert np.allclose(r_n, r_t, rtol=1e-9, atol=1e-12 * size**2)
+
+
+def test_numpy_solver_edge_cases():
+    """An empty set: the identity; weights summing to zero: uniform ones; a
+    reflected copy: still a rotation (det +1); bad shapes: an error."""
+    R, t = procrustes(np.zeros((2, 0, 3)), np.zeros((2, 0, 3)))
+    assert np.array_equal(R, np.broadcast_to(np.eye(3), (2, 3, 3))) and np.array_equal(t, np.zeros((2, 3)))
+    src = np.random.default_rng(1).normal(size=(12, 3))
+    dst = src @ _rot([0.0, 1.0, 0.0], 0.7).numpy().T + 3.0
+    for a, b in zip(procrustes(src, dst, np.zeros(12)), procrustes(src, dst), strict=True):
+        assert np.array_equal(a, b)
+    R, _ = procrustes(src, src * np.array([1.0, 1.0, -1.0]))
+    assert np.isclose(np.linalg.det(R), 1.0)
+    assert fit_residual(src, src * np.array([1.0, 1.0, -1.0])) > 0.1
+    with pytest.raises(ValueError, match="points must be"):
+        procrustes(src[:, :2], dst)
 
 
 @settings(max_examples=25, deadline=None)

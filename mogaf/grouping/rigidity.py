@@ -25,9 +25,8 @@ moves more than that (the maximum, not a quantile).
 from __future__ import annotations
 
 import numpy as np
-import torch
 
-from ..rigid import rigid_fit_residual
+from ..rigid_fit import fit_residual
 from .params import load_settings
 
 VALID_SOURCES = ("label", "config", "estimated")
@@ -177,8 +176,7 @@ def relative_rigid_residual(
         idx = np.sort(rng.choice(P, max_points, replace=False))
         x, y = x[idx], y[idx]
     yt = np.transpose(y, (1, 0, 2))  # (T,P,3)
-    with torch.no_grad():
-        ms = rigid_fit_residual(torch.from_numpy(x), torch.from_numpy(yt), squared=True).numpy()  # (T,)
+    ms = fit_residual(x, yt, squared=True)  # (T,)
     rms = float(np.sqrt(ms.mean()))
     spread = float(np.sqrt(((yt - yt.mean(axis=1, keepdims=True)) ** 2).sum(-1).mean()))
     if spread <= 0.0:

@@ -35,12 +35,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from ..artefact import config_digest, open_artefact, read_artefact, read_rows, write_artefact
 from ..errors import MogafError, input_error
 from ..representation import load_model
-from ..rigid import rigid_fit_residual, weighted_procrustes
+from ..rigid_fit import fit_residual, procrustes
 from ..scene import SCENE_STAGE, Instances
 from ..settings import as_dict, load
 from .core import GROUP_STAGE, Groups, MaskFrames, frames_in_time_order
@@ -208,24 +207,18 @@ def rigid_init(model, groups: Groups, params: dict[str, Any] | None = None) -> d
         members = groups.members(int(k))
         if members.size == 0:
             continue
-        src = torch.from_numpy(canonical[members])
+        src = canonical[members]
         w = None
         if p.weights == "opacity":
-            w = torch.from_numpy(1.0 / (1.0 + np.exp(-np.asarray(model.fg.opacity_logits, np.float64)[members])))
+            w = 1.0 / (1.0 + np.exp(-np.asarray(model.fg.opacity_logits, np.float64)[members]))
         for t0 in range(0, T, chunk):
-            dst = torch.from_numpy(
-                np.ascontiguousarray(
-                    np.transpose(
-                        np.asarray(model.trajectory_means[members, t0 : t0 + chunk], dtype=np.float64), (1, 0, 2)
-                    )
-                )
+            dst = np.transpose(
+                np.asarray(model.trajectory_means[members, t0 : t0 + chunk], dtype=np.float64), (1, 0, 2)
             )
-            with torch.no_grad():
-                R, t = weighted_procrustes(src, dst, w)
-                r = rigid_fit_residual(src, dst, w, R, t)
-            rot[i, t0 : t0 + chunk] = R.numpy()
-            trans[i, t0 : t0 + chunk] = t.numpy()
-            res[i, t0 : t0 + chunk] = r.numpy()
+            R, t = procrustes(src, dst, w)
+            rot[i, t0 : t0 + chunk] = R
+            trans[i, t0 : t0 + chunk] = t
+            res[i, t0 : t0 + chunk] = fit_residual(src, dst, w, R, t)
     return {
         "group_ids": rigid_ids,
         "rotations": rot,
