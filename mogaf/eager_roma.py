@@ -3,7 +3,7 @@
 At import, roma wraps two of its autograd functions in `torch._dynamo.disable`,
 which keeps torch.compile from tracing them. That attribute access imports
 torch._dynamo (about 1.3 s of every process that reaches roma: recon,
-rigid_init, refine, a rigid group's forecast), for a compiler the pipeline
+refine, a rigid group's forecast), for a compiler the pipeline
 never runs. Outside torch.compile the wrapper only switches tracing off
 around the call, so roma's functions compute the same thing, bit for bit,
 without it (tests/test_optim.py compares them with a plain `import roma`).

@@ -1,10 +1,11 @@
 """Weighted Procrustes (Kabsch/Umeyama without scale) and rigid-fit residuals.
 
-Differentiable, in torch: used by refinement, reconstruction initialisation
-and the structured forecaster. The group stage (rigidity estimate) and the
-rigid_init stage (supplementary "Group-wise Optimization": per rigid group and
-observed time, the SE(3) that best maps canonical means to deformed means)
-solve the same problem in NumPy (mogaf.rigid_fit) and never import torch.
+Differentiable, in torch (roma's solve): the structured forecaster's rigid
+fits (procrustes_numpy) and refinement's rigid targets (apply_rigid). The
+group stage (rigidity estimate) and the rigid_init stage (supplementary
+"Group-wise Optimization": per rigid group and observed time, the SE(3) that
+best maps canonical means to deformed means) solve the same problem in NumPy
+(mogaf.rigid_fit) and never import torch.
 
 Conventions: points are rows, dst ~= src @ R.T + t, i.e. y = R x + t.
 
@@ -19,9 +20,11 @@ Numerics
   (`gradient_eps`) is relative to the problem and not to the scene units.
 - A tiny multiple of the identity (`IDENTITY_BIAS`, relative) is added so
   that when the problem has no unique answer (one point, all points
-  identical, collinear points) the rotation closest to the identity among the
-  optimal ones is returned, deterministically, with finite gradients. Its
-  effect on well-posed problems is of the order of 1e-12 rad.
+  identical, collinear points) the result is deterministic with finite
+  gradients (roma's Horn solve does not resolve a gap this small, so among
+  the optimal rotations it need not return the one closest to the identity;
+  mogaf.rigid_fit's SVD does). Its effect on well-posed problems is of the
+  order of 1e-12 rad.
 - Weights are clamped at 0; weights that sum to zero fall back to uniform
   weights; an empty point set gives the identity and a zero translation.
 """

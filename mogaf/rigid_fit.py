@@ -5,11 +5,14 @@ each of those jobs).
 The same problem, conventions and numerics as mogaf.rigid (points are rows,
 y = R x + t; float64; weights clamped at 0, a zero total falls back to
 uniform; the cross-covariance normalised by its Frobenius norm plus
-IDENTITY_BIAS times the identity, so an ill-posed fit returns the rotation
-closest to the identity). mogaf.rigid solves with roma (Horn's quaternion
-method) and is differentiable; this module solves the same normalised
-problem by an SVD, without gradients. The two agree to float64 rounding on
-well-posed problems (tests/test_rigid.py).
+IDENTITY_BIAS times the identity). mogaf.rigid solves with roma (Horn's
+quaternion method) and is differentiable; this module solves the same
+normalised problem by an SVD, without gradients. The two agree to float64
+rounding wherever the fit has one answer (tests/test_rigid.py). Where it has
+many (two points, points on a line), the SVD resolves the identity bias and
+returns the optimal rotation closest to the identity; roma's Horn solve does
+not resolve so small a gap (roma's own note) and returns another optimal one.
+Non-finite points or weights give NaN poses and residuals, as torch does.
 """
 
 from __future__ import annotations
@@ -66,7 +69,11 @@ def procrustes(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = No
     yc = y - cy[..., None, :]
     M = np.einsum("...p,...pi,...pj->...ij", w, yc, xc)
     scale = np.sqrt((M * M).sum((-1, -2), keepdims=True) + TINY)
-    R = nearest_rotation(M / scale + IDENTITY_BIAS * np.eye(3))
+    Mn = M / scale + IDENTITY_BIAS * np.eye(3)
+    # LAPACK's SVD fails on non-finite input: NaN poses there (as torch's solve gives)
+    bad = ~np.isfinite(Mn).all((-1, -2))
+    R = nearest_rotation(np.where(bad[..., None, None], np.eye(3), Mn))
+    R = np.where(bad[..., None, None], np.nan, R)
     t = cy - np.einsum("...ij,...j->...i", R, cx)
     return R, t
 

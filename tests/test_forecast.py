@@ -158,7 +158,8 @@ def test_farthest_point_sampling_spreads_points(rng):
 def test_gcn_graph_convolution_of_all_windows_equals_one_per_window():
     """GraphConv multiplies the adjacency with every window's support in one
     product (N x B*F); the reference, one A (x_b W) + b per window, gives the
-    same outputs and the same gradients for every parameter and the input."""
+    same outputs and the same gradients for every parameter and the input,
+    for a batch of windows and for the rollout's single window."""
     import dataclasses
 
     import torch
@@ -167,19 +168,19 @@ def test_gcn_graph_convolution_of_all_windows_equals_one_per_window():
     from mogaf.forecast.gcn import _build_model
 
     torch.manual_seed(0)
-    conv = _build_model(6, dataclasses.replace(GCNSettings(), input_size=5, linear_size=16)).gcn_r.gcn.gc1
-    x = torch.randn(7, 24, 5, dtype=torch.float64, requires_grad=True)
-    conv = conv.double()
-    upstream = torch.randn(7, 24, 16, dtype=torch.float64)
-    fast = conv(x)
-    reference = torch.stack([conv.att @ (x[b] @ conv.weight) + conv.bias for b in range(x.shape[0])])
-    assert fast.shape == reference.shape == (7, 24, 16)
-    wrt = (x, conv.att, conv.weight, conv.bias)
-    g_fast = torch.autograd.grad((fast * upstream).sum(), wrt)
-    g_ref = torch.autograd.grad((reference * upstream).sum(), wrt)
-    assert torch.allclose(fast, reference, rtol=1e-12, atol=1e-12)
-    for a, b in zip(g_fast, g_ref, strict=True):
-        assert torch.allclose(a, b, rtol=1e-12, atol=1e-12)
+    conv = _build_model(6, dataclasses.replace(GCNSettings(), input_size=5, linear_size=16)).gcn_r.gcn.gc1.double()
+    for windows in (7, 1):
+        x = torch.randn(windows, 24, 5, dtype=torch.float64, requires_grad=True)
+        upstream = torch.randn(windows, 24, 16, dtype=torch.float64)
+        fast = conv(x)
+        reference = torch.stack([conv.att @ (x[b] @ conv.weight) + conv.bias for b in range(windows)])
+        assert fast.shape == reference.shape == (windows, 24, 16)
+        wrt = (x, conv.att, conv.weight, conv.bias)
+        g_fast = torch.autograd.grad((fast * upstream).sum(), wrt)
+        g_ref = torch.autograd.grad((reference * upstream).sum(), wrt)
+        assert torch.allclose(fast, reference, rtol=1e-12, atol=1e-12)
+        for a, b in zip(g_fast, g_ref, strict=True):
+            assert torch.allclose(a, b, rtol=1e-12, atol=1e-12)
 
 
 def test_gcn_skinning_carries_rigid_motion_exactly():

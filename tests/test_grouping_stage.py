@@ -445,34 +445,46 @@ def test_a_segment_label_past_the_named_segments_is_one_line(toy_files, tmp_path
     np.testing.assert_array_equal(load_segments(scene_h5, np.array([1])).label, segments.label[[1]])
 
 
-def test_the_group_and_rigid_init_stages_do_not_import_torch():
-    """Grouping a scene and fitting its rigid groups is NumPy work (the rigid
-    fits: mogaf.rigid_fit): their jobs do not pay torch's import (about a
-    second each; Snakemake sets no torch thread count for them: registry
-    `torch_threads`)."""
+def _printed_after_grouping_the_toy_scene(imports: str, rigid_flags: tuple[int, int], then: str) -> str:
+    """What a fresh process prints after `imports`, grouping the two-object
+    toy scene (instance rigidity `rigid_flags`, -1: estimated) and `then`."""
     import subprocess
     import sys
 
-    from mogaf import registry
     from support.paths import REPO
 
-    assert not registry.spec("group").torch_threads and not registry.spec("rigid_init").torch_threads
     code = (
         "import sys; sys.path.insert(0, 'tests')\n"
-        "import numpy as np\n"
-        "from mogaf.grouping.stage import rigid_init, run_group_stage, run_rigid_init_stage\n"
+        f"{imports}\n"
         "from mogaf.grouping.api import group_gaussians\n"
         "from support.toy_grouping import two_object_scene\n"
-        "sc = two_object_scene(seed=0)\n"
+        f"sc = two_object_scene(seed=0, rigid_flags={rigid_flags!r})\n"
         "groups = group_gaussians(sc.model, sc.masks, sc.frames, sc.instances, {'method': 'ours'})\n"
-        "groups.rigid[:] = 1\n"
-        "fit = rigid_init(sc.model, groups, {})\n"
-        "assert fit['group_ids'].size == 2 and np.isfinite(fit['rotations']).all()\n"
-        "print('torch' in sys.modules)"
+        "assert groups.num_groups == 2\n"
+        f"{then}"
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120)
     assert res.returncode == 0, res.stderr[-2000:]
-    assert res.stdout.strip() == "False"
+    return res.stdout.strip()
+
+
+def test_the_group_and_rigid_init_stages_do_not_import_torch():
+    """Grouping a scene (its rigidity estimated) and fitting its rigid groups
+    is NumPy work (the rigid fits: mogaf.rigid_fit): their jobs do not pay
+    torch's import (about a second each; Snakemake sets no torch thread count
+    for them: registry `torch_threads`)."""
+    from mogaf import registry
+
+    assert not registry.spec("group").torch_threads and not registry.spec("rigid_init").torch_threads
+    printed = _printed_after_grouping_the_toy_scene(
+        "import numpy as np\nimport mogaf.stages\nfrom mogaf.grouping.stage import rigid_init",
+        (-1, -1),
+        "assert set(groups.rigid_source) == {'estimated'} and groups.rigid.all()\n"
+        "fit = rigid_init(sc.model, groups, {})\n"
+        "assert fit['group_ids'].size == 2 and np.isfinite(fit['rotations']).all()\n"
+        "print('torch' in sys.modules)",
+    )
+    assert printed == "False"
 
 
 def test_the_grouping_stages_do_not_import_scikit_learn():
@@ -481,21 +493,9 @@ def test_the_grouping_stages_do_not_import_scikit_learn():
     is mogaf's own (grouping.ours.principal_components), rigid_init and
     refine import this package for other names, and grouping_quality computes
     its adjusted Rand index itself."""
-    import subprocess
-    import sys
-
-    from support.paths import REPO
-
-    code = (
-        "import sys; sys.path.insert(0, 'tests')\n"
-        "import mogaf.grouping.stage, mogaf.refine.stage, mogaf.grouping.quality\n"
-        "from mogaf.grouping.api import group_gaussians\n"
-        "from support.toy_grouping import two_object_scene\n"
-        "sc = two_object_scene(seed=0)\n"
-        "groups = group_gaussians(sc.model, sc.masks, sc.frames, sc.instances, {'method': 'ours'})\n"
-        "assert groups.num_groups == 2\n"
-        "print(sorted(m for m in ('sklearn', 'pandas') if m in sys.modules))"
+    printed = _printed_after_grouping_the_toy_scene(
+        "import mogaf.grouping.stage, mogaf.refine.stage, mogaf.grouping.quality",
+        (1, 1),
+        "print(sorted(m for m in ('sklearn', 'pandas') if m in sys.modules))",
     )
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120)
-    assert res.returncode == 0, res.stderr[-2000:]
-    assert res.stdout.strip() == "[]"
+    assert printed == "[]"

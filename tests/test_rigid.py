@@ -167,7 +167,7 @@ def test_numpy_wrapper():
     seed=st.integers(0, 2**31 - 1),
     n=st.integers(3, 40),
     frames=st.integers(1, 4),
-    weighted=st.booleans(),
+    weighted=st.sampled_from(["none", "per point", "per frame and point"]),
     planar=st.booleans(),
     noise=st.sampled_from([0.0, 1e-3, 0.3]),
     log_scale=st.floats(-4.0, 3.0),
@@ -176,7 +176,8 @@ def test_numpy_solver_equals_the_torch_one_on_well_posed_fits(seed, n, frames, w
     """mogaf.rigid_fit (NumPy, SVD; the group and rigid_init stages) against
     mogaf.rigid (torch, roma): the same R, t and residual to float64 rounding
     wherever the fit has one answer (three or more points not on a line;
-    flat sets included), with weights, a batch of frames and noisy targets."""
+    flat sets included), with weights (some negative: clamped at 0; per point
+    or per frame and point), a batch of frames and noisy targets."""
     rng = np.random.default_rng(seed)
     src = rng.normal(size=(n, 3)) * 10.0**log_scale
     if planar:
@@ -187,7 +188,10 @@ def test_numpy_solver_equals_the_torch_one_on_well_posed_fits(seed, n, frames, w
         + rng.normal(size=(frames, 1, 3))
         + noise * 10.0**log_scale * rng.normal(size=(frames, n, 3))
     )
-    w = rng.uniform(0.1, 1.0, n) if weighted else None
+    shape = {"none": None, "per point": (n,), "per frame and point": (frames, n)}[weighted]
+    w = None if shape is None else rng.uniform(-0.3, 1.0, shape)
+    if w is not None:
+        w[..., :3] = rng.uniform(0.1, 1.0, shape[:-1] + (3,))  # three points keep a weight: one answer
     tw = None if w is None else torch.from_numpy(w)
     R_t, t_t = weighted_procrustes(torch.from_numpy(src), torch.from_numpy(dst), tw)
     R_n, t_n = procrustes(src, dst, w)
@@ -195,15 +199,16 @@ def test_numpy_solver_equals_the_torch_one_on_well_posed_fits(seed, n, frames, w
     assert np.allclose(R_n, R_t.numpy(), rtol=0.0, atol=1e-9)
     assert np.allclose(t_n, t_t.numpy(), rtol=0.0, atol=1e-9 * size)
     assert np.allclose(np.linalg.det(R_n), 1.0, atol=1e-12)
-    for squared in (False, True):
+    for squared, unit in ((False, size), (True, size**2)):
         r_t = rigid_fit_residual(torch.from_numpy(src), torch.from_numpy(dst), tw, squared=squared).numpy()
         r_n = fit_residual(src, dst, w, squared=squared)
-        assert np.allclose(r_n, r_t, rtol=1e-9, atol=1e-12 * size**2)
+        assert np.allclose(r_n, r_t, rtol=1e-9, atol=1e-12 * unit)
 
 
 def test_numpy_solver_edge_cases():
     """An empty set: the identity; weights summing to zero: uniform ones; a
-    reflected copy: still a rotation (det +1); bad shapes: an error."""
+    reflected copy: still a rotation (det +1); float32 points: the float64
+    fit; non-finite points: NaN, not an exception; bad shapes: an error."""
     R, t = procrustes(np.zeros((2, 0, 3)), np.zeros((2, 0, 3)))
     assert np.array_equal(R, np.broadcast_to(np.eye(3), (2, 3, 3))) and np.array_equal(t, np.zeros((2, 3)))
     src = np.random.default_rng(1).normal(size=(12, 3))
@@ -213,8 +218,34 @@ def test_numpy_solver_edge_cases():
     R, _ = procrustes(src, src * np.array([1.0, 1.0, -1.0]))
     assert np.isclose(np.linalg.det(R), 1.0)
     assert fit_residual(src, src * np.array([1.0, 1.0, -1.0])) > 0.1
+    fit32 = procrustes(src.astype(np.float32), dst)
+    for a, b in zip(fit32, procrustes(src.astype(np.float32).astype(np.float64), dst), strict=True):
+        assert a.dtype == np.float64 and np.array_equal(a, b)
+    bad = np.stack([dst, dst])
+    bad[1, 3, 0] = np.nan
+    R, t = procrustes(src, bad)
+    assert np.isfinite(R[0]).all() and np.isnan(R[1]).all() and np.isnan(t[1]).all()
+    assert np.isfinite(fit_residual(src, bad)[0]) and np.isnan(fit_residual(src, bad)[1])
     with pytest.raises(ValueError, match="points must be"):
         procrustes(src[:, :2], dst)
+
+
+@pytest.mark.parametrize("points", [2, 9])
+def test_numpy_solver_picks_the_optimal_rotation_closest_to_the_identity(points):
+    """Two points, or points on a line, leave the rotation about that line
+    free: every such rotation fits equally well, and the NumPy solver returns
+    the one closest to the identity (largest trace), found here by a search
+    over the free angle."""
+    rng = np.random.default_rng(points)
+    direction = rng.normal(size=3)
+    src = np.outer(rng.normal(size=points), direction)
+    R_true = _rot(rng.normal(size=3), 2.0).numpy()
+    dst = src @ R_true.T + 0.5
+    R, t = procrustes(src, dst)
+    assert np.isclose(np.linalg.det(R), 1.0) and fit_residual(src, dst, R=R, t=t) < 1e-9
+    axis = R_true @ direction / np.linalg.norm(direction)
+    candidates = [_rot(axis, a).numpy() @ R_true for a in np.linspace(-math.pi, math.pi, 3601)]
+    assert np.trace(R) >= max(np.trace(c) for c in candidates) - 1e-6
 
 
 @settings(max_examples=25, deadline=None)

@@ -8,7 +8,7 @@ grounded segmentation; here the order is:
      source recorded there ("label" unless it says "config");
   3. an estimate from the group's own observed trajectories ("estimated"):
      the best rigid fit canonical -> deformed means at every observed time
-     (weighted Procrustes, mogaf.rigid); relative residual =
+     (weighted Procrustes, mogaf.rigid_fit); relative residual =
      RMS residual over all times and members / RMS distance of the
      deformed members to their centroid; rigid iff below
      `rigidity_threshold`. Groups with fewer than 3 members, or that do
