@@ -12,7 +12,7 @@ rounding wherever the fit has one answer (tests/test_rigid.py). Where it has
 many (two points, points on a line), the SVD resolves the identity bias and
 returns the optimal rotation closest to the identity; roma's Horn solve does
 not resolve so small a gap (roma's own note) and returns another optimal one.
-Non-finite points or weights give NaN poses and residuals, as torch does.
+Non-finite points give NaN poses and residuals, as mogaf.rigid does.
 """
 
 from __future__ import annotations
