@@ -114,7 +114,13 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", help="dataset name in the config (selects per-dataset overrides)")
     p.add_argument("--scene", help="scene name")
     p.add_argument("--variant", help="ablation variant of config/ablations.yaml")
-    p.add_argument("--threads", type=int, default=None, help="torch threads (synthesize: frames rendered at once)")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch threads, set where Snakemake sets them (not for split, priors, group, rigid-init, forecast; "
+        "synthesize: frames rendered at once)",
+    )
 
 
 def stage_options(spec: registry.StageSpec) -> dict[str, str]:
@@ -237,7 +243,7 @@ def _run(args: argparse.Namespace) -> int:
     spec = registry.by_command(args.command)
     cfg = _config_for(args)
     kwargs = stage_arguments(spec, args, cfg)
-    stages.run_stage(stages.entry(spec.name), None, threads=args.threads, **kwargs)
+    stages.run_stage(stages.entry(spec.name), None, threads=args.threads, torch_threads=spec.torch_threads, **kwargs)
     return 0
 
 

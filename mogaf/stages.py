@@ -77,12 +77,16 @@ def _setup_logging(log_path: str | os.PathLike | None) -> None:
     root.addHandler(handler)
 
 
-def set_threads(threads: int | None) -> None:
-    """Torch's thread count; None leaves torch's default."""
+def set_threads(threads: int | None, *, torch_threads: bool = True) -> None:
+    """Torch's thread count; None leaves torch's default, and so does a stage
+    that sets none (torch_threads False: registry.StageSpec), which neither
+    imports torch for it nor takes a bad count."""
     if threads is None:
         return
     if isinstance(threads, bool) or not isinstance(threads, numbers.Integral) or threads < 1:
         raise MogafError(f"threads must be a positive integer, got {threads!r}")
+    if not torch_threads:
+        return
     import torch
 
     torch.set_num_threads(int(threads))
@@ -106,7 +110,12 @@ def _warning_to_log(log_path: str | os.PathLike | None) -> Callable[..., None]:
 
 
 def run_stage(
-    fn: Callable[..., Any], log_path: str | os.PathLike | None = None, *, threads: int | None = None, **kwargs: Any
+    fn: Callable[..., Any],
+    log_path: str | os.PathLike | None = None,
+    *,
+    threads: int | None = None,
+    torch_threads: bool = True,
+    **kwargs: Any,
 ) -> Any:
     """Run one stage; a MogafError becomes one line on stderr and exit 1,
     a warning one line in the log."""
@@ -117,7 +126,7 @@ def run_stage(
         logging_ready = True
         keep_heap()
         fixed_cores()  # a bad MOGAF_CORES fails every stage at its start, not only those that read it
-        set_threads(threads)
+        set_threads(threads, torch_threads=torch_threads)
         with warnings.catch_warnings():
             warnings.showwarning = _warning_to_log(log_path)
             result = fn(**kwargs)
@@ -307,7 +316,8 @@ def run_rule(smk: Any) -> Any:
     return run_stage(
         entry(spec.name),
         smk.log[0],
-        threads=smk.threads if spec.torch_threads else None,
+        threads=smk.threads,
+        torch_threads=spec.torch_threads,
         **rule_arguments(spec, smk),
     )
 

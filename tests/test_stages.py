@@ -179,3 +179,31 @@ def test_stages_refuse_inputs_of_another_lineage(tmp_path, never_run):
             ids={},
         )
     assert not any((tmp_path / name).exists() for name in ("r.h5", "q.h5", "m.json"))
+
+
+def test_a_stage_that_sets_no_torch_threads_still_refuses_a_bad_count_and_never_imports_torch():
+    """run_stage's threads for a stage whose registry entry says torch_threads:
+    False (under Snakemake and from the command line alike): a bad count is
+    the same one-line error, a good one leaves torch alone (not imported)."""
+    import subprocess
+    import sys
+
+    from support.paths import REPO
+
+    code = (
+        "import sys\n"
+        "from mogaf.errors import MogafError\n"
+        "from mogaf.stages import set_threads\n"
+        "set_threads(2, torch_threads=False)\n"
+        "try:\n"
+        "    set_threads(-3, torch_threads=False)\n"
+        "except MogafError as exc:\n"
+        "    print(exc)\n"
+        "print('torch' in sys.modules)\n"
+        "set_threads(1)\n"
+        "import torch\n"
+        "print(torch.get_num_threads())"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.split("\n")[:3] == ["threads must be a positive integer, got -3", "False", "1"]
