@@ -224,16 +224,19 @@ def steps_forecast_section(main: Sequence[Path], steps: Sequence[Path]) -> str:
 
 def _epe_cells(
     main: Sequence[Path], variants: Sequence[Path]
-) -> tuple[list[str], dict[tuple[str, float], dict[str, float]], list[Path]]:
-    """(columns, (set, ratio) -> column -> EPE, the main files read): each
-    varied method at its defaults, its variants and the references."""
+) -> tuple[list[str], dict[tuple[str, float], dict[str, float]], dict[Path, Any], dict[Path, Any]]:
+    """(columns, (set, ratio) -> column -> EPE, the main files used and the
+    variant files, each -> its header): each varied method at its defaults,
+    its variants and the references."""
     from ..bench._forecast_report import read_rows
 
     varied: list[str] = []
     columns: list[str] = []
     cells: dict[tuple[str, float], dict[str, float]] = {}
+    variant_headers: dict[Path, Any] = {}
     for path in variants:
         header, rows = read_rows(path)
+        variant_headers[path] = header
         for r in rows:
             method = str(r["method"])
             if not changed_params(header, method):
@@ -244,17 +247,16 @@ def _epe_cells(
                 varied.append(method)
             if col not in columns:
                 columns.append(col)
-    used = []
+    used: dict[Path, Any] = {}
     for path in main:
-        _, rows = read_rows(path)
+        header, rows = read_rows(path)
         for r in rows:
             key = (str(r["set"]), float(r["ratio"]))
             if key in cells and (r["method"] in varied or r["method"] in REFERENCES):
                 cells[key][str(r["method"])] = float(r["epe"])
-                if path not in used:
-                    used.append(path)
+                used.setdefault(path, header)
     refs = [m for m in REFERENCES if any(m in row for row in cells.values())]
-    return [*varied, *columns, *refs], cells, used
+    return [*varied, *columns, *refs], cells, used, variant_headers
 
 
 def epe_table(columns: Sequence[str], cells: Mapping[tuple[str, float], Mapping[str, float]]) -> str:
@@ -294,13 +296,11 @@ def epe_summary(columns: Sequence[str], cells: Mapping[tuple[str, float], Mappin
 
 
 def variants_section(main: Sequence[Path], variants: Sequence[Path]) -> str:
-    from ..bench._forecast_report import code_note, read_rows
+    from ..bench._forecast_report import code_note
 
-    columns, cells, used = _epe_cells(main, variants)
-    headers = {path: read_rows(path)[0] for path in [*used, *variants]}
+    columns, cells, used, variant_headers = _epe_cells(main, variants)
     notes = []
-    for path in variants:
-        header = headers[path]
+    for path, header in variant_headers.items():
         for m in _methods(header):
             if changed_params(header, m):
                 notes.append(
@@ -311,11 +311,11 @@ def variants_section(main: Sequence[Path], variants: Sequence[Path]) -> str:
         [
             "## Settings of a forecaster against its defaults",
             "The same trajectories, each variant a column beside the method at its defaults "
-            f"({_sources(used)}); future 3D EPE (m), the lowest in bold:",
+            f"({_sources(list(used))}); future 3D EPE (m), the lowest in bold:",
             "\n".join(notes),
             epe_table(columns, cells),
             epe_summary(columns, cells),
-            *filter(None, [code_note(headers)]),
+            *filter(None, [code_note({**used, **variant_headers})]),
         ]
     )
 
