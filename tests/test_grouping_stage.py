@@ -30,7 +30,11 @@ from mogaf.grouping.stage import (
     run_rigid_init_stage,
     write_groups,
 )
-from mogaf.reconstruction_quality.stage import read_reconstruction_quality, run_reconstruction_quality_stage
+from mogaf.reconstruction_quality.stage import (
+    read_per_frame,
+    read_reconstruction_quality,
+    run_reconstruction_quality_stage,
+)
 from mogaf.representation import save_model
 from mogaf.scene import Instances, Scene, Segments, load_scene, load_segments, save_scene
 from mogaf.split import read_split, split_scene, write_split
@@ -181,6 +185,8 @@ def test_reconstruction_quality_stage(toy_files):
         pred = np.clip(rendered.features[..., :3].detach().numpy().astype(np.float64), 0, 1)
         psnrs.append(-10 * np.log10(np.mean((pred - scene.images[f] / 255.0) ** 2)))
     assert list(art["timesteps"]) == [int(scene.time_index[f]) for f in art["frame_ids"]]
+    assert list(art["camera_ids"]) == [int(scene.camera_id[f]) for f in art["frame_ids"]]
+    assert list(read_per_frame(out)["camera_ids"]) == list(art["camera_ids"])
     assert q["heldout_observed"]["psnr"] == pytest.approx(np.mean(psnrs), rel=1e-9)
     assert set(q["heldout_observed"]) == {"psnr", "ssim", "mpsnr", "mssim"}  # iPhone layout: masked ones too
     # it reads only the held-out views at observed times: noise in every other frame changes nothing
@@ -211,6 +217,15 @@ def test_reconstruction_quality_stage(toy_files):
         toy_files["recon"], toy_files["scene"], none_h5, toy_files["root"] / "empty_quality.h5"
     )
     assert read_reconstruction_quality(empty) == {} and read_artefact(empty)["frame_ids"].shape == (0,)
+    with h5py.File(out, "r+") as fh:  # one camera id per rendered frame
+        cameras = fh["camera_ids"][()]
+        del fh["camera_ids"]
+        fh.create_dataset("camera_ids", data=cameras[:2], fletcher32=True)
+    with pytest.raises(MogafError, match=r"recon\.h5: entry 'camera_ids' has shape \(2,\), expected \(3,\)"):
+        read_per_frame(out)
+    with h5py.File(out, "r+") as fh:  # an artefact written before camera ids were recorded still reads
+        del fh["camera_ids"]
+    assert read_per_frame(out)["camera_ids"] is None
     with h5py.File(out, "r+") as fh:  # the observed motion's figures must be numbers
         kept = fh.attrs["observed_motion"]
         fh.attrs["observed_motion"] = 'json:{"epe_3d": "small"}'

@@ -896,3 +896,34 @@ def test_a_scene_rows_file_orders_variants_as_the_live_table(tmp_path):
     assert [r[0] for r in md_rows(live)[1:3]] == ["a", "a (v)"]
     write_scene_rows(tmp_path / "rows.json", load_metrics(files), "here")
     assert scenes_table(read_scene_rows(tmp_path / "rows.json")[1]) == live
+
+
+def test_the_reconstruction_panel_draws_one_line_per_held_out_camera():
+    """Frames of two held-out cameras at alternating time steps, one much
+    better covered than the other: one PSNR line per camera, each in time
+    order over that camera's own frames, not one zigzag through both."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from mogaf.report.pages import reconstruction_panel
+
+    steps = np.array([6, 0, 3, 9, 12, 15])
+    cameras = np.array([1, 1, 2, 2, 1, 2])
+    psnr = np.array([20.1, 20.0, 16.4, 16.5, 20.2, 16.3])
+    recon = {"timesteps": steps, "camera_ids": cameras, "per_frame": {"psnr": psnr, "ssim": psnr / 25.0}}
+    fig, ax = plt.subplots()
+    try:
+        lines = reconstruction_panel(ax, recon)
+        assert [line.get_label() for line in lines] == ["camera 1", "camera 2"]
+        assert lines[0].get_xdata().tolist() == [0, 6, 12] and lines[0].get_ydata().tolist() == [20.0, 20.1, 20.2]
+        assert lines[1].get_xdata().tolist() == [3, 9, 15] and lines[1].get_ydata().tolist() == [16.4, 16.5, 16.3]
+        assert "18.25 dB" in ax.get_title()  # the mean over every frame
+        # an artefact without camera ids: one line through every frame, in time order
+        ax.clear()
+        (line,) = reconstruction_panel(ax, {**recon, "camera_ids": None})
+        assert line.get_xdata().tolist() == sorted(steps.tolist())
+    finally:
+        plt.close(fig)

@@ -64,7 +64,7 @@ def measure_reconstruction_quality(
     model_h5: str | os.PathLike, scene_h5: str | os.PathLike, split: Split, params: Mapping[str, Any] | None = None
 ) -> dict[str, Any]:
     """Image metrics of the model rendered at held-out views at observed
-    times: {"frame_ids", "timesteps", "per_frame"} (no frame when the split
+    times: {"frame_ids", "timesteps", "camera_ids", "per_frame"} (no frame when the split
     has none), and "observed_motion" where the scene has ground-truth points
     (observed_motion; {} otherwise)."""
     p = load_settings(params)
@@ -76,6 +76,7 @@ def measure_reconstruction_quality(
         return {
             "frame_ids": np.zeros(0, np.int64),
             "timesteps": np.zeros(0, np.int64),
+            "camera_ids": np.zeros(0, np.int64),
             "per_frame": [],
             "observed_motion": motion,
         }
@@ -93,6 +94,7 @@ def measure_reconstruction_quality(
     return {
         "frame_ids": frame_ids,
         "timesteps": np.asarray(frames.time_index, np.int64),
+        "camera_ids": np.asarray(frames.camera_id, np.int64),
         "per_frame": per_frame,
         "observed_motion": motion,
     }

@@ -31,6 +31,7 @@ def run_reconstruction_quality_stage(
     data = {
         "frame_ids": measured["frame_ids"],
         "timesteps": measured["timesteps"],
+        "camera_ids": measured["camera_ids"],
         "per_frame": per_frame_arrays(measured["per_frame"]),
     }
     attrs = {
@@ -52,14 +53,17 @@ def per_frame_arrays(per_frame: list[dict[str, float]]) -> dict[str, np.ndarray]
 
 
 def read_per_frame(path: str | os.PathLike) -> dict[str, Any]:
-    """{"timesteps", "per_frame": {metric: values}} of a reconstruction_quality artefact."""
+    """{"timesteps", "camera_ids", "per_frame": {metric: values}} of a
+    reconstruction_quality artefact ("camera_ids": the held-out camera of each
+    frame, None in an artefact written before they were recorded)."""
     art = read_artefact(path, RECONSTRUCTION_QUALITY_STAGE, required=("timesteps",))
     timesteps = np.asarray(art["timesteps"], np.int64)
     per_frame = {k: np.asarray(v, np.float64) for k, v in (art.get("per_frame") or {}).items()}
-    for key, values in per_frame.items():
-        if values.shape != timesteps.shape:
-            raise input_error(path, f"entry 'per_frame/{key}' has shape {values.shape}, expected {timesteps.shape}")
-    return {"timesteps": timesteps, "per_frame": per_frame}
+    camera_ids = np.asarray(art["camera_ids"], np.int64) if "camera_ids" in art else None
+    for key, values in [*(("per_frame/" + k, v) for k, v in per_frame.items()), ("camera_ids", camera_ids)]:
+        if values is not None and values.shape != timesteps.shape:
+            raise input_error(path, f"entry '{key}' has shape {values.shape}, expected {timesteps.shape}")
+    return {"timesteps": timesteps, "camera_ids": camera_ids, "per_frame": per_frame}
 
 
 def read_reconstruction_quality(path: str | os.PathLike) -> dict[str, Any]:
