@@ -185,8 +185,7 @@ def test_reconstruction_quality_stage(toy_files):
         pred = np.clip(rendered.features[..., :3].detach().numpy().astype(np.float64), 0, 1)
         psnrs.append(-10 * np.log10(np.mean((pred - scene.images[f] / 255.0) ** 2)))
     assert list(art["timesteps"]) == [int(scene.time_index[f]) for f in art["frame_ids"]]
-    assert list(art["camera_ids"]) == [int(scene.camera_id[f]) for f in art["frame_ids"]]
-    assert list(read_per_frame(out)["camera_ids"]) == list(art["camera_ids"])
+    assert list(read_per_frame(out)["camera_ids"]) == [int(scene.camera_id[f]) for f in art["frame_ids"]]
     assert q["heldout_observed"]["psnr"] == pytest.approx(np.mean(psnrs), rel=1e-9)
     assert set(q["heldout_observed"]) == {"psnr", "ssim", "mpsnr", "mssim"}  # iPhone layout: masked ones too
     # it reads only the held-out views at observed times: noise in every other frame changes nothing
@@ -208,6 +207,23 @@ def test_reconstruction_quality_stage(toy_files):
     )
     assert read_reconstruction_quality(again) == read_reconstruction_quality(all_held_out)
     assert read_reconstruction_quality(again)["num_frames"] == T_OBS
+    # each frame's own camera, row for row: a scene whose held-out frames each have their own camera id
+    relabelled = toy_files["root"] / "relabelled_scene.h5"
+    shutil.copyfile(toy_files["scene"], relabelled)
+    with h5py.File(relabelled, "r+") as fh:
+        cameras = fh["frames/camera_id"][()]
+        cameras[held_out] = 100 + np.arange(held_out.size)[::-1]
+        fh["frames/camera_id"][...] = cameras
+    per_camera = run_reconstruction_quality_stage(
+        toy_files["recon"],
+        relabelled,
+        toy_files["split"],
+        toy_files["root"] / "relabelled_quality.h5",
+        {"max_frames": 0},
+    )
+    rows = read_per_frame(per_camera)
+    assert list(rows["camera_ids"]) == [int(cameras[f]) for f in read_artefact(per_camera)["frame_ids"]]
+    assert list(rows["timesteps"]) == [int(scene.time_index[f]) for f in read_artefact(per_camera)["frame_ids"]]
     # a split without held-out views at observed times: nothing to measure
     none_h5 = write_split(
         toy_files["root"] / "no_heldout_split.h5",
@@ -217,6 +233,7 @@ def test_reconstruction_quality_stage(toy_files):
         toy_files["recon"], toy_files["scene"], none_h5, toy_files["root"] / "empty_quality.h5"
     )
     assert read_reconstruction_quality(empty) == {} and read_artefact(empty)["frame_ids"].shape == (0,)
+    assert read_per_frame(empty)["camera_ids"].shape == (0,)
     with h5py.File(out, "r+") as fh:  # one camera id per rendered frame
         cameras = fh["camera_ids"][()]
         del fh["camera_ids"]

@@ -921,9 +921,16 @@ def test_the_reconstruction_panel_draws_one_line_per_held_out_camera():
         assert lines[0].get_xdata().tolist() == [0, 6, 12] and lines[0].get_ydata().tolist() == [20.0, 20.1, 20.2]
         assert lines[1].get_xdata().tolist() == [3, 9, 15] and lines[1].get_ydata().tolist() == [16.4, 16.5, 16.3]
         assert "18.25 dB" in ax.get_title()  # the mean over every frame
-        # an artefact without camera ids: one line through every frame, in time order
-        ax.clear()
-        (line,) = reconstruction_panel(ax, {**recon, "camera_ids": None})
-        assert line.get_xdata().tolist() == sorted(steps.tolist())
+        ssim = [line for other in fig.axes if other is not ax for line in other.get_lines()]
+        assert [line.get_ydata().tolist() for line in ssim] == [
+            (psnr[[1, 0, 4]] / 25.0).tolist(),
+            (psnr[[2, 3, 5]] / 25.0).tolist(),
+        ]
+        # without camera ids, or with a camera per frame (D-NeRF's test views): one line over time
+        for cameras in (None, np.arange(6)):
+            fig.clear()
+            (line,) = reconstruction_panel(fig.add_subplot(), {**recon, "camera_ids": cameras})
+            assert line.get_xdata().tolist() == sorted(steps.tolist())
+            assert line.get_ydata().tolist() == [20.0, 16.4, 20.1, 16.5, 20.2, 16.3]
     finally:
         plt.close(fig)

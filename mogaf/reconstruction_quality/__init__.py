@@ -10,6 +10,7 @@ cameras, observed times only, so no future frame is opened.
 reconstruction_quality/{model}.h5 (stage "reconstruction_quality"):
   frame_ids (F,) int64     scene frames rendered (evenly spaced, at most max_frames)
   timesteps (F,) int64     their time steps
+  camera_ids (F,) int64    their cameras (absent in an artefact written before it was recorded)
   per_frame/<metric> (F,)  float64: each metric every frame has, where finite in all
   attrs: params (JSON), heldout_observed (JSON: mean PSNR and SSIM, and for
     the iPhone protocol mPSNR and mSSIM over the co-visible pixels; a frame

@@ -119,14 +119,25 @@ def quality_figure(
     return Path(out_png)
 
 
+# Most held-out cameras the reconstruction panel draws a line each for (matplotlib's colour cycle).
+PANEL_CAMERAS = 10
+
+
 def reconstruction_panel(ax: Any, recon: Mapping[str, Any]) -> list[Any]:
     """PSNR (and SSIM on a second axis) over the observed time steps, one
     line per held-out camera: a scene's held-out views differ in how well
     the training views cover them, so one line through frames of alternating
-    cameras would zigzag between their levels. `recon`: read_per_frame's.
-    Returns the PSNR lines (one per camera; one in all without camera ids)."""
+    cameras would zigzag between their levels. One line through every frame
+    where there are no camera ids, where a camera has a single frame (a
+    camera per frame, as D-NeRF's test views) or more than PANEL_CAMERAS
+    cameras. `recon`: read_per_frame's. Returns the PSNR lines."""
     per_frame, steps = recon["per_frame"], recon["timesteps"]
     cameras = recon.get("camera_ids")
+    if cameras is not None:
+        _, counts = np.unique(cameras, return_counts=True)
+        # a camera per frame (D-NeRF's test views) or more than the colours: one line over time
+        if counts.min() < 2 or counts.size > PANEL_CAMERAS:
+            cameras = None
     if cameras is None:
         cameras = np.full(steps.shape, -1)
     twin = None
@@ -135,10 +146,10 @@ def reconstruction_panel(ax: Any, recon: Mapping[str, Any]) -> list[Any]:
         twin.set_ylabel("SSIM (dashed)")
         twin.set_ylim(0, 1)
     lines = []
-    for k, cam in enumerate(np.unique(cameras)):
+    for k, cam in enumerate(np.unique(cameras)):  # (at most PANEL_CAMERAS)
         rows = np.flatnonzero(cameras == cam)
         rows = rows[np.argsort(steps[rows], kind="stable")]
-        colour = f"C{k % 10}"
+        colour = f"C{k}"
         label = "PSNR" if cam < 0 else f"camera {int(cam)}"
         lines += ax.plot(steps[rows], per_frame["psnr"][rows], "o-", color=colour, label=label, markersize=4)
         if twin is not None:
