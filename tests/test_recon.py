@@ -83,6 +83,24 @@ def test_smooth_bases_prior_reaches_the_training(tiny_scene, tiny_run, tmp_path)
     assert read_artefact(tiny_run, "recon").attrs["params"]["smooth_bases"] == "acceleration"
 
 
+def test_speed_prior_slows_the_reconstructed_motion(tiny_scene, tiny_run, tmp_path):
+    """recon.w_speed > 0 (its default 0 is SoM's training, unchanged: the
+    tiny run's params record 0) adds the foreground's mean speed to the loss:
+    the same training with it moves the Gaussians less between steps."""
+    from mogaf.recon.stage import run_recon_stage
+    from mogaf.representation import load_model
+
+    out = run_recon_stage(*tiny_scene, tmp_path / "speed.h5", {**TINY_PARAMS, "w_speed": 10.0}, seed=3, progress=False)
+    assert read_artefact(out, "recon").attrs["params"]["w_speed"] == 10.0
+    assert read_artefact(tiny_run, "recon").attrs["params"]["w_speed"] == 0.0
+
+    def mean_speed(path):
+        means = load_model(path).trajectory_means.astype(np.float64)
+        return float(np.linalg.norm(np.diff(means, axis=1), axis=-1).mean())
+
+    assert mean_speed(out) < 0.9 * mean_speed(tiny_run)  # 0.83 at 30 steps
+
+
 def test_future_frames_are_never_read(tiny_scene, tiny_run, tmp_path):
     """Poison every future row of scene.h5 (noise images, NaN cameras): same artefact."""
     import shutil

@@ -109,6 +109,13 @@ class ReconSettings:
     )
     w_smooth_tracks: float = setting(2.0, "SoM w_smooth_tracks")
     w_z_accel: float = setting(1.0, "SoM w_z_accel")
+    w_speed: float = setting(
+        0.0,
+        "ours, not SoM's (0 = off): weight of the foreground Gaussians' mean speed between neighbouring steps (an L1 "
+        "prior on motion, in scene scales per step): a Gaussian moves where the images ask it to and otherwise "
+        "stays still, as a still body beside a moving part should without instance masks",
+        minimum=0,
+    )
     w_scale_var: float = setting(0.01, "SoM w_scale_var")
     silhouette: Literal["auto", "on", "off"] = setting(
         "auto", '"auto" (on when bases start at identity: no tracks + depth), "on", "off"'

@@ -345,7 +345,7 @@ class Trainer(TrainerSchedule, FrameLosses):
         return loss
 
     def _regularisers(self, pick: torch.Tensor, note) -> torch.Tensor:
-        """The once-per-step terms: smooth bases and tracks, z velocity, scale variance, extra_loss."""
+        """The once-per-step terms: smooth bases and tracks, speed, z velocity, scale variance, extra_loss."""
         p = self.p
         m = self.model
         T = self.data.num_timesteps
@@ -354,13 +354,16 @@ class Trainer(TrainerSchedule, FrameLosses):
             reg = reg + p.w_smooth_bases * note(
                 "smooth_bases", basis_smoothness(m.motion["rot6d"], m.motion["transl"], self.scale, p.smooth_bases)
             )
-        if (p.w_smooth_tracks > 0 or p.w_z_accel > 0) and T >= 3:
+        if (p.w_smooth_tracks > 0 or p.w_z_accel > 0 or p.w_speed > 0) and T >= 3:
             ts = self.tidx[pick].clamp(1, T - 2)
             nb = torch.cat([ts - 1, ts, ts + 1])
             mn = m.fg_means_at(nb.to(self.dev)).reshape(m.num_fg, 3, len(ts), 3)
             if p.w_smooth_tracks > 0:
                 a = (2 * mn[:, 1] - mn[:, 0] - mn[:, 2]).norm(dim=-1).mean() / self.scale
                 reg = reg + p.w_smooth_tracks * 0.5 * note("smooth_tracks", a)
+            if p.w_speed > 0:
+                speed = (mn[:, 2] - mn[:, 1]).norm(dim=-1).mean() / self.scale
+                reg = reg + p.w_speed * note("speed", speed)
             if p.w_z_accel > 0:
                 reg = reg + p.w_z_accel * note(
                     "z_vel", z_velocity_loss(mn, self.cam_centers[pick.to(self.dev)], self.scale)
