@@ -932,5 +932,9 @@ def test_the_reconstruction_panel_draws_one_line_per_held_out_camera():
             (line,) = reconstruction_panel(fig.add_subplot(), {**recon, "camera_ids": cameras})
             assert line.get_xdata().tolist() == sorted(steps.tolist())
             assert line.get_ydata().tolist() == [20.0, 16.4, 20.1, 16.5, 20.2, 16.3]
+        # any integer is a camera id, -1 too
+        fig.clear()
+        lines = reconstruction_panel(fig.add_subplot(), {**recon, "camera_ids": recon["camera_ids"] - 2})
+        assert [line.get_label() for line in lines] == ["camera -1", "camera 0"]
     finally:
         plt.close(fig)

@@ -133,24 +133,22 @@ def reconstruction_panel(ax: Any, recon: Mapping[str, Any]) -> list[Any]:
     cameras. `recon`: read_per_frame's. Returns the PSNR lines."""
     per_frame, steps = recon["per_frame"], recon["timesteps"]
     cameras = recon.get("camera_ids")
+    # (label, rows) of each line
+    series = [("PSNR", np.arange(steps.size))]
     if cameras is not None:
-        _, counts = np.unique(cameras, return_counts=True)
+        ids, counts = np.unique(cameras, return_counts=True)
         # a camera per frame (D-NeRF's test views) or more than the colours: one line over time
-        if counts.min() < 2 or counts.size > PANEL_CAMERAS:
-            cameras = None
-    if cameras is None:
-        cameras = np.full(steps.shape, -1)
+        if counts.min() >= 2 and ids.size <= PANEL_CAMERAS:
+            series = [(f"camera {int(c)}", np.flatnonzero(cameras == c)) for c in ids]
     twin = None
     if "ssim" in per_frame:
         twin = ax.twinx()
         twin.set_ylabel("SSIM (dashed)")
         twin.set_ylim(0, 1)
     lines = []
-    for k, cam in enumerate(np.unique(cameras)):  # (at most PANEL_CAMERAS)
-        rows = np.flatnonzero(cameras == cam)
+    for k, (label, rows) in enumerate(series):  # (at most PANEL_CAMERAS)
         rows = rows[np.argsort(steps[rows], kind="stable")]
         colour = f"C{k}"
-        label = "PSNR" if cam < 0 else f"camera {int(cam)}"
         lines += ax.plot(steps[rows], per_frame["psnr"][rows], "o-", color=colour, label=label, markersize=4)
         if twin is not None:
             twin.plot(steps[rows], per_frame["ssim"][rows], "s--", color=colour, markersize=3, alpha=0.6)
