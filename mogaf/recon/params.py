@@ -113,7 +113,8 @@ class ReconSettings:
         0.0,
         "ours, not SoM's (0 = off): weight of the foreground Gaussians' mean speed between neighbouring steps (an L1 "
         "prior on motion, in scene scales per step): a Gaussian moves where the images ask it to and otherwise "
-        "stays still, as a still body beside a moving part should without instance masks",
+        "stays still, as a still body beside a moving part should without instance masks. Off by default: it also "
+        "slows fast real motion, as the MuJoCo scenes' (docs/results.md)",
         minimum=0,
     )
     w_scale_var: float = setting(0.01, "SoM w_scale_var")
