@@ -343,3 +343,51 @@ def test_a_softmax_read_several_times_per_step_is_computed_once_with_the_same_bi
     assert torch.equal(last_dim_softmax(logits, cache), torch.softmax(logits, dim=-1)) and cache[2] is not first
     other = torch.nn.Parameter(logits.detach().clone() * 2)
     assert torch.equal(last_dim_softmax(other, cache), torch.softmax(other, dim=-1)) and cache[0] is other
+
+
+def test_isometry_neighbours_and_distances_against_brute_force():
+    """nearest_neighbours: each point's k nearest others (never itself), as a
+    dense sort finds them; pair_distances: their Euclidean distances, and a
+    finite gradient where two points coincide (a densification clone)."""
+    from mogaf.recon.losses import nearest_neighbours, pair_distances
+
+    gen = torch.Generator().manual_seed(0)
+    pts = torch.rand(200, 3, generator=gen, dtype=torch.float64)
+    nbrs = nearest_neighbours(pts, 5)
+    dense = torch.cdist(pts, pts)
+    dense.fill_diagonal_(float("inf"))
+    expected = dense.argsort(dim=1)[:, :5]
+    assert torch.equal(nbrs, expected)
+    d = pair_distances(pts, nbrs, 0.0)
+    assert torch.allclose(d, torch.gather(dense, 1, expected), rtol=0, atol=1e-12)
+    assert nearest_neighbours(pts[:3], 8).shape == (3, 2)  # k capped at N - 1
+    assert nearest_neighbours(pts[:1], 8).shape == (1, 0)
+    twins = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], requires_grad=True)
+    pair_distances(twins, nearest_neighbours(twins, 1), 1e-6).sum().backward()
+    assert torch.isfinite(twins.grad).all()
+
+
+def test_isometry_prior_is_blind_to_rigid_motion_and_sees_stretching():
+    """The recon trainer's w_isometry term: zero for any rigid motion between
+    the two steps (however fast), positive and growing with a stretch."""
+    from types import SimpleNamespace
+
+    from mogaf.recon.trainer import Trainer
+
+    gen = torch.Generator().manual_seed(1)
+    a = torch.rand(300, 3, generator=gen)
+    fake = SimpleNamespace(
+        model=SimpleNamespace(num_fg=300, fg=SimpleNamespace(get=lambda name: a)),
+        p=SimpleNamespace(isometry_neighbours=8),
+        dev=torch.device("cpu"),
+        scale=1.0,
+        _nbrs=None,
+    )
+    fake._isometry_neighbours = lambda: Trainer._isometry_neighbours(fake)
+    c, s = math.cos(0.7), math.sin(0.7)
+    rot = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    moved = a @ rot.T + torch.tensor([5.0, -3.0, 2.0])
+    assert float(Trainer._stretch(fake, a, moved)) < 1e-5
+    small = float(Trainer._stretch(fake, a, a * 1.01))
+    large = float(Trainer._stretch(fake, a, a * 1.05))
+    assert 0 < small < large

@@ -9,6 +9,7 @@ second differences (acceleration) for smoothness.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -147,6 +148,25 @@ def z_velocity_loss(means_nb: torch.Tensor, cam_centers: torch.Tensor, scale: fl
     v0 = ((means_nb[:, 1] - means_nb[:, 0]) * ray).sum(-1) / scale
     v1 = ((means_nb[:, 2] - means_nb[:, 1]) * ray).sum(-1) / scale
     return (v0**2).mean() + (v1**2).mean()
+
+
+def nearest_neighbours(points: torch.Tensor, k: int) -> torch.Tensor:
+    """(N, k') int64 indices of each point's k nearest other points (k' = min(k, N - 1)), by a k-d tree."""
+    from scipy.spatial import cKDTree
+
+    pts = points.detach().cpu().double().numpy()
+    kk = min(int(k), pts.shape[0] - 1)
+    if kk < 1:
+        return torch.zeros((pts.shape[0], 0), dtype=torch.int64)
+    _, idx = cKDTree(pts).query(pts, k=kk + 1)
+    return torch.from_numpy(idx[:, 1:].astype(np.int64))
+
+
+def pair_distances(x: torch.Tensor, nbrs: torch.Tensor, eps: float) -> torch.Tensor:
+    """(N, k) distances from each point of x (N, 3) to its neighbours nbrs (N, k); eps keeps the gradient finite
+    where two points coincide (a densification clone)."""
+    d = x[:, None, :] - x[nbrs]
+    return (d.square().sum(-1) + eps * eps).sqrt()
 
 
 class _LastDimVariance(torch.autograd.Function):

@@ -117,6 +117,14 @@ class ReconSettings:
         "slows fast real motion, as the MuJoCo scenes' (docs/results.md)",
         minimum=0,
     )
+    w_isometry: float = setting(
+        0.0,
+        "ours, not SoM's (0 = off): weight of the change, between neighbouring steps, of each foreground Gaussian's "
+        "distance to its `isometry_neighbours` nearest canonical neighbours (an L1 prior on stretching, in scene "
+        "scales per step): parts that the images move as one stay rigid, and unlike w_speed it never slows rigid motion",
+        minimum=0,
+    )
+    isometry_neighbours: int = setting(8, "ours: neighbours per Gaussian for w_isometry", minimum=1)
     w_scale_var: float = setting(0.01, "SoM w_scale_var")
     silhouette: Literal["auto", "on", "off"] = setting(
         "auto", '"auto" (on when bases start at identity: no tracks + depth), "on", "off"'

@@ -40,7 +40,16 @@ from .densify import DensifyRules, DensityStats, control_step
 from .frame_losses import FrameLosses
 from .init_common import InitResult
 from .interpolation import gap_interpolation
-from .losses import basis_smoothness, gradient_loss, last_dim_variance, masked_l1, rgb_loss, z_velocity_loss
+from .losses import (
+    basis_smoothness,
+    gradient_loss,
+    last_dim_variance,
+    masked_l1,
+    nearest_neighbours,
+    pair_distances,
+    rgb_loss,
+    z_velocity_loss,
+)
 from .model import ReconModel, gaussian_colors
 from .params import load_settings
 from .schedule import TrainerSchedule, _lr_names
@@ -137,6 +146,10 @@ class Trainer(TrainerSchedule, FrameLosses):
         self.silhouette = params.w_silhouette > 0 and (
             (smode == "on") or (smode == "auto" and self.motion_source != "procrustes")
         )
+        # w_isometry's neighbour indices, checkpointed: rebuilt from the means of a later step they would differ
+        self._nbrs: torch.Tensor | None = None
+        if state is not None and state.get("isometry_neighbours") is not None:
+            self._nbrs = state["isometry_neighbours"].to(self.dev)
         self.use_level(self.level_for(self.iteration))
         self._loss_acc: list[float] = []
         self._psnr_acc: list[float] = []
@@ -354,7 +367,7 @@ class Trainer(TrainerSchedule, FrameLosses):
             reg = reg + p.w_smooth_bases * note(
                 "smooth_bases", basis_smoothness(m.motion["rot6d"], m.motion["transl"], self.scale, p.smooth_bases)
             )
-        if (p.w_smooth_tracks > 0 or p.w_z_accel > 0 or p.w_speed > 0) and T >= 3:
+        if (p.w_smooth_tracks > 0 or p.w_z_accel > 0 or p.w_speed > 0 or p.w_isometry > 0) and T >= 3:
             ts = self.tidx[pick].clamp(1, T - 2)
             nb = torch.cat([ts - 1, ts, ts + 1])
             mn = m.fg_means_at(nb.to(self.dev)).reshape(m.num_fg, 3, len(ts), 3)
@@ -364,6 +377,8 @@ class Trainer(TrainerSchedule, FrameLosses):
             if p.w_speed > 0:
                 speed = (mn[:, 2] - mn[:, 1]).norm(dim=-1).mean() / self.scale
                 reg = reg + p.w_speed * note("speed", speed)
+            if p.w_isometry > 0:
+                reg = reg + p.w_isometry * note("isometry", self._stretch(mn[:, 1], mn[:, 2]))
             if p.w_z_accel > 0:
                 reg = reg + p.w_z_accel * note(
                     "z_vel", z_velocity_loss(mn, self.cam_centers[pick.to(self.dev)], self.scale)
@@ -374,6 +389,23 @@ class Trainer(TrainerSchedule, FrameLosses):
         if self.extra_loss is not None:
             reg = reg + self.extra_loss(pick, note)
         return reg
+
+    def _stretch(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """Mean |d_ij(b) - d_ij(a)| / scale over each fg Gaussian i and its nearest canonical neighbours j."""
+        nbrs = self._isometry_neighbours()
+        if nbrs.shape[1] == 0:  # a single fg Gaussian has no neighbours: nothing to stretch
+            return torch.zeros((), device=self.dev)
+        da = pair_distances(a, nbrs, 1e-6 * self.scale)
+        db = pair_distances(b, nbrs, 1e-6 * self.scale)
+        return (db - da).abs().mean() / self.scale
+
+    def _isometry_neighbours(self) -> torch.Tensor:
+        """(N, k) indices of each fg Gaussian's nearest neighbours at its canonical position; rebuilt after
+        density control changes the set."""
+        m = self.model
+        if self._nbrs is None or self._nbrs.shape[0] != m.num_fg:
+            self._nbrs = nearest_neighbours(m.fg.get("means").detach(), self.p.isometry_neighbours).to(self.dev)
+        return self._nbrs
 
     # -------------------------------------------------------------- density control
     def control(self) -> dict | None:
@@ -386,6 +418,7 @@ class Trainer(TrainerSchedule, FrameLosses):
         every = p.reset_opacity_every
         self.rules.cull_by_size = every > 0 and it > every
         counts = control_step(self.model, self.optimizers, self.stats, self.rules, self.gen)
+        self._nbrs = None
         if p.reset_opacity_every > 0 and it % p.reset_opacity_every == 0:
             self.reset_opacity()
         return counts
@@ -429,6 +462,7 @@ class Trainer(TrainerSchedule, FrameLosses):
             "motion_source": self.motion_source,
             "init_info": self.init_info,
             "pending": {"loss": list(self._loss_acc), "psnr": list(self._psnr_acc)},
+            "isometry_neighbours": None if self._nbrs is None else self._nbrs.cpu().clone(),
         }
 
     # -------------------------------------------------------------- loop
