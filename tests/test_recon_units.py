@@ -346,8 +346,8 @@ def test_a_softmax_read_several_times_per_step_is_computed_once_with_the_same_bi
 
 
 def test_isometry_neighbours_and_distances_against_brute_force():
-    """nearest_neighbours: each point's k nearest others (never itself), as a
-    dense sort finds them; pair_distances: their Euclidean distances, and a
+    """nearest_neighbours: each point's k nearest others (of distinct points,
+    never itself), as a dense sort finds them; pair_distances: their Euclidean distances, and a
     finite gradient where two points coincide (a densification clone)."""
     from mogaf.recon.losses import nearest_neighbours, pair_distances
 

@@ -151,7 +151,10 @@ def z_velocity_loss(means_nb: torch.Tensor, cam_centers: torch.Tensor, scale: fl
 
 
 def nearest_neighbours(points: torch.Tensor, k: int) -> torch.Tensor:
-    """(N, k') int64 indices of each point's k nearest other points (k' = min(k, N - 1)), by a k-d tree."""
+    """(N, k') int64 indices of each point's k nearest other points (k' = min(k, N - 1)), by a k-d tree.
+
+    The tree's first hit, the point itself, is dropped. Among exact duplicates (a densification clone and its
+    source) the twin may come first instead; the point then lists itself, a pair whose distance never changes."""
     from scipy.spatial import cKDTree
 
     pts = points.detach().cpu().double().numpy()
