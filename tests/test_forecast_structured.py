@@ -30,6 +30,8 @@ from mogaf.forecast.structured import REFIT_SEED_STRIDE, StructuredMoGaF, origin
 from mogaf.forecast.synthetic import add_noise, ballistic_sphere, rigid_box, rigid_motion, waving_sheet
 from mogaf.forecast.trajectory import (
     accumulated_rotvec,
+    braking_polynomial,
+    braking_polynomial_reference,
     integrate_rotvec,
     local_polynomial,
     rigid_decomposition,
@@ -1012,6 +1014,57 @@ def test_drift_check_discounts_a_refit_that_learns_the_last_frames_artefact():
     assert clean["learned_refit_drift"] < 0.1 * on["learned_refit_drift"]
     assert on["backtest_weight_learned"] < off["backtest_weight_learned"]
     assert {c: on[f"backtest_weight_{c}"] for c in DEFAULT_CANDIDATES} == pytest.approx(_weights_of_the_scores(on))
+
+
+def _braking(t: np.ndarray, start: np.ndarray, velocity: np.ndarray, deceleration: float) -> np.ndarray:
+    """(len(t), 3) a point slowing uniformly along its velocity until it stops, then resting."""
+    speed = float(np.linalg.norm(velocity))
+    s = np.minimum(t, speed / deceleration)
+    return start + np.outer(speed * s - 0.5 * deceleration * s**2, velocity / speed)
+
+
+def test_braking_polynomial_equals_its_reference_and_stops_where_a_braking_point_stops():
+    rng = np.random.default_rng(0)
+    series = rng.normal(size=(9, 20)).cumsum(axis=1)
+    for window in (1, 2, 3, 16, 40):
+        np.testing.assert_allclose(
+            braking_polynomial(series, window, 7), braking_polynomial_reference(series, window, 7), atol=1e-9
+        )
+    t, future = np.arange(20.0), np.arange(20.0, 40.0)
+    start, velocity = np.array([1.0, -2.0, 0.5]), np.array([0.3, 0.1, -0.2])
+    braking = _braking(t, start, velocity, 0.01)  # stops at step 37.4, within the forecast
+    steady = start + np.outer(t, velocity)
+    speeding = start + np.outer(t + 0.01 * t**2, velocity)
+    rows = np.concatenate([braking.T, steady.T, speeding.T, np.full((3, 20), 4.0)])
+    got = braking_polynomial(rows, 16, 20)
+    np.testing.assert_allclose(got[:3], _braking(future, start, velocity, 0.01).T, atol=1e-9)
+    np.testing.assert_allclose(got[3:6], (start + np.outer(future, velocity)).T, atol=1e-9)
+    # speeding up: its last velocity, held, not more
+    last_velocity = velocity * (1.0 + 0.02 * 19.0)
+    np.testing.assert_allclose(got[6:9], (speeding[-1] + np.outer(future - 19.0, last_velocity)).T, atol=1e-9)
+    np.testing.assert_allclose(got[9:], 4.0)
+    with pytest.raises(ValueError, match="triples"):
+        braking_polynomial(rows[:4], 16, 3)
+
+
+def test_braking_candidate_brings_a_braking_box_to_rest_where_the_line_overshoots():
+    """A box sliding to rest 8 steps after the last observed frame: the
+    braking candidate is exact in the backtest, takes the weight, and the
+    forecast stops where the box stops; the line carries it on."""
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-0.3, 0.3, size=(48, 3))
+    q0 = quat.normalize(rng.normal(size=(48, 4)))
+    path = _braking(np.arange(44.0), np.zeros(3), np.array([0.04, 0.02, 0.0]), 0.04 / 38)
+    traj = rigid_motion(pts, q0, np.zeros(3), np.tile([1.0, 0.0, 0.0, 0.0], (44, 1)), path)
+    obs, fut = traj[:, :30], traj[:, 30:]
+    params = {**QUICK, "structured": {"candidates": ["frozen", "linear_trend", "braking"]}}
+    res = fit_and_rollout("mogaf", obs, 14, params, seed=0, rigid=True)
+    line = fit_and_rollout(
+        "mogaf", obs, 14, {**QUICK, "structured": {"candidates": ["linear_trend"]}}, seed=0, rigid=True
+    )
+    assert res.info["choice"] == "braking" and res.info["backtest_weight_braking"] > 0.99
+    np.testing.assert_allclose(res.poses[..., :3], fut[..., :3], atol=1e-4)
+    assert np.abs(line.poses[:, -1, :3] - fut[:, -1, :3]).max() > 0.05
 
 
 def test_constant_acceleration_carries_a_thrown_sphere_exactly_and_rigidly():

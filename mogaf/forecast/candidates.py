@@ -1,5 +1,5 @@
 """The structured MoGaF forecaster's candidates (frozen, constant_velocity,
-linear_trend, damped_trend, constant_acceleration, learned), fitted on a
+linear_trend, damped_trend, braking, constant_acceleration, learned), fitted on a
 GroupMotion, and what the backtest weighs them with: member distances,
 inverse-squared-error weights, nearest moving members and the blend of their
 forecasts."""
@@ -166,6 +166,7 @@ class FittedCandidate:
             if name in POLYNOMIAL_CANDIDATES
             else None
         )
+        self.window = int(run.own.context)  # braking's parabola, like constant_acceleration's
         self.half_life = float(getattr(run.own, DAMPED_CANDIDATES[name])) if name in DAMPED_CANDIDATES else None
         self.info: dict[str, Any] = {}
         self.model = model
@@ -184,6 +185,8 @@ class FittedCandidate:
         m = self.motion
         if self.name == "frozen":
             return m.frozen_trajectory(n)
+        if self.name == "braking":
+            return m.braking_trajectory(n, self.window)
         if self.polynomial is not None:
             degree, window = self.polynomial
             fitted = m.polynomial_trajectory(n, window, degree)

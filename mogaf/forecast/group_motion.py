@@ -10,6 +10,7 @@ from mogaf.forecast import quat
 from mogaf.forecast.classical import constant_twist_rollout
 from mogaf.forecast.trajectory import (
     accumulated_rotvec,
+    braking_polynomial,
     integrate_rotvec,
     local_polynomial,
     rigid_decomposition,
@@ -96,6 +97,15 @@ class GroupMotion:
         if not len(self.moving):
             return self.frozen_trajectory(n)
         return self.series_trajectory(local_polynomial(self.series, window, degree, n))
+
+    def braking_trajectory(self, n: int, window: int) -> np.ndarray:
+        """The braking candidate: each vector series (rigid: the centroid and
+        the accumulated rotation vector; non-rigid: each moving Gaussian's
+        position and rotation vector) at its fitted velocity, slowing to a stop
+        where its last `window` values decelerate (trajectory.braking_polynomial)."""
+        if not len(self.moving):
+            return self.frozen_trajectory(n)
+        return self.series_trajectory(braking_polynomial(self.series, window, n))
 
     def series_trajectory(self, future_series: np.ndarray) -> np.ndarray:
         """The trajectory of forecast series (same rows as self.series)."""

@@ -23,6 +23,7 @@ STRUCTURED_CANDIDATES = (
     "constant_velocity",
     "linear_trend",
     "damped_trend",
+    "braking",
     "constant_acceleration",
     "learned",
 )
@@ -107,8 +108,10 @@ class StructuredSettings:
         ["frozen", "linear_trend", "learned"],
         "what the backtest weighs (or selects among): any of frozen, constant_velocity (the last step's velocity; "
         "a rigid group's last twist), linear_trend (each series' least-squares line through its last `trend_window` "
-        "values), damped_trend (that line, its speed halving every `trend_half_life` steps), constant_acceleration "
-        "(each series' least-squares parabola through its last `context` values) and learned, at least one. The "
+        "values), damped_trend (that line, its speed halving every `trend_half_life` steps), braking (each vector's "
+        "velocity from its least-squares parabola through the last `context` values, slowing to a stop where "
+        "that parabola decelerates), constant_acceleration (each series' least-squares parabola through its last "
+        "`context` values) and learned, at least one. The "
         "default takes linear_trend over constant_velocity, as a reconstruction's last step is its least "
         "constrained, and leaves out constant_acceleration, whose parabola contacts bend off within the forecast "
         "(docs/forecasting.md)",
@@ -413,7 +416,7 @@ BACKTEST_ONLY = (
     "trend_half_life",
 )
 # forecast.mogaf.structured settings only the learned candidate reads
-# (`context` also sizes constant_acceleration's parabola).
+# (`context` also sizes the parabolas of braking and constant_acceleration).
 LEARNED_ONLY = (
     "context",
     "horizon",
@@ -464,7 +467,7 @@ def _unread_by_mogaf(net: MogafSettings, own: StructuredSettings, changed: Mappi
         why.setdefault("structured.backtest_origins", "combine is select, which scores one window")
     if own.gate and "learned" not in own.candidates:
         for k in LEARNED_ONLY:
-            if k != "context" or "constant_acceleration" not in own.candidates:
+            if k != "context" or not {"braking", "constant_acceleration"} & set(own.candidates):
                 why.setdefault(f"structured.{k}", "candidates has no learned")
         for k in changed:
             if "." not in k and k != "mode":

@@ -36,9 +36,11 @@ pose's normalised level, and Gaussians rolled out one by one drift apart.
     rigid group's last twist: exact for a hinged lid), linear_trend (a
     least-squares line through the last `trend_window` values: a
     reconstruction's last frames are its least constrained, and a line
-    through several values is less moved by them than a velocity from two)
-    and constant_acceleration (a parabola over the last `context` values,
-    which contacts bend off within the forecast).
+    through several values is less moved by them than a velocity from two),
+    braking (the velocity of a parabola over the last `context` values,
+    slowing to a stop where that parabola decelerates) and
+    constant_acceleration (that parabola itself, which contacts bend off
+    within the forecast).
   * A per-group backtest on observed frames only: each candidate is fitted
     on the first T - h frames and scored on the last h (h = backtest_frac * T,
     at most the forecast horizon). The learned candidate's score is combined

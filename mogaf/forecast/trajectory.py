@@ -164,3 +164,75 @@ def local_polynomial(series: np.ndarray, window: int, degree: int, n_steps: int)
     coef, *_ = np.linalg.lstsq(design, values[:, -W:].T, rcond=None)  # (degree + 1, S)
     future = np.arange(1, n_steps + 1, dtype=np.float64) / max(W - 1, 1)
     return (np.vander(future, degree + 1, increasing=True) @ coef).T
+
+
+def _quadratic_ends(series: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Value, velocity and acceleration at the last value of each row's
+    least-squares parabola through its last `window` values (a line through
+    two, the last value with one), per step; and the window length W."""
+    values = np.asarray(series, dtype=np.float64)
+    W = min(int(window), values.shape[1])
+    degree = min(2, W - 1)
+    unit = float(max(W - 1, 1))
+    t = np.arange(-W + 1, 1, dtype=np.float64) / unit  # well-conditioned: last value at 0
+    coef, *_ = np.linalg.lstsq(np.vander(t, degree + 1, increasing=True), values[:, -W:].T, rcond=None)
+    coef = np.vstack([coef, np.zeros((3 - coef.shape[0], coef.shape[1]))])
+    return coef[0], coef[1] / unit, 2.0 * coef[2] / unit**2, W
+
+
+def braking_polynomial(series: np.ndarray, window: int, n_steps: int) -> np.ndarray:
+    """(S, n_steps) values after the end of `series` (S, T), S a multiple of 3:
+    each triple of rows is one vector (a centroid, a rotation vector, a
+    Gaussian's position). From its least-squares parabola through the last
+    `window` values it takes the end value p, velocity v and acceleration a;
+    where a slows the vector down (a . v < 0) it decelerates uniformly along v
+    by -a . v/|v| until it stops, then holds; otherwise it keeps the constant
+    velocity v. A body that brakes, rolls to rest or reaches the top of a
+    throw stops instead of overshooting, and one that speeds up is not
+    carried faster than it was seen to move."""
+    S = series.shape[0]
+    if S % 3:
+        raise ValueError(f"braking_polynomial needs rows in triples, got {S}")
+    p, v, a = (x.reshape(-1, 3) for x in _quadratic_ends(series, window)[:3])
+    speed = np.linalg.norm(v, axis=-1)
+    direction = v / np.where(speed > 0, speed, 1.0)[:, None]
+    slowing = np.maximum(-np.sum(a * direction, axis=-1), 0.0)  # deceleration along v, >= 0
+    # stopping time; inf where not slowing (then s = u: constant velocity)
+    stop = np.where(slowing > 0, speed / np.where(slowing > 0, slowing, 1.0), np.inf)
+    u = np.arange(1, n_steps + 1, dtype=np.float64)[None, :]  # (1, n)
+    s = np.minimum(u, stop[:, None])
+    travelled = speed[:, None] * s - 0.5 * slowing[:, None] * s**2  # (V, n)
+    out = p[:, None, :] + travelled[..., None] * direction[:, None, :]  # (V, n, 3)
+    return out.transpose(0, 2, 1).reshape(S, n_steps)
+
+
+def braking_polynomial_reference(series: np.ndarray, window: int, n_steps: int) -> np.ndarray:
+    """braking_polynomial one vector and one step at a time (the slow reference its tests compare with)."""
+    values = np.asarray(series, dtype=np.float64)
+    W = min(int(window), values.shape[1])
+    out = np.zeros((values.shape[0], n_steps))
+    t = np.arange(-W + 1, 1, dtype=np.float64)
+    for r in range(0, values.shape[0], 3):
+        if W >= 3:
+            c2, c1, c0 = np.stack([np.polyfit(t, values[r + i, -W:], 2) for i in range(3)], axis=1)
+        elif W == 2:
+            c1, c0 = np.stack([np.polyfit(t, values[r + i, -W:], 1) for i in range(3)], axis=1)
+            c2 = np.zeros(3)
+        else:
+            c0, c1, c2 = values[r : r + 3, -1], np.zeros(3), np.zeros(3)
+        v, acc = c1, 2.0 * c2
+        speed = float(np.linalg.norm(v))
+        for k in range(n_steps):
+            u = k + 1.0
+            if speed == 0.0:
+                x = c0
+            else:
+                d = v / speed
+                dec = max(-float(acc @ d), 0.0)
+                if dec > 0.0:
+                    s = min(u, speed / dec)
+                    x = c0 + d * (speed * s - 0.5 * dec * s * s)
+                else:
+                    x = c0 + v * u
+            out[r : r + 3, k] = x
+    return out
