@@ -166,10 +166,10 @@ def local_polynomial(series: np.ndarray, window: int, degree: int, n_steps: int)
     return (np.vander(future, degree + 1, increasing=True) @ coef).T
 
 
-def _quadratic_ends(series: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """Value, velocity and acceleration at the last value of each row's
-    least-squares parabola through its last `window` values (a line through
-    two, the last value with one), per step; and the window length W."""
+def _quadratic_ends(series: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Value, velocity and acceleration (per step) at the last value of each
+    row's least-squares parabola through its last `window` values (a line
+    through two, the last value with one)."""
     values = np.asarray(series, dtype=np.float64)
     W = min(int(window), values.shape[1])
     degree = min(2, W - 1)
@@ -177,7 +177,7 @@ def _quadratic_ends(series: np.ndarray, window: int) -> tuple[np.ndarray, np.nda
     t = np.arange(-W + 1, 1, dtype=np.float64) / unit  # well-conditioned: last value at 0
     coef, *_ = np.linalg.lstsq(np.vander(t, degree + 1, increasing=True), values[:, -W:].T, rcond=None)
     coef = np.vstack([coef, np.zeros((3 - coef.shape[0], coef.shape[1]))])
-    return coef[0], coef[1] / unit, 2.0 * coef[2] / unit**2, W
+    return coef[0], coef[1] / unit, 2.0 * coef[2] / unit**2
 
 
 def braking_polynomial(series: np.ndarray, window: int, n_steps: int) -> np.ndarray:
@@ -193,7 +193,7 @@ def braking_polynomial(series: np.ndarray, window: int, n_steps: int) -> np.ndar
     S = series.shape[0]
     if S % 3:
         raise ValueError(f"braking_polynomial needs rows in triples, got {S}")
-    p, v, a = (x.reshape(-1, 3) for x in _quadratic_ends(series, window)[:3])
+    p, v, a = (x.reshape(-1, 3) for x in _quadratic_ends(series, window))
     speed = np.linalg.norm(v, axis=-1)
     direction = v / np.where(speed > 0, speed, 1.0)[:, None]
     slowing = np.maximum(-np.sum(a * direction, axis=-1), 0.0)  # deceleration along v, >= 0
