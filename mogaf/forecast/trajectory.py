@@ -187,9 +187,10 @@ def braking_polynomial(series: np.ndarray, window: int, n_steps: int) -> np.ndar
     `window` values it takes the end value p, velocity v and acceleration a;
     where a slows the vector down (a . v < 0) it decelerates uniformly along v
     by -a . v/|v| until it stops, then holds; otherwise it keeps the constant
-    velocity v. A body that brakes, rolls to rest or reaches the top of a
-    throw stops instead of overshooting, and one that speeds up is not
-    carried faster than it was seen to move."""
+    velocity v. A body that brakes or rolls to rest stops instead of
+    overshooting, and one that speeds up is not carried faster than it was
+    seen to move; a thrown body is held at the top of its throw, and a
+    collision ends a deceleration the fit cannot see coming."""
     S = series.shape[0]
     if S % 3:
         raise ValueError(f"braking_polynomial needs rows in triples, got {S}")
