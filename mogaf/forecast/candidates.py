@@ -133,6 +133,7 @@ def neighbour_smoothed_poses(poses: np.ndarray, last: np.ndarray, neighbours: np
 POLYNOMIAL_CANDIDATES = {
     "linear_trend": (1, "trend_window"),
     "damped_trend": (1, "trend_window"),
+    "braking": (2, "context"),
     "constant_acceleration": (2, "context"),
 }
 # Candidates whose polynomial slows down: the setting naming its speed's half-life in steps.
@@ -166,7 +167,6 @@ class FittedCandidate:
             if name in POLYNOMIAL_CANDIDATES
             else None
         )
-        self.window = int(run.own.context)  # braking's parabola, like constant_acceleration's
         self.half_life = float(getattr(run.own, DAMPED_CANDIDATES[name])) if name in DAMPED_CANDIDATES else None
         self.info: dict[str, Any] = {}
         self.model = model
@@ -185,10 +185,10 @@ class FittedCandidate:
         m = self.motion
         if self.name == "frozen":
             return m.frozen_trajectory(n)
-        if self.name == "braking":
-            return m.braking_trajectory(n, self.window)
         if self.polynomial is not None:
             degree, window = self.polynomial
+            if self.name == "braking":  # the parabola's velocity, slowing to a stop
+                return m.braking_trajectory(n, window)
             fitted = m.polynomial_trajectory(n, window, degree)
             return fitted if self.half_life is None else m.slowed(fitted, self.half_life)
         if self.name == "constant_velocity" or self.model is None:

@@ -148,6 +148,21 @@ def rigid_group_still(positions: np.ndarray, factor: float) -> np.ndarray:
     return still
 
 
+def _window_fit(series: np.ndarray, window: int, degree: int) -> tuple[np.ndarray, float]:
+    """Each row's least-squares polynomial of `degree` through the last
+    `window` values of `series` (S, T) (of lower degree when fewer values are
+    there): its coefficients (degree' + 1, S) in time measured in units of the
+    window, last value at 0 (a well-conditioned design), and that unit in steps."""
+    values = np.asarray(series, dtype=np.float64)
+    W = min(int(window), values.shape[1])
+    degree = min(int(degree), W - 1)
+    unit = max(W - 1, 1)
+    t = np.arange(-W + 1, 1, dtype=np.float64) / unit
+    design = np.vander(t, degree + 1, increasing=True)  # (W, degree + 1)
+    coef, *_ = np.linalg.lstsq(design, values[:, -W:].T, rcond=None)  # (degree + 1, S)
+    return coef, float(unit)
+
+
 def local_polynomial(series: np.ndarray, window: int, degree: int, n_steps: int) -> np.ndarray:
     """(S, n_steps) values after the end of `series` (S, T) on each row's
     least-squares polynomial of `degree` (1: a line, 2: a parabola) through
@@ -155,29 +170,9 @@ def local_polynomial(series: np.ndarray, window: int, degree: int, n_steps: int)
     a line through two, the last value repeated with one). The fit, not the
     last value, starts the forecast: a fit through several values is less
     moved by the error of the last frame than a velocity taken from two."""
-    values = np.asarray(series, dtype=np.float64)
-    W = min(int(window), values.shape[1])
-    degree = min(int(degree), W - 1)
-    # time in units of the window, last value at 0: a well-conditioned design
-    t = np.arange(-W + 1, 1, dtype=np.float64) / max(W - 1, 1)
-    design = np.vander(t, degree + 1, increasing=True)  # (W, degree + 1)
-    coef, *_ = np.linalg.lstsq(design, values[:, -W:].T, rcond=None)  # (degree + 1, S)
-    future = np.arange(1, n_steps + 1, dtype=np.float64) / max(W - 1, 1)
-    return (np.vander(future, degree + 1, increasing=True) @ coef).T
-
-
-def _quadratic_ends(series: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Value, velocity and acceleration (per step) at the last value of each
-    row's least-squares parabola through its last `window` values (a line
-    through two, the last value with one)."""
-    values = np.asarray(series, dtype=np.float64)
-    W = min(int(window), values.shape[1])
-    degree = min(2, W - 1)
-    unit = float(max(W - 1, 1))
-    t = np.arange(-W + 1, 1, dtype=np.float64) / unit  # well-conditioned: last value at 0
-    coef, *_ = np.linalg.lstsq(np.vander(t, degree + 1, increasing=True), values[:, -W:].T, rcond=None)
-    coef = np.vstack([coef, np.zeros((3 - coef.shape[0], coef.shape[1]))])
-    return coef[0], coef[1] / unit, 2.0 * coef[2] / unit**2
+    coef, unit = _window_fit(series, window, degree)
+    future = np.arange(1, n_steps + 1, dtype=np.float64) / unit
+    return (np.vander(future, coef.shape[0], increasing=True) @ coef).T
 
 
 def braking_polynomial(series: np.ndarray, window: int, n_steps: int) -> np.ndarray:
@@ -194,7 +189,9 @@ def braking_polynomial(series: np.ndarray, window: int, n_steps: int) -> np.ndar
     S = series.shape[0]
     if S % 3:
         raise ValueError(f"braking_polynomial needs rows in triples, got {S}")
-    p, v, a = (x.reshape(-1, 3) for x in _quadratic_ends(series, window))
+    coef, unit = _window_fit(series, window, 2)
+    coef = np.vstack([coef, np.zeros((3 - coef.shape[0], coef.shape[1]))])  # a line or a value: no curvature
+    p, v, a = (x.reshape(-1, 3) for x in (coef[0], coef[1] / unit, 2.0 * coef[2] / unit**2))
     speed = np.linalg.norm(v, axis=-1)
     direction = v / np.where(speed > 0, speed, 1.0)[:, None]
     slowing = np.maximum(-np.sum(a * direction, axis=-1), 0.0)  # deceleration along v, >= 0
