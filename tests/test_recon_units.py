@@ -365,6 +365,11 @@ def test_isometry_neighbours_and_distances_against_brute_force():
     twins = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], requires_grad=True)
     pair_distances(twins, nearest_neighbours(twins, 1), 1e-6).sum().backward()
     assert torch.isfinite(twins.grad).all()
+    # Exact duplicates (clones): a point is never its own neighbour, whichever twin the tree returns first.
+    clones = torch.cat([pts[:50], pts[:50], pts[:50], pts[50:]])
+    nbrs = nearest_neighbours(clones, 4)
+    assert not (nbrs == torch.arange(len(clones))[:, None]).any()
+    assert (clones[nbrs[:50, :2]] == clones[:50, None]).all()  # its two clones first, at distance 0
 
 
 def test_isometry_prior_is_blind_to_rigid_motion_and_sees_stretching():

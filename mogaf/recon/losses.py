@@ -153,8 +153,9 @@ def z_velocity_loss(means_nb: torch.Tensor, cam_centers: torch.Tensor, scale: fl
 def nearest_neighbours(points: torch.Tensor, k: int) -> torch.Tensor:
     """(N, k') int64 indices of each point's k nearest other points (k' = min(k, N - 1)), by a k-d tree.
 
-    The tree's first hit, the point itself, is dropped. Among exact duplicates (a densification clone and its
-    source) the twin may come first instead; the point then lists itself, a pair whose distance never changes."""
+    The tree's k' + 1 nearest hits with the point itself left out: among exact duplicates (a densification
+    clone and its source) the twin may come before it, so it is removed wherever it stands (and, among more
+    than k' + 1 duplicates, where it is not among them, the farthest hit goes)."""
     from scipy.spatial import cKDTree
 
     pts = points.detach().cpu().double().numpy()
@@ -162,7 +163,10 @@ def nearest_neighbours(points: torch.Tensor, k: int) -> torch.Tensor:
     if kk < 1:
         return torch.zeros((pts.shape[0], 0), dtype=torch.int64)
     _, idx = cKDTree(pts).query(pts, k=kk + 1)
-    return torch.from_numpy(idx[:, 1:].astype(np.int64))
+    itself = idx == np.arange(pts.shape[0])[:, None]
+    # a stable sort moves the point itself (or, where absent, nothing) to the end, keeping the others' order
+    others = np.take_along_axis(idx, np.argsort(itself, axis=1, kind="stable"), axis=1)[:, :kk]
+    return torch.from_numpy(others.astype(np.int64))
 
 
 def pair_distances(x: torch.Tensor, nbrs: torch.Tensor, eps: float) -> torch.Tensor:
