@@ -181,7 +181,8 @@ def test_layered_configs_and_ablation_variants_validate():
 def test_the_paper_config_keeps_the_papers_grouping_and_the_variant_restores_it():
     """The default holds an unlabelled group's resting members apart; the
     paper's config (and the variant joined_still) keep them in the group, as
-    the paper does, so its pipeline is the paper's method."""
+    the paper does, so its pipeline is the paper's method. Both keep the
+    first group a Gaussian joins; the variant mask_majority alone changes that."""
     import mogaf.config as mcfg
     from mogaf.grouping.params import load_settings
 
@@ -192,6 +193,12 @@ def test_the_paper_config_keeps_the_papers_grouping_and_the_variant_restores_it(
     assert load_settings(base["grouping"]).split_still_members == "unlabelled"
     assert load_settings(paper["grouping"]).split_still_members == "never"
     assert load_settings(joined["grouping"]).split_still_members == "never"
+    majority = mcfg.variant_config(base, variants, "mask_majority")
+    assert load_settings(base["grouping"]).mask_majority is False
+    assert load_settings(paper["grouping"]).mask_majority is False
+    assert load_settings(joined["grouping"]).mask_majority is False
+    assert load_settings(majority["grouping"]).mask_majority is True
+    assert load_settings(majority["grouping"]).split_still_members == "unlabelled"  # one change per variant
 
 
 def test_demo_seeds_layer_adds_scenes_and_leaves_the_demo_as_it_is():

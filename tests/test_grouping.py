@@ -82,6 +82,59 @@ def test_ours_needs_the_motion_feature_on_touching_objects():
     assert adjusted_rand_score(labels, flat.group_id) < 0.95
 
 
+def test_mask_majority_outvotes_one_keyframes_wrong_seeds():
+    """A mask that bled across a contact at the first keyframe seeds part of
+    object a as b. Keeping the first group leaves them in b; with
+    mask_majority the four later keyframes' masks give them back to a."""
+    from support.toy_grouping import splat_instance_masks
+
+    rng = np.random.default_rng(4)
+    n = 700
+    a = np.c_[rng.uniform(-1, 0, n), rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n)]
+    b = np.c_[rng.uniform(0, 1, n), rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n)]
+    T = 5
+    traj = np.zeros((2 * n, T, 3))
+    for t in range(T):
+        traj[:n, t] = a + [0, 0, 0.1 * t]
+        traj[n:, t] = b + [0, 0, -0.1 * t]
+    labels = np.r_[np.ones(n, int), np.full(n, 2)]
+    model = model_from_points(traj, labels, coef_noise=0.1)
+    K = np.array([[100.0, 0, 48], [0, 100.0, 32], [0, 0, 1]])
+    w2c = look_at(np.array([0.0, -5.0, 0.0]), np.zeros(3))
+    masks = np.stack([splat_instance_masks(traj[:, t], labels, K, w2c, 96, 64, radius=0) for t in range(T)])
+    band = (labels == 1) & (traj[:, 0, 0] > -0.35)  # a's side of the contact
+    bled = splat_instance_masks(traj[band, 0], labels[band], K, w2c, 96, 64, radius=0) > 0
+    masks[0][bled] = 2
+    frames = MaskFrames(K=np.repeat(K[None], T, 0), w2c=np.repeat(w2c[None], T, 0), time_index=np.arange(T))
+    inst = Instances(ids=[1, 2], names=["a", "b"], rigid=[1, 1])
+    params = {"method": "ours", "keyframe_stride": 1}
+    first = group_gaussians(model, masks, frames, inst, params)
+    majority = group_gaussians(model, masks, frames, inst, {**params, "mask_majority": True})
+    ids = np.array([1, 2])
+    idx, which = mask_gaussians(traj[:, 0], masks[0], K, w2c, ids, 0.4, 32)
+    later_a = np.zeros(2 * n, int)  # later keyframes whose mask of a takes the Gaussian
+    for t in range(1, T):
+        i, w = mask_gaussians(traj[:, t], masks[t], K, w2c, ids, 0.4, 32)
+        later_a[i[w == 0]] += 1
+    wrong = idx[(which == 1) & (labels[idx] == 1) & (later_a[idx] >= 2)]  # outvoted 2 (or more) to 1
+    assert wrong.size > 20
+    assert np.all(first.group_id[wrong] == 1)  # b's group (index 1) kept them
+    assert np.all(majority.group_id[wrong] == 0)
+    assert majority.attrs["method_diagnostics"]["mask_majority_moved"] >= wrong.size
+    assert adjusted_rand_score(labels, majority.group_id) > adjusted_rand_score(labels, first.group_id) + 0.05
+
+
+def test_mask_majority_identity_needs_over_half_of_the_votes():
+    from mogaf.grouping.ours import GROW, SEED, mask_majority_identity
+
+    labels = np.array([0, 0, 1, 1, -1])
+    stage = np.array([SEED, GROW, SEED, GROW, -1], dtype=np.int8)
+    votes = np.array([[1, 2], [1, 1], [0, 3], [0, 0], [0, 0]])
+    assert mask_majority_identity(labels, stage, votes) == 1
+    assert list(labels) == [1, 0, 1, 1, -1]  # a tie, no vote: the label stays
+    assert list(stage) == [SEED, GROW, SEED, GROW, -1]
+
+
 @pytest.mark.parametrize("which", ["scene_far", "scene_close"])
 def test_gaga4d_gives_a_valid_labelling(which, request):
     sc = request.getfixturevalue(which)

@@ -13,6 +13,9 @@ Stage 2  for every further keyframe in stride order:
              their identity's group.
          A last growing pass follows the last seeding, so the seeds of the
          last keyframe propagate too.
+Stage 2' (mask_majority, not in the paper) every Gaussian that was a front
+         Gaussian of some mask at the keyframes takes the identity given by
+         over half of those masks (mask_majority_identity).
 Stage 3  KNN voting for the Gaussians still unassigned (voting.py).
 
 Feature: f_g = [canonical mean, pca_scale * PCA(motion coefficients)], with
@@ -29,6 +32,8 @@ one keyframe a Gaussian projects to one pixel and hence one mask. With
 `reseed_grown`, a front Gaussian of mask k that only region growing had put
 in another group moves to k instead (mask evidence over feature-space
 growth; this repairs growth that leaked across a contact between objects).
+`mask_majority` decides the conflicts once all keyframes are seen instead:
+the identity most of a Gaussian's masks gave it wins, whichever came first.
 
 Efficiency: one KD-tree over all features is built once (features do not
 change); every member remembers the radius it has been queried with and is
@@ -199,6 +204,21 @@ def seed(
     return int(free.sum())
 
 
+def mask_majority_identity(labels: np.ndarray, stage: np.ndarray, votes: np.ndarray) -> int:
+    """Give each Gaussian the identity that over half of its mask votes name
+    (votes (N, J): how many keyframes' masks took it as a front Gaussian of
+    identity j); a Gaussian without such a majority keeps its label. labels
+    and stage are modified in place (a moved Gaussian is a seed of its new
+    group). Returns how many Gaussians changed group."""
+    total = votes.sum(axis=1)
+    best = np.argmax(votes, axis=1)
+    decided = 2 * votes[np.arange(votes.shape[0]), best] > total
+    moved = decided & (labels != best)
+    labels[moved] = best[moved]
+    stage[moved] = SEED
+    return int(moved.sum())
+
+
 def keyframe_order(time_index: np.ndarray, stride: int) -> np.ndarray:
     return frames_in_time_order(time_index)[:: max(int(stride), 1)]
 
@@ -230,6 +250,7 @@ def group_ours(
     radius = _Radius(feats, params)
     queried = np.zeros(N)
     max_iters = int(params.grow_max_iters)
+    votes = np.zeros((N, J), np.int64) if params.mask_majority else None
 
     def seed_at(f: int) -> None:
         idx, inst = mask_gaussians(
@@ -241,6 +262,8 @@ def group_ours(
             float(params.front_fraction),
             int(params.front_patches),
         )
+        if votes is not None:
+            votes[:] += np.bincount(idx * J + inst, minlength=N * J).reshape(N, J)
         diag["seeded"].append(seed(labels, stage, idx, inst, queried if params.reseed_grown else None))
 
     seed_at(int(order[0]))
@@ -248,6 +271,8 @@ def group_ours(
         diag["grow_iterations"].append(region_grow(feats, tree, labels, J, radius, queried, stage, max_iters))
         seed_at(int(f))
     diag["grow_iterations"].append(region_grow(feats, tree, labels, J, radius, queried, stage, max_iters))
+    if votes is not None:
+        diag["mask_majority_moved"] = mask_majority_identity(labels, stage, votes)
     before = labels < 0
     labels, rounds = knn_vote(feats, labels, int(params.vote_knn), float(params.vote_fraction))
     stage[before & (labels >= 0)] = VOTE

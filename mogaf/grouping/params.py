@@ -64,6 +64,14 @@ class GroupingSettings:
         'the first assignment (Algorithm 3\'s "seed & merge" is a union, which leaves the conflict undecided). Off by '
         "default: it repairs growth leaking across object contacts but lowers the ARI on the synthetic scene",
     )
+    mask_majority: bool = setting(
+        False,
+        "ours, not in the paper: True = after the last growing pass, a Gaussian that was among a mask's front "
+        "Gaussians at some keyframes takes the identity most of them gave it (over half of its votes), so that "
+        "neither one keyframe's seed nor growth across objects in contact decides it alone (variant mask_majority). "
+        "Off by default: on the shared MuJoCo scenes it repairs groups that had taken most of another object, but "
+        "the forecasts' means do not change (docs/results.md)",
+    )
     vote_knn: int = setting(8, 'paper: "voting among the 8 nearest group-assigned neighbors"', minimum=1)
     vote_fraction: float = setting(
         0.5,
