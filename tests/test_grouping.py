@@ -54,25 +54,32 @@ def test_ours_recovers_two_objects(which, request):
     assert np.array_equal(g.group_id, g2.group_id)
 
 
-def test_ours_needs_the_motion_feature_on_touching_objects():
-    """Objects in contact: space alone leaks, the motion coefficients separate."""
-    rng = np.random.default_rng(3)
-    n = 700
+SLAB_K = np.array([[100.0, 0, 48], [0, 100.0, 32], [0, 0, 1]])
+
+
+def _touching_slabs(seed: int, T: int, step: float, n: int = 700):
+    """Two slabs in contact at x = 0, a (label 1) rising and b (label 2)
+    sinking by `step` a frame: trajectories (2n, T, 3), labels, and a camera
+    (SLAB_K, w2c) looking at the x-z plane from -y."""
+    rng = np.random.default_rng(seed)
     a = np.c_[rng.uniform(-1, 0, n), rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n)]
     b = np.c_[rng.uniform(0, 1, n), rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n)]
-    T = 8
     traj = np.zeros((2 * n, T, 3))
     for t in range(T):
-        traj[:n, t] = a + [0, 0, 0.15 * t]
-        traj[n:, t] = b + [0, 0, -0.15 * t]
+        traj[:n, t] = a + [0, 0, step * t]
+        traj[n:, t] = b + [0, 0, -step * t]
     labels = np.r_[np.ones(n, int), np.full(n, 2)]
-    model = model_from_points(traj, labels, coef_noise=0.1)
-    # Masks only at the first step, from a camera looking at the x-z plane;
-    # exact masks (no dilation), so every seed is right.
-    K = np.array([[100.0, 0, 48], [0, 100.0, 32], [0, 0, 1]])
-    w2c = look_at(np.array([0.0, -5.0, 0.0]), np.zeros(3))
+    return traj, labels, look_at(np.array([0.0, -5.0, 0.0]), np.zeros(3))
+
+
+def test_ours_needs_the_motion_feature_on_touching_objects():
+    """Objects in contact: space alone leaks, the motion coefficients separate."""
     from support.toy_grouping import splat_instance_masks
 
+    traj, labels, w2c = _touching_slabs(3, T=8, step=0.15)
+    model = model_from_points(traj, labels, coef_noise=0.1)
+    # Masks only at the first step; exact masks (no dilation), so every seed is right.
+    K = SLAB_K
     masks = splat_instance_masks(traj[:, 0], labels, K, w2c, 96, 64, radius=0)[None]
     frames = MaskFrames(K=K[None], w2c=w2c[None], time_index=[0])
     inst = Instances(ids=[1, 2], names=["a", "b"], rigid=[1, 1])
@@ -88,19 +95,11 @@ def test_mask_majority_outvotes_one_keyframes_wrong_seeds():
     mask_majority the four later keyframes' masks give them back to a."""
     from support.toy_grouping import splat_instance_masks
 
-    rng = np.random.default_rng(4)
-    n = 700
-    a = np.c_[rng.uniform(-1, 0, n), rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n)]
-    b = np.c_[rng.uniform(0, 1, n), rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n)]
     T = 5
-    traj = np.zeros((2 * n, T, 3))
-    for t in range(T):
-        traj[:n, t] = a + [0, 0, 0.1 * t]
-        traj[n:, t] = b + [0, 0, -0.1 * t]
-    labels = np.r_[np.ones(n, int), np.full(n, 2)]
+    traj, labels, w2c = _touching_slabs(4, T=T, step=0.1)
+    n = labels.size // 2
     model = model_from_points(traj, labels, coef_noise=0.1)
-    K = np.array([[100.0, 0, 48], [0, 100.0, 32], [0, 0, 1]])
-    w2c = look_at(np.array([0.0, -5.0, 0.0]), np.zeros(3))
+    K = SLAB_K
     masks = np.stack([splat_instance_masks(traj[:, t], labels, K, w2c, 96, 64, radius=0) for t in range(T)])
     band = (labels == 1) & (traj[:, 0, 0] > -0.35)  # a's side of the contact
     bled = splat_instance_masks(traj[band, 0], labels[band], K, w2c, 96, 64, radius=0) > 0
