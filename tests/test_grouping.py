@@ -97,7 +97,6 @@ def test_mask_majority_outvotes_one_keyframes_wrong_seeds():
 
     T = 5
     traj, labels, w2c = _touching_slabs(4, T=T, step=0.1)
-    n = labels.size // 2
     model = model_from_points(traj, labels, coef_noise=0.1)
     K = SLAB_K
     masks = np.stack([splat_instance_masks(traj[:, t], labels, K, w2c, 96, 64, radius=0) for t in range(T)])
@@ -110,10 +109,11 @@ def test_mask_majority_outvotes_one_keyframes_wrong_seeds():
     first = group_gaussians(model, masks, frames, inst, params)
     majority = group_gaussians(model, masks, frames, inst, {**params, "mask_majority": True})
     ids = np.array([1, 2])
-    idx, which = mask_gaussians(traj[:, 0], masks[0], K, w2c, ids, 0.4, 32)
-    later_a = np.zeros(2 * n, int)  # later keyframes whose mask of a takes the Gaussian
+    front = (DEFAULT_PARAMS["front_fraction"], DEFAULT_PARAMS["front_patches"])  # the seeds' selection
+    idx, which = mask_gaussians(traj[:, 0], masks[0], K, w2c, ids, *front)
+    later_a = np.zeros(labels.size, int)  # later keyframes whose mask of a takes the Gaussian
     for t in range(1, T):
-        i, w = mask_gaussians(traj[:, t], masks[t], K, w2c, ids, 0.4, 32)
+        i, w = mask_gaussians(traj[:, t], masks[t], K, w2c, ids, *front)
         later_a[i[w == 0]] += 1
     wrong = idx[(which == 1) & (labels[idx] == 1) & (later_a[idx] >= 2)]  # outvoted 2 (or more) to 1
     assert wrong.size > 20
