@@ -413,3 +413,62 @@ def test_bounce_preset_bounces_after_either_split():
     frames = [b * world.params.fps for b in world.info["sphere_bounce_times"]]
     last = world.params.num_frames - 1
     assert len(frames) >= 1 and 0.8 * last < frames[0] < last, frames
+
+
+def _pair(world):
+    """The stuck pair's two spheres of `world`, by name."""
+    by_name = {o.name: o for o in world.objects}
+    return by_name["sphere"], by_name["sphere_2"]
+
+
+def test_stuck_spheres_meet_at_the_stick_time_and_move_on_as_one_body():
+    world = build_world(resolve_params({"stick_time": 0.7, "num_frames": 60}))
+    assert check_world(world) is None
+    a, b = _pair(world)
+    taus = world.taus
+    contact = 0.7 * taus[-1]
+    assert world.info["stick_time"] == pytest.approx(0.7 * world.times[-1])
+    assert world.info["sphere_bounce_times"] == []  # the pair's sphere is not thrown
+    centres = np.array([[o.centre_fn(float(t)) for t in taus] for o in (a, b)])  # (2, T, 3)
+    gap = np.linalg.norm(centres[0] - centres[1], axis=-1) - (a.r + b.r)
+    before, after = taus < contact, taus >= contact
+    assert np.all(gap[before] > 0) and np.all(np.diff(gap[before]) < 0)  # they close in, apart until the contact
+    np.testing.assert_allclose(gap[after], 0.0, atol=1e-12)  # then touch, never overlapping
+    # From the contact on both move with one velocity, which keeps the pair's momentum (masses ~ r^3).
+    step = np.diff(taus)[0]
+    v = np.diff(centres, axis=1) / step  # (2, T-1, 3)
+    first, last = v[:, 0], v[:, -1]
+    np.testing.assert_allclose(last[0], last[1], atol=1e-12)
+    mass = np.array([a.r, b.r]) ** 3
+    np.testing.assert_allclose(mass @ first, mass.sum() * last[0], atol=1e-12)
+    assert np.dot(first[0], last[0]) > 0 and np.linalg.norm(last[0]) < np.linalg.norm(first[0])  # slowed, not turned
+    # They spin until the contact and hold their orientation after it.
+    for o in (a, b):
+        rots = np.array([o.rotation(float(t)) for t in taus])
+        assert not np.allclose(rots[0], rots[np.flatnonzero(before)[-1]])
+        np.testing.assert_array_equal(rots[after], np.broadcast_to(rots[np.flatnonzero(after)[0]], rots[after].shape))
+
+
+def test_a_stuck_pair_is_the_only_contact_the_checks_allow():
+    world = build_world(resolve_params({"stick_time": 0.7, "num_extra_objects": 2}))
+    a, b = _pair(world)
+    assert (a.inst, b.inst) == (2, 4) and [o.inst for o in world.objects[-2:]] == [5, 6]  # extras after the pair
+    assert check_world(world) is None
+    box = world.objects[0]
+    box_path = box.centre_fn
+    box.centre_fn = b.centre_fn  # another object on the second sphere's path is still a collision
+    assert "box and sphere_2 may collide" in check_world(world)
+    box.centre_fn = box_path
+    a.touches = b.touches = frozenset()  # without the allowance the pair itself is one
+    assert "sphere and sphere_2 may collide" in check_world(world)
+
+
+def test_a_stuck_pair_needs_the_sphere_and_time_to_meet():
+    with pytest.raises(MogafError, match="stick_time"):
+        resolve_params({"stick_time": 1.0})
+    with pytest.raises(MogafError, match="'stick_time' needs rigid_objects"):
+        build_world(resolve_params({"stick_time": 0.7, "rigid_objects": False}))
+    with pytest.raises(MogafError, match=r"'stick_time' \(0.7\) must come before motion_stop \(0.5\)"):
+        build_world(resolve_params({"stick_time": 0.7, "motion_stop": 0.5}))
+    with pytest.raises(MogafError, match="sphere.* leaves the view .*; raise stick_time"):
+        build_world(resolve_params({"stick_time": 0.1}))  # a fast approach starts outside the view

@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from mogaf.errors import MogafError
-from mogaf.synth.family import KIND_NAMES, family_yaml, main
+from mogaf.synth.family import CONTACT_KIND_NAMES, KIND_NAMES, family_scenes, family_yaml, main
 from mogaf.synth.params import resolve_params
 from mogaf.synth.world import build_world
 
@@ -27,16 +27,16 @@ def family() -> dict:
 
 def test_the_committed_family_is_the_generators_output(capsys):
     # a hand edit of config/family.yaml, or a generator change, shows here
-    assert main(["--count", "24", "--seed", "0", "--check", str(FAMILY)]) == 0
-    assert FAMILY.read_text() == family_yaml(24, 0)
+    assert main(["--count", "24", "--contact", "4", "--seed", "0", "--check", str(FAMILY)]) == 0
+    assert FAMILY.read_text() == family_yaml(24, 0, 4)
 
 
 def test_the_family_covers_every_kind_with_and_without_masks(family):
     scenes = family["synthetic"]
     assert len(scenes) >= 20
     kinds = Counter((name.split("_", 1)[1], params["ship_instance_masks"]) for name, params in scenes.items())
-    assert {k for k, _ in kinds} == set(KIND_NAMES)
-    assert all(kinds[(k, True)] and kinds[(k, False)] for k in KIND_NAMES)
+    assert {k for k, _ in kinds} == set(KIND_NAMES + CONTACT_KIND_NAMES)
+    assert all(kinds[(k, True)] and kinds[(k, False)] for k in KIND_NAMES + CONTACT_KIND_NAMES)
     assert {len(p["test_camera_yaw_deg"]) for p in scenes.values()} == {1, 2, 3}
     assert len({p["num_frames"] for p in scenes.values()}) > 1
     assert len({p["seed"] for p in scenes.values()}) == len(scenes)
@@ -44,6 +44,16 @@ def test_the_family_covers_every_kind_with_and_without_masks(family):
     assert family["grid"] == [{"dataset": "synthetic", "scenes": list(scenes), "ratios": [0.6, 0.8]}]
     assert family["forecast"]["methods"] == ["mogaf", "mogaf_paper", "constant_velocity", "frozen"]
     assert family["datasets"]["synthetic"]["scenes"] == ["default", *scenes]
+
+
+def test_contact_scenes_come_after_the_first_ones_and_leave_them_as_drawn():
+    first = family_scenes(3, 0)
+    both = family_scenes(3, 0, contact=2)
+    assert list(both) == [*first, "f03_stick", "f04_stick"]
+    assert {name: both[name] for name in first} == first
+    assert [both[n]["ship_instance_masks"] for n in ("f03_stick", "f04_stick")] == [True, False]
+    assert [both[n]["seed"] for n in ("f03_stick", "f04_stick")] == [3, 4]
+    assert all(0.6 < both[n]["stick_time"] < 0.8 for n in ("f03_stick", "f04_stick"))  # between the two splits
 
 
 def test_every_family_scene_builds(family):
@@ -103,20 +113,22 @@ def test_the_family_command_says_bad_input_in_one_line_and_writes_nothing(tmp_pa
     assert capsys.readouterr().err.strip() == "mogaf.synth.family: error: scene family: count must be at least 1, got 0"
     target = tmp_path / "dir"
     target.mkdir()
-    assert main(["--count", "1", "--write", str(target)]) == 1
+    assert main(["--count", "1", "--contact", "0", "--write", str(target)]) == 1
     assert "is an existing directory" in capsys.readouterr().err and list(target.iterdir()) == []
-    assert main(["--count", "1", "--check", str(tmp_path / "absent.yaml")]) == 1
+    assert main(["--count", "1", "--contact", "0", "--check", str(tmp_path / "absent.yaml")]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "absent.yaml: no such file" in err
     latin = tmp_path / "latin.yaml"
     latin.write_bytes(b"\xff")
-    assert main(["--count", "1", "--check", str(latin)]) == 1
+    assert main(["--count", "1", "--contact", "0", "--check", str(latin)]) == 1
     assert f"{latin}: is not UTF-8 text (byte 0)" in capsys.readouterr().err
     assert main(["--count", "1", "--seed", "-1"]) == 1
     assert capsys.readouterr().err.strip() == "mogaf.synth.family: error: scene family: seed must be >= 0, got -1"
-    assert main(["--count", "1", "--check", str(FAMILY)]) == 1  # one scene is not the committed 24
+    assert main(["--count", "1", "--contact", "0", "--check", str(FAMILY)]) == 1  # one scene is not the committed 28
     assert "differs from the family drawn now" in capsys.readouterr().err
-    assert main(["--count", "1", "--write", str(tmp_path / "f.yaml")]) == 0
+    assert main(["--count", "1", "--contact", "-1"]) == 1
+    assert capsys.readouterr().err.strip() == "mogaf.synth.family: error: scene family: contact must be >= 0, got -1"
+    assert main(["--count", "1", "--contact", "0", "--write", str(tmp_path / "f.yaml")]) == 0
     assert (tmp_path / "f.yaml").read_text() == family_yaml(1, 0) and sorted(p.name for p in tmp_path.iterdir()) == [
         "dir",
         "f.yaml",

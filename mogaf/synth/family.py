@@ -1,11 +1,14 @@
 """A seeded family of synthetic scenes: the benchmark forecasting changes are judged on.
 
-`family_scenes(count, seed)` draws `count` generator parameter sets, cycling
-through the motion kinds of KINDS so every kind appears, each with its own
-scene seed (textures, camera shake, extra objects) and draws of its motion's
-strength, the sequence length and the number of held-out cameras. The first
-pass over the kinds ships instance masks, the second does not, and so on, so
-every kind is seen with and without masks once count >= 2 * len(KINDS).
+`family_scenes(count, seed, contact)` draws `count` generator parameter sets,
+cycling through the motion kinds of KINDS so every kind appears, each with its
+own scene seed (textures, camera shake, extra objects) and draws of its
+motion's strength, the sequence length and the number of held-out cameras.
+The first pass over the kinds ships instance masks, the second does not, and
+so on, so every kind is seen with and without masks once count >= 2 *
+len(KINDS). Then `contact` more cycle through CONTACT_KINDS (bodies that meet
+and stick), numbered after the first `count` and drawn the same way, so
+adding them leaves the first scenes as they were drawn.
 Each drawn scene is built (mogaf.synth.world.build_world) and redrawn while
 it fails the generator's own checks (objects in view, apart), so the family
 contains only scenes the pipeline can ingest.
@@ -86,15 +89,24 @@ KINDS: tuple[tuple[str, str, Any], ...] = (
     ),
 )
 
+# Kinds where bodies meet, after the first family's: drawn after its scenes (family_scenes' `contact`).
+CONTACT_KINDS: tuple[tuple[str, str, Any], ...] = (
+    (
+        "stick",
+        "the sphere and a smaller one collide head-on between the two split points and move on as one body",
+        lambda r: {"stick_time": round(float(r.uniform(0.64, 0.76)), 3)},
+    ),
+)
+
 KIND_NAMES = tuple(k[0] for k in KINDS)
+CONTACT_KIND_NAMES = tuple(k[0] for k in CONTACT_KINDS)
 FRAME_COUNTS = (48, 60, 72)
 # held-out camera yaws for 1, 2 and 3 cameras
 CAMERA_YAWS = ((20.0,), (-24.0, 20.0), (-24.0, 20.0, -6.0))
 MAX_DRAWS = 20
 
 
-def _draw(kind: int, rng: np.random.Generator, masks: bool) -> dict[str, Any]:
-    name, _, draw = KINDS[kind]
+def _draw(draw: Any, rng: np.random.Generator, masks: bool) -> dict[str, Any]:
     params = dict(draw(rng))
     params["num_frames"] = int(rng.choice(FRAME_COUNTS))
     params["test_camera_yaw_deg"] = list(CAMERA_YAWS[int(rng.integers(0, len(CAMERA_YAWS)))])
@@ -102,37 +114,44 @@ def _draw(kind: int, rng: np.random.Generator, masks: bool) -> dict[str, Any]:
     return params
 
 
-def family_scenes(count: int, seed: int = 0) -> dict[str, dict[str, Any]]:
-    """{scene name: generator params} of `count` scenes, deterministic in (count, seed).
-    Names are `f{index:02d}_{kind}`; each scene's own `seed` is seed * 1000 + index."""
+def _scene(i: int, seed: int, kinds: tuple[tuple[str, str, Any], ...], pass_index: int) -> tuple[str, dict[str, Any]]:
+    """Scene `i` of the family: kind `pass_index % len(kinds)`, masks on even passes over `kinds`."""
     from .world import build_world
 
+    name, _, draw = kinds[pass_index % len(kinds)]
+    masks = (pass_index // len(kinds)) % 2 == 0
+    rng = np.random.default_rng([int(seed), i, 4242])
+    for _ in range(MAX_DRAWS):
+        params = {**_draw(draw, rng, masks), "seed": int(seed) * 1000 + i}
+        try:
+            build_world(resolve_params(params))
+        except MogafError:
+            continue
+        return f"f{i:02d}_{name}", params
+    raise MogafError(f"scene family: no valid {name} scene in {MAX_DRAWS} draws (index {i})")
+
+
+def family_scenes(count: int, seed: int = 0, contact: int = 0) -> dict[str, dict[str, Any]]:
+    """{scene name: generator params} of `count` scenes of KINDS, then `contact` of
+    CONTACT_KINDS; deterministic in (count, seed, contact). Names are
+    `f{index:02d}_{kind}`; each scene's own `seed` is seed * 1000 + index."""
     if count < 1:
         raise MogafError(f"scene family: count must be at least 1, got {count}")
     if seed < 0:
         raise MogafError(f"scene family: seed must be >= 0, got {seed}")
-    scenes: dict[str, dict[str, Any]] = {}
-    for i in range(count):
-        kind = i % len(KINDS)
-        masks = (i // len(KINDS)) % 2 == 0
-        rng = np.random.default_rng([int(seed), i, 4242])
-        for _ in range(MAX_DRAWS):
-            params = {**_draw(kind, rng, masks), "seed": int(seed) * 1000 + i}
-            try:
-                build_world(resolve_params(params))
-            except MogafError:
-                continue
-            break
-        else:
-            raise MogafError(f"scene family: no valid {KIND_NAMES[kind]} scene in {MAX_DRAWS} draws (index {i})")
-        scenes[f"f{i:02d}_{KIND_NAMES[kind]}"] = params
-    return scenes
+    if contact < 0:
+        raise MogafError(f"scene family: contact must be >= 0, got {contact}")
+    drawn = [_scene(i, seed, KINDS, i) for i in range(count)]
+    drawn += [_scene(count + j, seed, CONTACT_KINDS, j) for j in range(contact)]
+    return dict(drawn)
 
 
-def family_config(count: int, seed: int = 0, ratios: tuple[float, ...] = (0.6, 0.8)) -> dict[str, Any]:
+def family_config(
+    count: int, seed: int = 0, ratios: tuple[float, ...] = (0.6, 0.8), contact: int = 0
+) -> dict[str, Any]:
     """The config that runs the family through the pipeline (over config.yaml and
     demo.yaml, whose demo scene `default` stays a scene of the dataset)."""
-    scenes = family_scenes(count, seed)
+    scenes = family_scenes(count, seed, contact)
     return {
         "datasets": {"synthetic": {"scenes": ["default", *scenes]}},
         "synthetic": scenes,
@@ -142,10 +161,10 @@ def family_config(count: int, seed: int = 0, ratios: tuple[float, ...] = (0.6, 0
 
 
 HEADER = """\
-# The scene family (mogaf.synth.family): {count} synthetic scenes drawn with seed {seed},
+# The scene family (mogaf.synth.family): {total} synthetic scenes drawn with seed {seed},
 # {kinds} kinds of motion ({names}), each with and without instance masks,
 # 48-72 frames, 1-3 held-out cameras. Generated, do not edit:
-#   python -m mogaf.synth.family --count {count} --seed {seed} --write config/family.yaml
+#   python -m mogaf.synth.family --count {count} --contact {contact} --seed {seed} --write config/family.yaml
 # Run at ratios 0.6 and 0.8 with the demo's budgets, then the per-scene table:
 #   snakemake -c2 scenes --configfile config/config.yaml config/demo.yaml config/family.yaml
 # (results/tables/scenes.md; every scene and ratio is one run of the whole pipeline,
@@ -154,13 +173,20 @@ HEADER = """\
 """
 
 
-def family_yaml(count: int, seed: int = 0) -> str:
+def family_yaml(count: int, seed: int = 0, contact: int = 0) -> str:
     """config/family.yaml's text: HEADER, then family_config as YAML (one scene a line)."""
     import yaml
 
-    body = yaml.safe_dump(family_config(count, seed), sort_keys=False, default_flow_style=None, width=200)
-    names = ", ".join(KIND_NAMES)
-    return HEADER.format(count=count, seed=seed, kinds=len(KINDS), names=names) + body
+    body = yaml.safe_dump(
+        family_config(count, seed, contact=contact), sort_keys=False, default_flow_style=None, width=200
+    )
+    names = KIND_NAMES + (CONTACT_KIND_NAMES if contact else ())
+    return (
+        HEADER.format(
+            total=count + contact, count=count, contact=contact, seed=seed, kinds=len(names), names=", ".join(names)
+        )
+        + body
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -170,13 +196,14 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(prog="python -m mogaf.synth.family", description=__doc__.splitlines()[0])
     ap.add_argument("--count", type=int, default=24, help="scenes in the family (default 24)")
+    ap.add_argument("--contact", type=int, default=4, help="scenes of the contact kinds after them (default 4)")
     ap.add_argument("--seed", type=int, default=0, help="the family's seed (default 0)")
     out = ap.add_mutually_exclusive_group()
     out.add_argument("--write", metavar="FILE", help="write the config to FILE")
     out.add_argument("--check", metavar="FILE", help="exit 1 if FILE differs from the config drawn now")
     args = ap.parse_args(argv)
     try:
-        text = family_yaml(args.count, args.seed)
+        text = family_yaml(args.count, args.seed, args.contact)
         if args.write:
             with atomic_path(args.write) as tmp:
                 Path(tmp).write_text(text)

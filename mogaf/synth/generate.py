@@ -329,6 +329,7 @@ def _write_layout(root: Path, p: dict[str, Any], threads: int = 1) -> None:
             "params": p,
             "num_frames": T,
             "sphere_bounce_times_s": world.info.get("sphere_bounce_times", []),
+            **({"stick_time_s": world.info["stick_time"]} if "stick_time" in world.info else {}),
             "K": world.K.tolist(),
         },
     )

@@ -3,7 +3,8 @@
 Rotation about an axis (Rodrigues; also used to aim the cameras), a uniform
 drift centred on the sequence (_linear, its speed clamped by
 _clamped_velocity) and the ballistic arc of a thrown sphere bouncing on the
-ground (Ballistic).
+ground (Ballistic) and the path of one of two bodies that collide and stick
+(StuckPath).
 """
 
 from __future__ import annotations
@@ -64,3 +65,19 @@ class Ballistic:
 def _linear(mid, v, tau_mid):
     mid, v = np.asarray(mid, float), np.asarray(v, float)
     return lambda tau: mid + v * (tau - tau_mid)
+
+
+class StuckPath:
+    """Centre of a body that moves uniformly until it sticks to another at
+    motion time tau_contact, then moves on with the pair's common velocity:
+    c(tau) = contact + v (tau - tau_contact), v = v_before before the contact
+    and v_after from it on (continuous at the contact)."""
+
+    def __init__(self, contact, v_before, v_after, tau_contact: float):
+        self.contact = np.asarray(contact, float)
+        self.v_before, self.v_after = np.asarray(v_before, float), np.asarray(v_after, float)
+        self.tau_contact = float(tau_contact)
+
+    def __call__(self, tau: float) -> np.ndarray:
+        v = self.v_before if tau < self.tau_contact else self.v_after
+        return self.contact + v * (tau - self.tau_contact)

@@ -54,6 +54,8 @@ class Object:
     # The pieces that move each as one (ground truth for scoring a grouping
     # by part): one for most objects, one per box of a box chain.
     part_names: tuple[str, ...] = ("whole",)
+    # instance ids of the objects this one may touch (bodies that collide and stick)
+    touches: frozenset[int] = frozenset()
 
     def primitives(self, tau: float) -> list:
         raise NotImplementedError
@@ -83,13 +85,15 @@ class Object:
 class RigidObject(Object):
     rigid = True
 
-    def __init__(self, inst, name, centre_fn, R0, spin_axis, spin_rate):
+    def __init__(self, inst, name, centre_fn, R0, spin_axis, spin_rate, spin_until: float = np.inf):
         self.inst, self.name = inst, name
         self.centre_fn, self.R0 = centre_fn, np.asarray(R0, dtype=np.float64)
         self.spin_axis, self.spin_rate = np.asarray(spin_axis, dtype=np.float64), float(spin_rate)
+        # motion time from which the object spins no more (it holds that orientation)
+        self.spin_until = float(spin_until)
 
     def rotation(self, tau: float) -> np.ndarray:
-        return rotation(self.spin_axis, self.spin_rate * tau) @ self.R0
+        return rotation(self.spin_axis, self.spin_rate * min(tau, self.spin_until)) @ self.R0
 
     def pose(self, tau: float) -> np.ndarray:
         """Object-to-world 4x4 transform at motion time tau."""

@@ -61,6 +61,13 @@ class SyntheticSettings:
     cloth_amplitude: float = setting(0.09, "metres at the free edge")
     cloth_wavelength: float = setting(0.6, "metres")
     cloth_frequency: float = setting(0.8, "Hz of motion time")
+    stick_time: float = setting(
+        0.0,
+        "share of the sequence at which the sphere meets a second, smaller sphere head-on and the two move on as one "
+        "body, with their momentum, spinning no more (0 = no second sphere; the sphere is thrown as usual)",
+        minimum=0,
+        exclusive_maximum=1,
+    )
     num_extra_objects: int = setting(0, "extra small rigid objects (up to 6)", minimum=0, maximum=6)
     extra_speed: float = setting(0.25, "m/s of motion time for extra objects")
     # ground truth

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import MogafError
-from .motion import Ballistic, _clamped_velocity, _linear, rotation
+from .motion import Ballistic, StuckPath, _clamped_velocity, _linear, rotation
 from .objects import Arm, Articulated, Cloth, Object, RigidBox, RigidSphere
 from .params import TEST_CAMERA_PLACES, SyntheticSettings, load_settings
 from .primitives import Box, Plane
@@ -41,6 +41,43 @@ def look_at(centre, target, roll: float = 0.0) -> np.ndarray:
     T[:3, :3] = R
     T[:3, 3] = -R @ centre
     return T
+
+
+# Two spheres that collide and stick (params.stick_time): where their centres
+# meet the contact point, the direction from the thrown sphere to the second
+# one, the distances each travels to the contact and the second one's radius.
+STICK_CONTACT = np.array([0.35, 0.95, 0.72])
+STICK_DIRECTION = np.array([1.0, 0.2, 0.1]) / np.linalg.norm([1.0, 0.2, 0.1])
+STICK_APPROACH = (0.45, 0.3)
+STICK_RADIUS = 0.13
+
+
+def _stuck_partner(sphere: RigidSphere, texture, R0, tau_contact: float, spin_rate: float) -> RigidSphere:
+    """The second, smaller sphere of a stuck pair; `sphere` is set on a head-on
+    course with it (its path and spin change). They meet at motion time
+    tau_contact and from then on move as one body with their common
+    (momentum-weighted) velocity, spinning no more."""
+    n = STICK_DIRECTION
+    radii = (sphere.r, STICK_RADIUS)
+    v_a = n * STICK_APPROACH[0] / tau_contact
+    v_b = -n * STICK_APPROACH[1] / tau_contact
+    mass = np.array(radii) ** 3
+    v_after = (mass[0] * v_a + mass[1] * v_b) / mass.sum()
+    sphere.centre_fn = StuckPath(STICK_CONTACT - radii[0] * n, v_a, v_after, tau_contact)
+    sphere.spin_axis, sphere.spin_rate, sphere.spin_until = np.cross(UP, n), spin_rate, tau_contact
+    second = RigidSphere(
+        4,
+        "sphere_2",
+        radius=radii[1],
+        texture=texture,
+        centre_fn=StuckPath(STICK_CONTACT + radii[1] * n, v_b, v_after, tau_contact),
+        R0=R0,
+        spin_axis=np.cross(UP, -n),
+        spin_rate=spin_rate,
+        spin_until=tau_contact,
+    )
+    sphere.touches, second.touches = frozenset({second.inst}), frozenset({sphere.inst})
+    return second
 
 
 # Lanes for extra objects: nominal centre (they drift from there), chosen in order.
@@ -155,6 +192,23 @@ def build_world(params: dict[str, Any] | SyntheticSettings) -> World:
             spin_rate=p.sphere_spin * spin,
         )
     )
+    stick = p.stick_time > 0
+    if stick:
+        if not p.rigid_objects:
+            raise MogafError(
+                "synthetic param 'stick_time' needs rigid_objects: the stuck pair's first body is the sphere"
+            )
+        if p.stick_time >= p.motion_stop:
+            raise MogafError(
+                f"synthetic param 'stick_time' ({p.stick_time}) must come before motion_stop ({p.motion_stop}): "
+                "the pair would stop before it meets"
+            )
+        # The second sphere's draws come here, so the box and the sphere draw as
+        # without it, and a scene without the pair draws exactly as before.
+        texture = SphereTexture(rng, rng.uniform())
+        R0 = rotation(rng.normal(size=3), rng.uniform(0, 2 * np.pi))
+        tau_contact = p.stick_time * tau_max
+        rigid_objects.append(_stuck_partner(rigid_objects[1], texture, R0, tau_contact, p.sphere_spin * spin))
     if p.rigid_objects:
         objects.extend(rigid_objects)
     # ---- non-rigid object
@@ -223,12 +277,19 @@ def build_world(params: dict[str, Any] | SyntheticSettings) -> World:
     world = World(
         params=p, objects=objects, static=static, taus=taus, times=times, train_w2c=train_w2c, test_w2c=test_w2c, K=K
     )
-    world.info["sphere_bounce_times"] = [float(b / p.speed) for b in ballistic.bounces if b <= taus[-1]]
+    # the sphere of a stuck pair is not thrown: it bounces nowhere
+    bounces = [] if stick else [float(b / p.speed) for b in ballistic.bounces if b <= taus[-1]]
+    world.info["sphere_bounce_times"] = bounces
+    if stick:
+        world.info["stick_time"] = float(tau_contact / p.speed)
     problem = check_world(world)
     if problem:
-        raise MogafError(f"synthetic scene: {problem}; lower speed/max_travel or num_frames")
+        # a stuck pair's paths depend on stick_time alone (the contact is fixed, the approach spans stick_time)
+        fix = "raise stick_time" if stick and "sphere" in problem else "lower speed/max_travel or num_frames"
+        raise MogafError(f"synthetic scene: {problem}; {fix}")
 
     # ---- extra small rigid objects, rejection-sampled so they stay in view and apart
+    first_extra = 5 if stick else 4  # after the stuck pair's second sphere (4)
     for i in range(p.num_extra_objects):
         lane = np.array(EXTRA_LANES[i])
         for _attempt in range(200):
@@ -243,7 +304,7 @@ def build_world(params: dict[str, Any] | SyntheticSettings) -> World:
                 spin_axis=rng.normal(size=3),
                 spin_rate=rng.uniform(1.0, 2.5) * spin,
             )
-            inst = 4 + i
+            inst = first_extra + i
             if kind == "box":
                 half = size * np.array([1.0, rng.uniform(0.6, 1.0), rng.uniform(0.6, 1.0)])
                 obj: Object = RigidBox(
@@ -285,6 +346,8 @@ def _collision_problem(objs: list[Object], bounds: dict[int, list], ti: int) -> 
     """Which two objects' bounding spheres come close at frame `ti`, or None."""
     for i, a in enumerate(objs):
         for b in objs[i + 1 :]:
+            if b.inst in a.touches:
+                continue
             for ca, ra in bounds[a.inst]:
                 for cb, rb in bounds[b.inst]:
                     if np.linalg.norm(ca - cb) < ra + rb + 0.03:
