@@ -470,5 +470,132 @@ def test_a_stuck_pair_needs_the_sphere_and_time_to_meet():
         build_world(resolve_params({"stick_time": 0.7, "rigid_objects": False}))
     with pytest.raises(MogafError, match=r"'stick_time' \(0.7\) must come before motion_stop \(0.5\)"):
         build_world(resolve_params({"stick_time": 0.7, "motion_stop": 0.5}))
+    with pytest.raises(MogafError, match=r"'stick_bodies' \(blobs\) needs a stick_time above 0"):
+        build_world(resolve_params({"stick_bodies": "blobs"}))
     with pytest.raises(MogafError, match="sphere.* leaves the view .*; raise stick_time"):
         build_world(resolve_params({"stick_time": 0.1}))  # a fast approach starts outside the view
+
+
+def _random_rotation(rng) -> np.ndarray:
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def test_an_ellipsoid_of_a_scaled_rotation_is_that_sphere():
+    from mogaf.synth.primitives import Ellipsoid, Sphere
+    from mogaf.synth.textures import SphereTexture
+
+    rng = np.random.default_rng(0)
+    texture = SphereTexture(rng, 0.3)
+    R = _random_rotation(rng)
+    centre, r = np.array([0.2, 1.5, 0.4]), 0.3
+    sphere, ellipsoid = Sphere(R, centre, r, texture, 2), Ellipsoid(r * R, centre, texture, 2)
+    o = np.zeros(3)
+    d = centre + rng.uniform(-0.5, 0.5, (400, 3))  # rays towards and past the ball
+    t_s, t_e = sphere.intersect(o, d), ellipsoid.intersect(o, d)
+    hit = np.isfinite(t_s)
+    assert 50 < hit.sum() < 400 and np.array_equal(hit, np.isfinite(t_e))
+    np.testing.assert_allclose(t_e[hit], t_s[hit], rtol=1e-12)
+    p = o + t_s[hit, None] * d[hit]
+    for got, want in zip(ellipsoid.shade(p, d[hit]), sphere.shade(p, d[hit])):
+        np.testing.assert_allclose(got, want, atol=1e-12)
+    assert ellipsoid.radius == pytest.approx(r)
+
+
+def test_an_ellipsoid_of_any_map_is_hit_on_its_surface_with_its_outward_normal():
+    from mogaf.synth.primitives import Ellipsoid
+    from mogaf.synth.textures import SphereTexture
+
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(3, 3)) * 0.3  # neither symmetric nor a scaled rotation
+    centre = np.array([0.1, 2.0, 0.5])
+    ellipsoid = Ellipsoid(A, centre, SphereTexture(rng, 0.6), 2)
+    A_inv = np.linalg.inv(A)
+
+    def level(x):  # 1 on the surface, below inside
+        return np.sum(((x - centre) @ A_inv.T) ** 2, axis=-1)
+
+    o = np.zeros(3)
+    d = centre + rng.uniform(-1.0, 1.0, (600, 3))
+    t = ellipsoid.intersect(o, d)
+    hit = np.isfinite(t)
+    assert 50 < hit.sum() < 600
+    p = o + t[hit, None] * d[hit]
+    np.testing.assert_allclose(level(p), 1.0, atol=1e-9)
+    # the first crossing: the ray's points a little before the hit are outside
+    assert np.all(level(o + (t[hit, None] * (1 - 1e-6)) * d[hit]) > 1.0)
+    _, normal = ellipsoid.shade(p, d[hit])
+    eps = 1e-6
+    grad = np.stack([(level(p + eps * e) - level(p - eps * e)) / (2 * eps) for e in np.eye(3)], axis=1)
+    np.testing.assert_allclose(normal, grad / np.linalg.norm(grad, axis=1, keepdims=True), atol=1e-6)
+    # the bounding sphere and the box of extent points enclose the surface, and touch it
+    u = rng.normal(size=(20000, 3))
+    surface = centre + (u / np.linalg.norm(u, axis=1, keepdims=True)) @ A.T
+    reach = np.linalg.norm(surface - centre, axis=1).max()
+    assert reach <= ellipsoid.radius + 1e-12 and reach > 0.99 * ellipsoid.radius
+
+
+def test_merging_blobs_meet_squash_into_one_another_and_move_on_as_one():
+    from mogaf.synth.world import MERGE_OVERLAP, MERGE_SQUASH
+
+    world = build_world(resolve_params({"stick_time": 0.7, "num_frames": 60, "stick_bodies": "blobs"}))
+    assert check_world(world) is None
+    by_name = {o.name: o for o in world.objects}
+    a, b = by_name["blob"], by_name["blob_2"]
+    assert (a.inst, b.inst, a.rigid, b.rigid) == (2, 4, False, False) and "sphere" not in by_name
+    path = a.path
+    tc, n = path.tau_contact, path.n
+    assert tc == pytest.approx(0.7 * world.taus[-1])
+    contact_gap = a.r + b.r
+
+    def gap(tau):
+        return float(np.linalg.norm(path.centre(1, tau) - path.centre(0, tau)))
+
+    assert gap(0.0) > contact_gap and gap(tc) == pytest.approx(contact_gap)  # the surfaces meet at the contact
+    end = tc + path.duration
+    assert gap(end) == pytest.approx((1 - MERGE_OVERLAP) * contact_gap) == gap(end + 0.3)  # nearer, then held
+    # velocities are continuous at the contact; the centre of mass keeps the momentum-weighted velocity
+    h = 1e-6
+    mass = np.array([a.r, b.r]) ** 3
+    for body in (0, 1):
+        before = (path.centre(body, tc) - path.centre(body, tc - h)) / h
+        after = (path.centre(body, tc + h) - path.centre(body, tc)) / h
+        np.testing.assert_allclose(before, after, atol=1e-6)
+
+    def mass_centre(tau):
+        return (mass[0] * path.centre(0, tau) + mass[1] * path.centre(1, tau)) / mass.sum()
+
+    v_before = (
+        (path.centre(0, tc - 2 * h) - path.centre(0, tc - 3 * h)) / h,
+        (path.centre(1, tc - 2 * h) - path.centre(1, tc - 3 * h)) / h,
+    )
+    momentum = (mass[0] * v_before[0] + mass[1] * v_before[1]) / mass.sum()
+    for tau in (tc + 0.3 * path.duration, end, end + 0.2):
+        np.testing.assert_allclose(mass_centre(tau) - mass_centre(tc), momentum * (tau - tc), atol=1e-9)
+    # the shape: a ball before the contact, squashed along the line (volume kept) by its end, spinning no more
+    material = np.random.default_rng(1).normal(size=(2000, 3))
+    material /= np.linalg.norm(material, axis=1, keepdims=True)
+    for blob in (a, b):
+        before, merged = blob.map(0.5 * tc), blob.map(end)
+        np.testing.assert_allclose(np.linalg.svd(before, compute_uv=False), blob.r, rtol=1e-12)
+        assert np.linalg.det(merged) == pytest.approx(blob.r**3)
+        assert np.linalg.norm(merged.T @ n) == pytest.approx((1 - MERGE_SQUASH) * blob.r)  # half-extent along n
+        np.testing.assert_allclose(blob.map(end + 0.2), merged, atol=1e-12)
+
+        def unsquashed(tau, blob=blob):  # the map without the squash: the blob's orientation
+            k = 1 - MERGE_SQUASH * path.merged(tau)
+            stretch = np.eye(3) / np.sqrt(k) + (k - 1 / np.sqrt(k)) * np.outer(n, n)
+            return np.linalg.solve(stretch, blob.map(tau))
+
+        assert not np.allclose(unsquashed(tc - 0.05), unsquashed(tc))  # it spins up to the contact
+        for tau in (tc + 0.2 * path.duration, end):
+            np.testing.assert_allclose(unsquashed(tau), unsquashed(tc), atol=1e-12)  # and not after it
+        # ground-truth points lie on the rendered surface, inside the box of extent points
+        surface = blob.primitives(end)[0]
+        points = blob.points(material, end)
+        np.testing.assert_allclose(np.linalg.norm((points - surface.c) @ surface.A_inv.T, axis=1), 1.0, atol=1e-12)
+        box = blob.extent_points(end)
+        lo, hi = box.min(axis=0), box.max(axis=0)
+        assert np.all(points >= lo - 1e-12) and np.all(points <= hi + 1e-12)
+        np.testing.assert_allclose(points.min(axis=0), lo, atol=0.01)
+        np.testing.assert_allclose(points.max(axis=0), hi, atol=0.01)

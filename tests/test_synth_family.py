@@ -49,11 +49,16 @@ def test_the_family_covers_every_kind_with_and_without_masks(family):
 def test_contact_scenes_come_after_the_first_ones_and_leave_them_as_drawn():
     first = family_scenes(3, 0)
     both = family_scenes(3, 0, contact=2)
-    assert list(both) == [*first, "f03_stick", "f04_stick"]
+    contact = ["f03_stick", "f04_stick", "f05_merge", "f06_merge"]  # each kind's scenes in turn
+    assert list(both) == [*first, *contact]
     assert {name: both[name] for name in first} == first
-    assert [both[n]["ship_instance_masks"] for n in ("f03_stick", "f04_stick")] == [True, False]
-    assert [both[n]["seed"] for n in ("f03_stick", "f04_stick")] == [3, 4]
-    assert all(0.6 < both[n]["stick_time"] < 0.8 for n in ("f03_stick", "f04_stick"))  # between the two splits
+    assert [both[n]["ship_instance_masks"] for n in contact] == [True, False, True, False]
+    assert [both[n]["seed"] for n in contact] == [3, 4, 5, 6]
+    assert all(0.6 < both[n]["stick_time"] < 0.8 for n in contact)  # between the two splits
+    assert [both[n].get("stick_bodies", "spheres") for n in contact] == ["spheres", "spheres", "blobs", "blobs"]
+    # more scenes per contact kind keep the first kind's (the later kinds' are numbered after them, drawn anew)
+    more = family_scenes(3, 0, contact=3)
+    assert {n: more[n] for n in ("f03_stick", "f04_stick")} == {n: both[n] for n in ("f03_stick", "f04_stick")}
 
 
 def test_every_family_scene_builds(family):
@@ -124,7 +129,7 @@ def test_the_family_command_says_bad_input_in_one_line_and_writes_nothing(tmp_pa
     assert f"{latin}: is not UTF-8 text (byte 0)" in capsys.readouterr().err
     assert main(["--count", "1", "--seed", "-1"]) == 1
     assert capsys.readouterr().err.strip() == "mogaf.synth.family: error: scene family: seed must be >= 0, got -1"
-    assert main(["--count", "1", "--contact", "0", "--check", str(FAMILY)]) == 1  # one scene is not the committed 28
+    assert main(["--count", "1", "--contact", "0", "--check", str(FAMILY)]) == 1  # one scene is not the committed 32
     assert "differs from the family drawn now" in capsys.readouterr().err
     assert main(["--count", "1", "--contact", "-1"]) == 1
     assert capsys.readouterr().err.strip() == "mogaf.synth.family: error: scene family: contact must be >= 0, got -1"

@@ -11,7 +11,7 @@ iPhone reader's Scene this reader sets:
                  (`ship_instance_masks: false`, preset "articulated"): then
                  the scene keeps the foreground mask alone, as a real capture
   instances      ids, names and rigid flags from mogaf_gt/instances.json
-                 (ground truth: rigid box/sphere/extras, non-rigid cloth/arm/chest)
+                 (ground truth: rigid box/sphere/extras, non-rigid cloth/arm/chest/blobs)
   ground_truth   points3d (P, T, 3), points_instance (P,), tracks2d (P, T, 2)
                  and visible (P, T) in the train camera, object_poses
                  (K, T, 4, 4) with object_pose_ids (K,), and per held-out

@@ -6,9 +6,10 @@ own scene seed (textures, camera shake, extra objects) and draws of its
 motion's strength, the sequence length and the number of held-out cameras.
 The first pass over the kinds ships instance masks, the second does not, and
 so on, so every kind is seen with and without masks once count >= 2 *
-len(KINDS). Then `contact` more cycle through CONTACT_KINDS (bodies that meet
-and stick), numbered after the first `count` and drawn the same way, so
-adding them leaves the first scenes as they were drawn.
+len(KINDS). Then come `contact` scenes of each kind of CONTACT_KINDS
+(bodies that meet: they stick, or merge), kind after kind, with and without
+masks in turn, numbered after the first `count`; adding them, or a kind to
+them, leaves every earlier scene as it was drawn.
 Each drawn scene is built (mogaf.synth.world.build_world) and redrawn while
 it fails the generator's own checks (objects in view, apart), so the family
 contains only scenes the pipeline can ingest.
@@ -90,11 +91,17 @@ KINDS: tuple[tuple[str, str, Any], ...] = (
 )
 
 # Kinds where bodies meet, after the first family's: drawn after its scenes (family_scenes' `contact`).
+# Each kind's scenes come after the previous kind's: appending one leaves every earlier scene as drawn.
 CONTACT_KINDS: tuple[tuple[str, str, Any], ...] = (
     (
         "stick",
         "the sphere and a smaller one collide head-on between the two split points and move on as one body",
         lambda r: {"stick_time": round(float(r.uniform(0.64, 0.76)), 3)},
+    ),
+    (
+        "merge",
+        "two soft blobs meet between the two split points, squash into one another and move on merged",
+        lambda r: {"stick_time": round(float(r.uniform(0.64, 0.76)), 3), "stick_bodies": "blobs"},
     ),
 )
 
@@ -133,7 +140,7 @@ def _scene(i: int, seed: int, kinds: tuple[tuple[str, str, Any], ...], pass_inde
 
 def family_scenes(count: int, seed: int = 0, contact: int = 0) -> dict[str, dict[str, Any]]:
     """{scene name: generator params} of `count` scenes of KINDS, then `contact` of
-    CONTACT_KINDS; deterministic in (count, seed, contact). Names are
+    each kind of CONTACT_KINDS; deterministic in (count, seed, contact). Names are
     `f{index:02d}_{kind}`; each scene's own `seed` is seed * 1000 + index."""
     if count < 1:
         raise MogafError(f"scene family: count must be at least 1, got {count}")
@@ -142,7 +149,8 @@ def family_scenes(count: int, seed: int = 0, contact: int = 0) -> dict[str, dict
     if contact < 0:
         raise MogafError(f"scene family: contact must be >= 0, got {contact}")
     drawn = [_scene(i, seed, KINDS, i) for i in range(count)]
-    drawn += [_scene(count + j, seed, CONTACT_KINDS, j) for j in range(contact)]
+    for k, kind in enumerate(CONTACT_KINDS):
+        drawn += [_scene(count + k * contact + j, seed, (kind,), j) for j in range(contact)]
     return dict(drawn)
 
 
@@ -183,7 +191,12 @@ def family_yaml(count: int, seed: int = 0, contact: int = 0) -> str:
     names = KIND_NAMES + (CONTACT_KIND_NAMES if contact else ())
     return (
         HEADER.format(
-            total=count + contact, count=count, contact=contact, seed=seed, kinds=len(names), names=", ".join(names)
+            total=count + contact * len(CONTACT_KINDS),
+            count=count,
+            contact=contact,
+            seed=seed,
+            kinds=len(names),
+            names=", ".join(names),
         )
         + body
     )
@@ -196,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(prog="python -m mogaf.synth.family", description=__doc__.splitlines()[0])
     ap.add_argument("--count", type=int, default=24, help="scenes in the family (default 24)")
-    ap.add_argument("--contact", type=int, default=4, help="scenes of the contact kinds after them (default 4)")
+    ap.add_argument("--contact", type=int, default=4, help="scenes of each contact kind after them (default 4)")
     ap.add_argument("--seed", type=int, default=0, help="the family's seed (default 0)")
     out = ap.add_mutually_exclusive_group()
     out.add_argument("--write", metavar="FILE", help="write the config to FILE")

@@ -23,7 +23,7 @@ Layout of `out_dir` (scale 1x only; frame name "<camera>_<time:05d>"):
     mogaf_gt/instances.json     background id 0 + per object: id, name, rigid, kind,
                                 pose_index (row in object_poses.npy or -1), shape
                                 (box half_extents / sphere radius in the object frame,
-                                cloth / arm dimensions), parts (the pieces that move
+                                cloth / arm dimensions, blob radius and squash), parts (the pieces that move
                                 each as one: ["whole"], the arm's upper/lower, the
                                 chest's body/lid)
     mogaf_gt/instance/1x/<name>.png   uint16 instance id at pixel centres, every frame

@@ -3,13 +3,15 @@
 Rotation about an axis (Rodrigues; also used to aim the cameras), a uniform
 drift centred on the sequence (_linear, its speed clamped by
 _clamped_velocity) and the ballistic arc of a thrown sphere bouncing on the
-ground (Ballistic) and the path of one of two bodies that collide and stick
-(StuckPath).
+ground (Ballistic), the path of one of two bodies that collide and stick
+(StuckPath) and of two soft bodies that merge (MergePath).
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from ..errors import MogafError
 
 
 def rotation(axis, angle) -> np.ndarray:
@@ -81,3 +83,47 @@ class StuckPath:
     def __call__(self, tau: float) -> np.ndarray:
         v = self.v_before if tau < self.tau_contact else self.v_after
         return self.contact + v * (tau - self.tau_contact)
+
+
+class MergePath:
+    """Centres and squash of two soft bodies that meet at motion time
+    tau_contact and merge: before it each moves uniformly (v_a, v_b, head-on
+    along the unit vector n from a to b); from it on their common centre of
+    mass moves with the momentum-weighted velocity while they keep closing in,
+    at a speed falling linearly to zero, until their centres are `overlap`
+    of the contact distance nearer; they move on as one after that. Every
+    centre's velocity is continuous at the contact.
+
+    merged(tau) is how far the merge has got, 0 before the contact to 1 from
+    its end: 1 - (1 - s)^2 of the elapsed share s."""
+
+    def __init__(self, contact_a, contact_b, v_a, v_b, masses, tau_contact: float, overlap: float):
+        self.contact_a, self.contact_b = np.asarray(contact_a, float), np.asarray(contact_b, float)
+        self.v_a, self.v_b = np.asarray(v_a, float), np.asarray(v_b, float)
+        self.tau_contact = float(tau_contact)
+        gap = self.contact_b - self.contact_a
+        self.n = gap / np.linalg.norm(gap)
+        m = np.asarray(masses, float)
+        self.share = m / m.sum()  # each body's share of the mass
+        self.v_after = self.share[0] * self.v_a + self.share[1] * self.v_b
+        closing = float((self.v_a - self.v_b) @ self.n)
+        # head-on (both velocities along n), so each centre's velocity is continuous at the contact
+        sideways = (self.v_a - self.v_b) - closing * self.n
+        if closing <= 0 or np.linalg.norm(sideways) > 1e-9 * abs(closing):
+            raise MogafError("MergePath: the two bodies must close in head-on")
+        self.depth = overlap * float(np.linalg.norm(gap))
+        # constant deceleration: closing speed at the contact -> 0 over the merge
+        self.duration = 2.0 * self.depth / closing
+
+    def merged(self, tau: float) -> float:
+        s = min(max((tau - self.tau_contact) / self.duration, 0.0), 1.0)
+        return 1.0 - (1.0 - s) ** 2
+
+    def centre(self, body: int, tau: float) -> np.ndarray:
+        dt = tau - self.tau_contact
+        if dt < 0:
+            return (self.contact_a, self.contact_b)[body] + (self.v_a, self.v_b)[body] * dt
+        mass_centre = self.share[0] * self.contact_a + self.share[1] * self.contact_b + self.v_after * dt
+        gap = float(np.linalg.norm(self.contact_b - self.contact_a)) - self.depth * self.merged(tau)
+        # body a sits the other body's share of the gap behind the centre of mass, b ahead by a's share
+        return mass_centre + (-self.share[1] if body == 0 else self.share[0]) * gap * self.n

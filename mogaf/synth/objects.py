@@ -2,8 +2,8 @@
 
 Each Object gives its ray-castable primitives, surface material points and
 their world positions at motion time tau: rigid boxes and spheres
-(RigidObject), the waving cloth, and two-box chains (the bending arm and the
-hinged-lid chest).
+(RigidObject), the waving cloth, two-box chains (the bending arm and the
+hinged-lid chest) and the soft blobs that merge (SoftBlob).
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from .motion import rotation
-from .primitives import Box, HeightCloth, Sphere
+from .motion import MergePath, rotation
+from .primitives import Box, Ellipsoid, HeightCloth, Sphere
 
 
 def _sample_box_surface(rng: np.random.Generator, half: np.ndarray, n: int) -> np.ndarray:
@@ -54,7 +54,7 @@ class Object:
     # The pieces that move each as one (ground truth for scoring a grouping
     # by part): one for most objects, one per box of a box chain.
     part_names: tuple[str, ...] = ("whole",)
-    # instance ids of the objects this one may touch (bodies that collide and stick)
+    # instance ids of the objects this one may touch (bodies that meet: they stick or merge)
     touches: frozenset[int] = frozenset()
 
     def primitives(self, tau: float) -> list:
@@ -145,6 +145,50 @@ class RigidSphere(RigidObject):
 
     def shape(self):
         return {"radius": self.r}
+
+
+class SoftBlob(Object):
+    """One of two soft balls that merge (motion.MergePath): spinning before the
+    contact, then squashed along the line between them (volume kept), by the
+    end of the merge shortened there by a share `squash` of its radius, and
+    holding that shape."""
+
+    rigid = False
+    kind = "blob"
+
+    def __init__(self, inst, name, radius, texture, path: MergePath, body: int, R0, spin_rate, squash: float):
+        self.inst, self.name = inst, name
+        self.r, self.texture = float(radius), texture
+        self.path, self.body = path, int(body)
+        self.R0, self.spin_rate, self.squash = np.asarray(R0, dtype=np.float64), float(spin_rate), float(squash)
+        n = path.n
+        # the roll each would have, rolling towards the other
+        self.spin_axis = np.cross([0.0, 0.0, 1.0], n if body == 0 else -n)
+
+    def shape(self):
+        return {"radius": self.r, "squash": self.squash}
+
+    def map(self, tau: float) -> np.ndarray:
+        """A (3, 3): material direction u -> offset from the centre at tau."""
+        angle = self.spin_rate * min(tau, self.path.tau_contact)
+        R = rotation(self.spin_axis, angle) @ self.R0
+        k = 1.0 - self.squash * self.path.merged(tau)  # along the line; 1 / sqrt(k) across keeps the volume
+        n = self.path.n
+        D = np.eye(3) / np.sqrt(k) + (k - 1.0 / np.sqrt(k)) * np.outer(n, n)
+        return self.r * D @ R
+
+    def primitives(self, tau):
+        return [Ellipsoid(self.map(tau), self.path.centre(self.body, tau), self.texture, self.inst)]
+
+    def sample_material(self, rng, n):
+        return _sample_sphere_dirs(rng, n)
+
+    def points(self, material, tau):
+        return material @ self.map(tau).T + self.path.centre(self.body, tau)
+
+    def extent_points(self, tau):
+        half = np.linalg.norm(self.map(tau), axis=1)  # the ellipsoid's half-extent along each world axis
+        return self.path.centre(self.body, tau) + _box_corners(half)
 
 
 class Cloth(Object):

@@ -68,6 +68,11 @@ class SyntheticSettings:
         minimum=0,
         exclusive_maximum=1,
     )
+    stick_bodies: Literal["spheres", "blobs"] = setting(
+        "spheres",
+        'what meets at stick_time: "spheres" (rigid, they stick) or "blobs" (two soft balls in their place that '
+        "squash into one another at the contact and move on merged)",
+    )
     num_extra_objects: int = setting(0, "extra small rigid objects (up to 6)", minimum=0, maximum=6)
     extra_speed: float = setting(0.25, "m/s of motion time for extra objects")
     # ground truth

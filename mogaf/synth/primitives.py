@@ -216,3 +216,37 @@ class HeightCloth:
         nl = np.stack([-hu, -hv, np.ones_like(hu)], axis=1)
         nl /= np.linalg.norm(nl, axis=1, keepdims=True)
         return self.texture(u, v, self.L, self.Hc), nl @ self.E.T
+
+
+class Ellipsoid:
+    """Ellipsoid {c + A u : |u| = 1} of an invertible map A (3, 3); u, the
+    point's direction on the unit sphere, is its material coordinate, which
+    the texture reads (so the pattern stretches with the surface)."""
+
+    part = 0
+
+    def __init__(self, A: np.ndarray, c: np.ndarray, texture, inst: int):
+        self.A = np.asarray(A, dtype=np.float64)
+        self.A_inv = np.linalg.inv(self.A)
+        self.c = np.asarray(c, dtype=np.float64)
+        self.texture, self.inst = texture, inst
+        self.centre, self.radius = self.c, float(np.linalg.norm(self.A, 2))
+
+    def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        # the unit sphere in u coordinates; t is the same ray parameter there
+        ou = self.A_inv @ (o - self.c)
+        du = d @ self.A_inv.T
+        a = np.einsum("ij,ij->i", du, du)
+        b = du @ ou
+        cc = ou @ ou - 1.0
+        disc = b * b - a * cc
+        with np.errstate(invalid="ignore"):
+            t = (-b - np.sqrt(disc)) / a
+        return np.where((disc >= 0) & (t > EPS), t, np.inf)
+
+    def shade(self, p: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        u = (p - self.c) @ self.A_inv.T
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        n = u @ self.A_inv  # the gradient of |A^-1 (x - c)|^2: A^-T u
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        return self.texture(u), n

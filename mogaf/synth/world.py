@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import MogafError
-from .motion import Ballistic, StuckPath, _clamped_velocity, _linear, rotation
-from .objects import Arm, Articulated, Cloth, Object, RigidBox, RigidSphere
+from .motion import Ballistic, MergePath, StuckPath, _clamped_velocity, _linear, rotation
+from .objects import Arm, Articulated, Cloth, Object, RigidBox, RigidSphere, SoftBlob
 from .params import TEST_CAMERA_PLACES, SyntheticSettings, load_settings
 from .primitives import Box, Plane
 from .textures import BoxTexture, ClothTexture, PlaneTexture, SphereTexture
@@ -78,6 +78,55 @@ def _stuck_partner(sphere: RigidSphere, texture, R0, tau_contact: float, spin_ra
     )
     sphere.touches, second.touches = frozenset({second.inst}), frozenset({sphere.inst})
     return second
+
+
+# Two soft blobs that merge (params.stick_bodies "blobs"): how much nearer
+# their centres come after the contact (a share of the contact distance) and
+# how much each is squashed along the line between them by then.
+MERGE_OVERLAP = 0.45
+MERGE_SQUASH = 0.25
+
+
+def _merging_blobs(sphere: RigidSphere, texture, R0, tau_contact: float, spin_rate: float) -> list[SoftBlob]:
+    """Two soft blobs in the place of the sphere and the second sphere of a
+    stuck pair (the same course, radii, textures): they meet at tau_contact
+    and merge (motion.MergePath, objects.SoftBlob)."""
+    n = STICK_DIRECTION
+    radii = (sphere.r, STICK_RADIUS)
+    v_a = n * STICK_APPROACH[0] / tau_contact
+    v_b = -n * STICK_APPROACH[1] / tau_contact
+    path = MergePath(
+        STICK_CONTACT - radii[0] * n,
+        STICK_CONTACT + radii[1] * n,
+        v_a,
+        v_b,
+        np.array(radii) ** 3,
+        tau_contact,
+        MERGE_OVERLAP,
+    )
+    first = SoftBlob(sphere.inst, "blob", radii[0], sphere.texture, path, 0, sphere.R0, spin_rate, MERGE_SQUASH)
+    second = SoftBlob(4, "blob_2", radii[1], texture, path, 1, R0, spin_rate, MERGE_SQUASH)
+    first.touches, second.touches = frozenset({second.inst}), frozenset({first.inst})
+    return [first, second]
+
+
+def _bodies_that_meet(p: SyntheticSettings, sphere: RigidSphere, rng, tau_contact: float, spin_rate: float) -> list:
+    """The sphere and a second body meeting it at tau_contact (params.stick_time):
+    a stuck pair of spheres or two merging blobs (params.stick_bodies)."""
+    if not p.rigid_objects:
+        raise MogafError("synthetic param 'stick_time' needs rigid_objects: the stuck pair's first body is the sphere")
+    if p.stick_time >= p.motion_stop:
+        raise MogafError(
+            f"synthetic param 'stick_time' ({p.stick_time}) must come before motion_stop ({p.motion_stop}): "
+            "the pair would stop before it meets"
+        )
+    # The second body's draws come after the box's and the sphere's, which so
+    # draw as without it; a scene without the pair draws exactly as before.
+    texture = SphereTexture(rng, rng.uniform())
+    R0 = rotation(rng.normal(size=3), rng.uniform(0, 2 * np.pi))
+    if p.stick_bodies == "blobs":
+        return _merging_blobs(sphere, texture, R0, tau_contact, spin_rate)
+    return [sphere, _stuck_partner(sphere, texture, R0, tau_contact, spin_rate)]
 
 
 # Lanes for extra objects: nominal centre (they drift from there), chosen in order.
@@ -193,22 +242,11 @@ def build_world(params: dict[str, Any] | SyntheticSettings) -> World:
         )
     )
     stick = p.stick_time > 0
+    if p.stick_bodies != "spheres" and not stick:
+        raise MogafError(f"synthetic param 'stick_bodies' ({p.stick_bodies}) needs a stick_time above 0")
     if stick:
-        if not p.rigid_objects:
-            raise MogafError(
-                "synthetic param 'stick_time' needs rigid_objects: the stuck pair's first body is the sphere"
-            )
-        if p.stick_time >= p.motion_stop:
-            raise MogafError(
-                f"synthetic param 'stick_time' ({p.stick_time}) must come before motion_stop ({p.motion_stop}): "
-                "the pair would stop before it meets"
-            )
-        # The second sphere's draws come here, so the box and the sphere draw as
-        # without it, and a scene without the pair draws exactly as before.
-        texture = SphereTexture(rng, rng.uniform())
-        R0 = rotation(rng.normal(size=3), rng.uniform(0, 2 * np.pi))
         tau_contact = p.stick_time * tau_max
-        rigid_objects.append(_stuck_partner(rigid_objects[1], texture, R0, tau_contact, p.sphere_spin * spin))
+        rigid_objects[1:] = _bodies_that_meet(p, rigid_objects[1], rng, tau_contact, p.sphere_spin * spin)
     if p.rigid_objects:
         objects.extend(rigid_objects)
     # ---- non-rigid object
@@ -285,7 +323,11 @@ def build_world(params: dict[str, Any] | SyntheticSettings) -> World:
     problem = check_world(world)
     if problem:
         # a stuck pair's paths depend on stick_time alone (the contact is fixed, the approach spans stick_time)
-        fix = "raise stick_time" if stick and "sphere" in problem else "lower speed/max_travel or num_frames"
+        fix = (
+            "raise stick_time"
+            if stick and any(name in problem for name in ("sphere", "blob"))
+            else "lower speed/max_travel or num_frames"
+        )
         raise MogafError(f"synthetic scene: {problem}; {fix}")
 
     # ---- extra small rigid objects, rejection-sampled so they stay in view and apart
