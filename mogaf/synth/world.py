@@ -52,15 +52,21 @@ STICK_APPROACH = (0.45, 0.3)
 STICK_RADIUS = 0.13
 
 
+def _head_on(first_radius: float, tau_contact: float) -> tuple[tuple[float, float], np.ndarray, np.ndarray]:
+    """The radii of two bodies that meet at motion time tau_contact and their
+    velocities before it: head-on along STICK_DIRECTION, each covering its
+    STICK_APPROACH distance by then."""
+    n = STICK_DIRECTION
+    return (first_radius, STICK_RADIUS), n * STICK_APPROACH[0] / tau_contact, -n * STICK_APPROACH[1] / tau_contact
+
+
 def _stuck_partner(sphere: RigidSphere, texture, R0, tau_contact: float, spin_rate: float) -> RigidSphere:
     """The second, smaller sphere of a stuck pair; `sphere` is set on a head-on
     course with it (its path and spin change). They meet at motion time
     tau_contact and from then on move as one body with their common
     (momentum-weighted) velocity, spinning no more."""
     n = STICK_DIRECTION
-    radii = (sphere.r, STICK_RADIUS)
-    v_a = n * STICK_APPROACH[0] / tau_contact
-    v_b = -n * STICK_APPROACH[1] / tau_contact
+    radii, v_a, v_b = _head_on(sphere.r, tau_contact)
     mass = np.array(radii) ** 3
     v_after = (mass[0] * v_a + mass[1] * v_b) / mass.sum()
     sphere.centre_fn = StuckPath(STICK_CONTACT - radii[0] * n, v_a, v_after, tau_contact)
@@ -92,9 +98,7 @@ def _merging_blobs(sphere: RigidSphere, texture, R0, tau_contact: float, spin_ra
     stuck pair (the same course, radii, textures): they meet at tau_contact
     and merge (motion.MergePath, objects.SoftBlob)."""
     n = STICK_DIRECTION
-    radii = (sphere.r, STICK_RADIUS)
-    v_a = n * STICK_APPROACH[0] / tau_contact
-    v_b = -n * STICK_APPROACH[1] / tau_contact
+    radii, v_a, v_b = _head_on(sphere.r, tau_contact)
     path = MergePath(
         STICK_CONTACT - radii[0] * n,
         STICK_CONTACT + radii[1] * n,
@@ -315,14 +319,14 @@ def build_world(params: dict[str, Any] | SyntheticSettings) -> World:
     world = World(
         params=p, objects=objects, static=static, taus=taus, times=times, train_w2c=train_w2c, test_w2c=test_w2c, K=K
     )
-    # the sphere of a stuck pair is not thrown: it bounces nowhere
+    # the first body of a pair that meets is not thrown: it bounces nowhere
     bounces = [] if stick else [float(b / p.speed) for b in ballistic.bounces if b <= taus[-1]]
     world.info["sphere_bounce_times"] = bounces
     if stick:
         world.info["stick_time"] = float(tau_contact / p.speed)
     problem = check_world(world)
     if problem:
-        # a stuck pair's paths depend on stick_time alone (the contact is fixed, the approach spans stick_time)
+        # a pair's paths depend on stick_time alone (the contact is fixed, the approach spans stick_time)
         fix = (
             "raise stick_time"
             if stick and any(name in problem for name in ("sphere", "blob"))
@@ -331,7 +335,7 @@ def build_world(params: dict[str, Any] | SyntheticSettings) -> World:
         raise MogafError(f"synthetic scene: {problem}; {fix}")
 
     # ---- extra small rigid objects, rejection-sampled so they stay in view and apart
-    first_extra = 5 if stick else 4  # after the stuck pair's second sphere (4)
+    first_extra = 5 if stick else 4  # after the second body of a pair that meets (4)
     for i in range(p.num_extra_objects):
         lane = np.array(EXTRA_LANES[i])
         for _attempt in range(200):
