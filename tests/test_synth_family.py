@@ -86,6 +86,28 @@ def test_motion_stop_freezes_every_object_from_the_stop_on_and_changes_nothing_b
     np.testing.assert_allclose(centres(stopped, stop - 1), centres(default, stop - 1), atol=1e-12)
 
 
+def test_a_scene_with_bodies_that_meet_says_when_and_reads_back(tmp_path):
+    from mogaf.datasets import read_scene
+    from mogaf.synth.generate import generate_scene
+
+    small = {"width": 48, "height": 36, "num_frames": 12, "num_track_points": 8, "supersample": 1}
+    root = generate_scene(tmp_path / "merge", {**small, "stick_time": 0.7, "stick_bodies": "blobs"})
+    scene = read_scene("synthetic", root, dataset="synthetic", scene="merge", options={"scale": 1})
+    world = build_world(resolve_params({**small, "stick_time": 0.7, "stick_bodies": "blobs"}))
+    assert (
+        scene.meta["stick_time_s"] == pytest.approx(world.info["stick_time"])
+        and scene.meta["sphere_bounce_times_s"] == []
+    )
+    assert list(scene.instances.names) == ["box", "blob", "blob_2", "cloth"]
+    assert list(scene.instances.rigid) == [1, 0, 0, 0]  # the blobs are soft
+    assert set(np.unique(scene.instance_mask)) >= {2, 4}  # both blobs are seen
+    plain = generate_scene(tmp_path / "plain", small)
+    assert (
+        "stick_time_s"
+        not in read_scene("synthetic", plain, dataset="synthetic", scene="plain", options={"scale": 1}).meta
+    )
+
+
 @pytest.mark.parametrize("yaws", [[20.0], [-24.0, 20.0, -6.0]])
 def test_one_to_three_held_out_cameras_reach_the_scene_files(tmp_path, yaws):
     from mogaf.synth.generate import generate_scene

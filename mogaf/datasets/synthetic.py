@@ -215,6 +215,8 @@ def read_synthetic_scene(
     out.meta["synthetic"] = True
     out.meta["synthetic_params"] = params.get("params", {})
     out.meta["sphere_bounce_times_s"] = params.get("sphere_bounce_times_s", [])
+    if "stick_time_s" in params:  # a pair that meets (synthetic.stick_time): when it does
+        out.meta["stick_time_s"] = params["stick_time_s"]
     if ship_masks:
         out.meta["instance_mask"] = f"ground-truth instance ids ({GT}/instance/1x, pixel centres)"
     out.meta["ground_truth"] = (
