@@ -30,6 +30,19 @@ def bound_hit(o: np.ndarray, d: np.ndarray, centre: np.ndarray, radius: float) -
     return (dist2 <= radius * radius) & (far > 0)
 
 
+def first_sphere_hit(oc: np.ndarray, d: np.ndarray, r2: float) -> np.ndarray:
+    """Ray parameter t of the first hit of rays `oc + t d` (origin relative to
+    the centre, directions (N, 3)) with the sphere of squared radius r2 about
+    the origin; inf where missed or behind."""
+    a = np.einsum("ij,ij->i", d, d)
+    b = d @ oc
+    cc = oc @ oc - r2
+    disc = b * b - a * cc
+    with np.errstate(invalid="ignore"):
+        t = (-b - np.sqrt(disc)) / a
+    return np.where((disc >= 0) & (t > EPS), t, np.inf)
+
+
 class Plane:
     """Infinite plane {x : x[axis] = offset}, textured with the two other coordinates."""
 
@@ -101,14 +114,7 @@ class Sphere:
         self.centre, self.radius = self.c, self.r
 
     def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-        oc = o - self.c
-        a = np.einsum("ij,ij->i", d, d)
-        b = d @ oc
-        cc = oc @ oc - self.r * self.r
-        disc = b * b - a * cc
-        with np.errstate(invalid="ignore"):
-            t = (-b - np.sqrt(disc)) / a
-        return np.where((disc >= 0) & (t > EPS), t, np.inf)
+        return first_sphere_hit(o - self.c, d, self.r * self.r)
 
     def shade(self, p: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         n = (p - self.c) / self.r
@@ -234,15 +240,7 @@ class Ellipsoid:
 
     def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
         # the unit sphere in u coordinates; t is the same ray parameter there
-        ou = self.A_inv @ (o - self.c)
-        du = d @ self.A_inv.T
-        a = np.einsum("ij,ij->i", du, du)
-        b = du @ ou
-        cc = ou @ ou - 1.0
-        disc = b * b - a * cc
-        with np.errstate(invalid="ignore"):
-            t = (-b - np.sqrt(disc)) / a
-        return np.where((disc >= 0) & (t > EPS), t, np.inf)
+        return first_sphere_hit(self.A_inv @ (o - self.c), d @ self.A_inv.T, 1.0)
 
     def shade(self, p: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         u = (p - self.c) @ self.A_inv.T
