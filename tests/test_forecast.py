@@ -453,6 +453,28 @@ def test_torch_methods_record_their_device(method):
 
 
 @pytest.mark.parametrize("method", TORCH_METHODS)
+def test_torch_methods_give_the_same_bits_without_the_nan_fill_of_new_tensors(method, monkeypatch):
+    """torch_determinism turns torch's NaN fill of every new tensor off
+    (speed). A kernel that read memory nobody
+    wrote would give NaNs or other bits with the fill on; the fill's own
+    setting is restored on leaving."""
+    import torch
+
+    from mogaf.forecast import base
+
+    traj = _circular_motion(g=48, t=20)
+    before = torch.utils.deterministic.fill_uninitialized_memory
+    with base.torch_determinism(0, None):
+        assert torch.utils.deterministic.fill_uninitialized_memory is False
+    assert torch.utils.deterministic.fill_uninitialized_memory is before
+    unfilled = fit_and_rollout(method, traj, 3, FAST[method], seed=0).poses
+    monkeypatch.setattr(base, "FILL_UNINITIALIZED_MEMORY", True)
+    filled = fit_and_rollout(method, traj, 3, FAST[method], seed=0).poses
+    assert np.isfinite(filled).all()
+    np.testing.assert_array_equal(filled, unfilled)
+
+
+@pytest.mark.parametrize("method", TORCH_METHODS)
 def test_cuda_asked_for_without_cuda_is_refused(method):
     import torch
 

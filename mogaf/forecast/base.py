@@ -99,20 +99,33 @@ def finish_poses(poses: np.ndarray, last_q: np.ndarray) -> np.ndarray:
     return out
 
 
+# torch's NaN fill of new tensors under deterministic mode (torch_determinism)
+FILL_UNINITIALIZED_MEMORY = False
+
+
 @contextlib.contextmanager
 def torch_determinism(seed: int, num_threads: int | None, device: Any = None) -> Iterator[None]:
     """Seed torch inside a forked RNG state (the caller's global RNG is left as
     it was), optionally pin the intra-op thread count, and ask for
     deterministic kernels. Restores everything on exit. `device`: the torch
     device the caller computes on; a CUDA one's generator is forked too (only
-    that one: forking every visible GPU would open a context on each)."""
+    that one: forking every visible GPU would open a context on each).
+
+    Deterministic mode's other switch, torch's NaN fill of every new tensor
+    (torch.utils.deterministic.fill_uninitialized_memory, a guard against
+    kernels reading memory nobody wrote), is off inside: the forecasters'
+    kernels write all they read, so their results are the same bits either
+    way (tests/test_forecast.py), and the fill costs time on large
+    tensors (a tenth of a 3,000-Gaussian group's GCN training)."""
     import torch
+    import torch.utils.deterministic
 
     from mogaf.optim import use_deterministic_algorithms
 
     old_threads = torch.get_num_threads()
     old_det = torch.are_deterministic_algorithms_enabled()
     old_warn = torch.is_deterministic_algorithms_warn_only_enabled()
+    old_fill = torch.utils.deterministic.fill_uninitialized_memory
     dev = torch.device(device) if device is not None else torch.device("cpu")
     cuda_devices = [dev.index if dev.index is not None else torch.cuda.current_device()] if dev.type == "cuda" else []
     with torch.random.fork_rng(devices=cuda_devices):
@@ -120,9 +133,11 @@ def torch_determinism(seed: int, num_threads: int | None, device: Any = None) ->
         if num_threads:
             torch.set_num_threads(int(num_threads))
         use_deterministic_algorithms(True, warn_only=True)
+        torch.utils.deterministic.fill_uninitialized_memory = FILL_UNINITIALIZED_MEMORY
         try:
             yield
         finally:
+            torch.utils.deterministic.fill_uninitialized_memory = old_fill
             use_deterministic_algorithms(old_det, warn_only=old_warn)
             torch.set_num_threads(old_threads)
 
