@@ -90,18 +90,24 @@ KINDS: tuple[tuple[str, str, Any], ...] = (
     ),
 )
 
+
+def _contact_time(r: np.random.Generator) -> dict[str, Any]:
+    """When the bodies meet: between the two split points (0.6 and 0.8)."""
+    return {"stick_time": round(float(r.uniform(0.64, 0.76)), 3)}
+
+
 # Kinds where bodies meet, after the first family's: drawn after its scenes (family_scenes' `contact`).
 # Each kind's scenes come after the previous kind's: appending one leaves every earlier scene as drawn.
 CONTACT_KINDS: tuple[tuple[str, str, Any], ...] = (
     (
         "stick",
         "the sphere and a smaller one collide head-on between the two split points and move on as one body",
-        lambda r: {"stick_time": round(float(r.uniform(0.64, 0.76)), 3)},
+        _contact_time,
     ),
     (
         "merge",
         "two soft blobs meet between the two split points, squash into one another and move on merged",
-        lambda r: {"stick_time": round(float(r.uniform(0.64, 0.76)), 3), "stick_bodies": "blobs"},
+        lambda r: {**_contact_time(r), "stick_bodies": "blobs"},
     ),
 )
 

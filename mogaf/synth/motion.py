@@ -102,7 +102,8 @@ class MergePath:
         self.v_a, self.v_b = np.asarray(v_a, float), np.asarray(v_b, float)
         self.tau_contact = float(tau_contact)
         gap = self.contact_b - self.contact_a
-        self.n = gap / np.linalg.norm(gap)
+        self.contact_distance = float(np.linalg.norm(gap))
+        self.n = gap / self.contact_distance
         m = np.asarray(masses, float)
         self.share = m / m.sum()  # each body's share of the mass
         self.v_after = self.share[0] * self.v_a + self.share[1] * self.v_b
@@ -111,7 +112,7 @@ class MergePath:
         sideways = (self.v_a - self.v_b) - closing * self.n
         if closing <= 0 or np.linalg.norm(sideways) > 1e-9 * abs(closing):
             raise MogafError("MergePath: the two bodies must close in head-on")
-        self.depth = overlap * float(np.linalg.norm(gap))
+        self.depth = overlap * self.contact_distance
         # constant deceleration: closing speed at the contact -> 0 over the merge
         self.duration = 2.0 * self.depth / closing
 
@@ -124,6 +125,6 @@ class MergePath:
         if dt < 0:
             return (self.contact_a, self.contact_b)[body] + (self.v_a, self.v_b)[body] * dt
         mass_centre = self.share[0] * self.contact_a + self.share[1] * self.contact_b + self.v_after * dt
-        gap = float(np.linalg.norm(self.contact_b - self.contact_a)) - self.depth * self.merged(tau)
+        gap = self.contact_distance - self.depth * self.merged(tau)
         # body a sits the other body's share of the gap behind the centre of mass, b ahead by a's share
         return mass_centre + (-self.share[1] if body == 0 else self.share[0]) * gap * self.n

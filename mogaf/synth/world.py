@@ -50,6 +50,9 @@ STICK_CONTACT = np.array([0.35, 0.95, 0.72])
 STICK_DIRECTION = np.array([1.0, 0.2, 0.1]) / np.linalg.norm([1.0, 0.2, 0.1])
 STICK_APPROACH = (0.45, 0.3)
 STICK_RADIUS = 0.13
+# the second body's instance id: the first after the box, the sphere and the
+# non-rigid object (1-3); extra objects are numbered after it
+SECOND_BODY_INST = 4
 
 
 def _head_on(first_radius: float, tau_contact: float) -> tuple[tuple[float, float], np.ndarray, np.ndarray]:
@@ -72,7 +75,7 @@ def _stuck_partner(sphere: RigidSphere, texture, R0, tau_contact: float, spin_ra
     sphere.centre_fn = StuckPath(STICK_CONTACT - radii[0] * n, v_a, v_after, tau_contact)
     sphere.spin_axis, sphere.spin_rate, sphere.spin_until = np.cross(UP, n), spin_rate, tau_contact
     second = RigidSphere(
-        4,
+        SECOND_BODY_INST,
         "sphere_2",
         radius=radii[1],
         texture=texture,
@@ -82,7 +85,6 @@ def _stuck_partner(sphere: RigidSphere, texture, R0, tau_contact: float, spin_ra
         spin_rate=spin_rate,
         spin_until=tau_contact,
     )
-    sphere.touches, second.touches = frozenset({second.inst}), frozenset({sphere.inst})
     return second
 
 
@@ -109,14 +111,14 @@ def _merging_blobs(sphere: RigidSphere, texture, R0, tau_contact: float, spin_ra
         MERGE_OVERLAP,
     )
     first = SoftBlob(sphere.inst, "blob", radii[0], sphere.texture, path, 0, sphere.R0, spin_rate, MERGE_SQUASH)
-    second = SoftBlob(4, "blob_2", radii[1], texture, path, 1, R0, spin_rate, MERGE_SQUASH)
-    first.touches, second.touches = frozenset({second.inst}), frozenset({first.inst})
+    second = SoftBlob(SECOND_BODY_INST, "blob_2", radii[1], texture, path, 1, R0, spin_rate, MERGE_SQUASH)
     return [first, second]
 
 
 def _bodies_that_meet(p: SyntheticSettings, sphere: RigidSphere, rng, tau_contact: float, spin_rate: float) -> list:
     """The sphere and a second body meeting it at tau_contact (params.stick_time):
-    a stuck pair of spheres or two merging blobs (params.stick_bodies)."""
+    a stuck pair of spheres or two merging blobs (params.stick_bodies), each
+    allowed to touch the other (Object.touches)."""
     if not p.rigid_objects:
         raise MogafError("synthetic param 'stick_time' needs rigid_objects: the stuck pair's first body is the sphere")
     if p.stick_time >= p.motion_stop:
@@ -129,8 +131,11 @@ def _bodies_that_meet(p: SyntheticSettings, sphere: RigidSphere, rng, tau_contac
     texture = SphereTexture(rng, rng.uniform())
     R0 = rotation(rng.normal(size=3), rng.uniform(0, 2 * np.pi))
     if p.stick_bodies == "blobs":
-        return _merging_blobs(sphere, texture, R0, tau_contact, spin_rate)
-    return [sphere, _stuck_partner(sphere, texture, R0, tau_contact, spin_rate)]
+        first, second = _merging_blobs(sphere, texture, R0, tau_contact, spin_rate)
+    else:
+        first, second = sphere, _stuck_partner(sphere, texture, R0, tau_contact, spin_rate)
+    first.touches, second.touches = frozenset({second.inst}), frozenset({first.inst})
+    return [first, second]
 
 
 # Lanes for extra objects: nominal centre (they drift from there), chosen in order.
@@ -335,7 +340,7 @@ def build_world(params: dict[str, Any] | SyntheticSettings) -> World:
         raise MogafError(f"synthetic scene: {problem}; {fix}")
 
     # ---- extra small rigid objects, rejection-sampled so they stay in view and apart
-    first_extra = 5 if stick else 4  # after the second body of a pair that meets (4)
+    first_extra = SECOND_BODY_INST + 1 if stick else SECOND_BODY_INST
     for i in range(p.num_extra_objects):
         lane = np.array(EXTRA_LANES[i])
         for _attempt in range(200):
