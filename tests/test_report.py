@@ -824,6 +824,46 @@ def test_a_scene_rows_file_keeps_the_tables_of_its_metrics_files(tmp_path, metri
     assert scenes_table(records).rstrip("\n") in section
 
 
+def test_scenes_check_says_whether_a_rerun_reproduces_a_scene_rows_file(tmp_path, metrics_files, capsys):
+    """`scenes --check FILE`: exit 0 when every given result's measured values
+    equal its record (wall times may differ), 1 naming the first differing
+    value, or a result the file does not hold; no table is printed."""
+    from mogaf.report.__main__ import main
+
+    kept = tmp_path / "scenes_test.json"
+    assert main(["scenes", *map(str, metrics_files), "--json", str(kept), "--run", "here"]) == 0
+    capsys.readouterr()
+    rerun = json.loads(metrics_files[0].read_text())
+    rerun["runtime"] = {"total_wall_s": {"mogaf": 1.0}}  # a rerun's own wall times
+    rerun["methods"]["mogaf"]["runtime"] = {"total_wall_s": 1.0}
+    metrics_files[0].write_text(json.dumps(rerun))
+    assert main(["scenes", *map(str, metrics_files), "--check", str(kept)]) == 0
+    out = capsys.readouterr().out
+    assert out == f"{kept}: 3 of 3 results identical (0 of its 3 not given)\n"
+
+    psnr = rerun["methods"]["mogaf"]["image"]["psnr"]
+    rerun["methods"]["mogaf"]["image"]["psnr"] = psnr + 1e-6
+    metrics_files[0].write_text(json.dumps(rerun))
+    assert main(["scenes", str(metrics_files[0]), "--check", str(kept)]) == 1
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == [
+        f"iphone/a 0.6 default: 1 values differ: mogaf.image.psnr: {psnr!r} -> {psnr + 1e-6!r}",
+        f"{kept}: 0 of 1 results identical (2 of its 3 not given)",
+    ]
+    other = write_metrics(
+        tmp_path / "iphone/d/metrics.json",
+        dataset="iphone",
+        scene="d",
+        ratio=0.6,
+        protocol="iphone",
+        methods={"mogaf": method_section(IPHONE_B["mogaf"], method="mogaf", wall=1.0)},
+    )
+    assert main(["scenes", str(other), "--check", str(kept)]) == 1
+    assert capsys.readouterr().out.splitlines()[0] == f"iphone/d 0.6 default: not in {kept}"
+    assert main(["scenes", str(other), "--check", str(kept), "--json", str(tmp_path / "b.json"), "--run", "x"]) == 1
+    assert "not both" in capsys.readouterr().err and not (tmp_path / "b.json").exists()
+
+
 def test_a_bad_scene_rows_file_is_one_line_naming_it(tmp_path, metrics_files, capsys):
     from mogaf.errors import MogafError
     from mogaf.report.__main__ import main

@@ -1,5 +1,5 @@
 """`python -m mogaf.report glance METRICS.json... [--write FILE | --check FILE]`,
-`python -m mogaf.report scenes METRICS.json... [--json FILE --run TEXT]`,
+`python -m mogaf.report scenes METRICS.json... [--json FILE --run TEXT | --check FILE]`,
 `python -m mogaf.report timing PIPELINE.json [--write FILE | --check FILE]` and
 `python -m mogaf.report results [METRICS.json...] [--bench DIR] [--write FILE | --check FILE]`.
 
@@ -8,7 +8,8 @@ metrics.json files; --write puts it between the `<!-- glance:start -->` and
 `<!-- glance:end -->` markers of a Markdown file (the README), --check exits 1
 when that section differs from what the files give. scenes: print a table
 per observation ratio, a row per scene (mogaf.report.scenes); --json also
-keeps the results in a scene-rows file for results/bench/. results: the
+keeps the results in a scene-rows file for results/bench/, --check exits 1
+when a result's measured values differ from such a file's. results: the
 measured-results page (docs/results.md) from the benchmark rows in
 results/bench/ and any metrics.json files (mogaf.report.results_page);
 --write rewrites FILE with it, --check exits 1 when FILE differs. timing:
@@ -25,7 +26,7 @@ from ..errors import MogafError
 from .glance import glance, section_matches, write_section
 from .metrics_files import load_metrics
 from .results_page import BENCH_DIR, command, page_matches, results_page, write_page
-from .scenes import scenes_table, write_scene_rows
+from .scenes import check_scene_rows, scenes_table, write_scene_rows
 from .timing import MARKERS, timing_line
 
 
@@ -41,6 +42,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("metrics", nargs="+", help="metrics.json files (written by the evaluate stage)")
     p.add_argument("--json", metavar="FILE", help="also keep the results in this scene-rows file (results/bench/)")
     p.add_argument("--run", default="", help="with --json: where and how they were measured (machine, commit, date)")
+    p.add_argument(
+        "--check",
+        metavar="FILE",
+        help="print no table: exit 1 unless each result repeats the measured values this scene-rows file keeps for it",
+    )
     p = sub.add_parser("results", help="the measured-results page (docs/results.md) from results/bench/ rows")
     p.add_argument("metrics", nargs="*", help="metrics.json files to add (glance and per-scene tables)")
     p.add_argument("--bench", default=str(BENCH_DIR), metavar="DIR", help=f"benchmark rows (default: {BENCH_DIR})")
@@ -58,7 +64,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "scenes":
             if bool(args.run.strip()) != bool(args.json):
                 raise MogafError("scenes: --json FILE and --run TEXT (where the results were measured) go together")
+            if args.check and args.json:
+                raise MogafError("scenes: --check FILE compares with a kept file, --json FILE writes one: not both")
             results = load_metrics(args.metrics)
+            if args.check:
+                lines, same = check_scene_rows(args.check, results)
+                print("\n".join(lines))
+                return 0 if same else 1
             table = scenes_table(results)
             if args.json:  # first: a bad --json or --run prints nothing
                 write_scene_rows(args.json, results, args.run)

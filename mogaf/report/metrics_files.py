@@ -190,7 +190,8 @@ def _metrics_problem(data: dict[str, Any]) -> str | None:
     return _grouping_problem(data.get("grouping")) or _reconstruction_problem(data)
 
 
-def _result_key(data: dict[str, Any]) -> tuple[str, str, float, str]:
+def result_key(data: dict[str, Any]) -> tuple[str, str, float, str]:
+    """(dataset, scene, ratio, variant): what one metrics.json is the result of."""
     return (data["dataset"], data["scene"], float(data["ratio"]), data.get("variant") or "default")
 
 
@@ -227,7 +228,7 @@ def checked_records(path: str | os.PathLike, records: Any) -> list[dict[str, Any
         problem = _metrics_problem(data)
         if problem:
             raise input_error(path, f"scenes[{i}]: {problem}")
-        key = _result_key(data)
+        key = result_key(data)
         if key in seen:
             raise input_error(path, f"scenes[{i}] holds the same result as scenes[{seen[key]}]")
         seen[key] = i
@@ -257,7 +258,7 @@ def load_metrics(paths: list[str | os.PathLike]) -> list[dict[str, Any]]:
                 f"says ratio {data['ratio']:g}, but lies in a folder of ratio {folder_ratio:g}; "
                 "a metrics.json moved or edited by hand, rerun evaluate",
             )
-        key = _result_key(data)
+        key = result_key(data)
         if key in seen:
             raise input_error(
                 p,

@@ -16,6 +16,11 @@ measured-results page (docs/results.md) prints its tables from it:
 
     python -m mogaf.report scenes results/synthetic/f*/ratio*/metrics.json \
         --json results/bench/scenes_family_cpu.json --run "2-core ..., commit ..."
+
+`--check FILE` instead says whether a rerun reproduces such a file: every
+measured value the file keeps for a given result (image and tracking metrics
+per method, grouping, reconstruction) must be repeated exactly; a method or
+value the file does not keep is not compared.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import numpy as np
 from ..artefact import atomic_path
 from ..errors import MogafError, input_error
 from .glance import _methods, best_text
-from .metrics_files import checked_records, load_metrics, read_json
+from .metrics_files import checked_records, load_metrics, read_json, result_key
 from .tables import _mean, _metric, _variant, budget_differences, fmt, forecast_record, method_label, steps_note
 
 
@@ -281,3 +286,62 @@ def _run_problem(run: Any) -> str | None:
     if "\n" in run or "\r" in run:
         return "must be one line (it is printed in a sentence of docs/results.md)"
     return None
+
+
+# ------------------------------------------------------------------ reruns against a scene-rows file
+# What a result measured: wall times, memory, provenance and per-view detail left out.
+MEASURED_SECTIONS = ("grouping", "reconstruction")
+MEASURED_METHOD_SECTIONS = ("image", "tracking")
+
+
+def measured_values(result: dict[str, Any]) -> dict[str, Any]:
+    """A result's measured values as {"section.key": value} (methods: "method.section.key")."""
+    out: dict[str, Any] = {}
+
+    def flat(prefix: str, value: Any) -> None:
+        if isinstance(value, dict):
+            for k, v in value.items():
+                flat(f"{prefix}.{k}", v)
+        else:
+            out[prefix] = value
+
+    for section in MEASURED_SECTIONS:
+        if section in result:
+            flat(section, result[section])
+    for method, sections in result["methods"].items():
+        for section in MEASURED_METHOD_SECTIONS:
+            if section in sections:
+                flat(f"{method}.{section}", sections[section])
+    return out
+
+
+def _differences(kept: dict[str, Any], rerun: dict[str, Any]) -> list[str]:
+    """'name: kept -> rerun' for every measured value of `kept` that `rerun` does not repeat exactly."""
+    a, b = measured_values(kept), measured_values(rerun)
+    return [f"{k}: {a[k]!r} -> {b.get(k, 'missing')!r}" for k in a if k not in b or b[k] != a[k]]
+
+
+def check_scene_rows(path: str | os.PathLike, results: list[dict[str, Any]]) -> tuple[list[str], bool]:
+    """(report lines, whether every result equals its record in the scene-rows
+    file `path`): a line per result that differs (its first differing values)
+    or that the file does not hold, then a summary line."""
+    _, records = read_scene_rows(path)
+    kept = {result_key(r): r for r in records}
+    lines, same = [], 0
+    for r in sorted(results, key=lambda r: (float(r["ratio"]), *row_order(r))):
+        key = result_key(r)
+        name = f"{key[0]}/{key[1]} {key[2]:g} {key[3]}"
+        if key not in kept:
+            lines.append(f"{name}: not in {path}")
+            continue
+        diff = _differences(kept[key], r)
+        if diff:
+            more = f" (+{len(diff) - 3} more)" if len(diff) > 3 else ""
+            lines.append(f"{name}: {len(diff)} values differ: {'; '.join(diff[:3])}{more}")
+        else:
+            same += 1
+    lines.append(
+        f"{path}: {same} of {len(results)} results identical"
+        f" ({len(kept) - len(set(kept) & {result_key(r) for r in results})} of its {len(kept)} not given)"
+    )
+    return lines, same == len(results)
