@@ -36,7 +36,7 @@ import numpy as np
 from ..artefact import atomic_path
 from ..errors import MogafError, input_error
 from .glance import _methods, best_text
-from .metrics_files import checked_records, load_metrics, read_json, result_key
+from .metrics_files import METRIC_SECTIONS, checked_records, load_metrics, read_json, result_key
 from .tables import _mean, _metric, _variant, budget_differences, fmt, forecast_record, method_label, steps_note
 
 
@@ -291,7 +291,7 @@ def _run_problem(run: Any) -> str | None:
 # ------------------------------------------------------------------ reruns against a scene-rows file
 # What a result measured: wall times, memory, provenance and per-view detail left out.
 MEASURED_SECTIONS = ("grouping", "reconstruction")
-MEASURED_METHOD_SECTIONS = ("image", "tracking")
+MEASURED_METHOD_SECTIONS = tuple(s for s in METRIC_SECTIONS if s != "runtime")
 
 
 def measured_values(result: dict[str, Any]) -> dict[str, Any]:
