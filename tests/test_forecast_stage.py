@@ -460,6 +460,25 @@ def test_evaluation_quick_epe_measures_the_error(inputs, tmp_path):
     assert quick["still_points_displacement"] == pytest.approx(0.5, abs=1e-6)
 
 
+def test_2d_tracking_scores_only_the_steps_the_training_camera_has_a_frame_of(inputs, tmp_path):
+    """A forecast step the training camera has no frame of is left out of the
+    2D metrics, not scored as a track predicted invisible at pixel (0, 0). In
+    this scene every step looks alike to the static training camera (the
+    same points in view), so leaving one out changes no metric; scoring it
+    would lower AJ and occlusion accuracy (0.7 -> 0.525)."""
+    model = load_model(inputs["model"])
+    pos, quats, _ = world()
+    fc = {"means": pos[:, T_OBS:], "quats": np.repeat(quats[:, None], T - T_OBS, axis=1)}
+    full_h5, split_h5 = write_scene(tmp_path / "full", with_gt=True, tracks2d=True)
+    full = tracking_section(model, fc, str(full_h5), read_split(split_h5), EVAL_PARAMS)[0]
+    gap_h5, gap_split_h5 = write_scene(tmp_path / "gap", with_gt=True, tracks2d=True, no_train_frame_at=T_OBS + 1)
+    gap_split = read_split(gap_split_h5)
+    assert gap_split.frame_ids["train_future"].size == T - T_OBS - 1
+    gap = tracking_section(model, fc, str(gap_h5), gap_split, EVAL_PARAMS)[0]
+    assert full["aj"] < 1.0 and full["occlusion_accuracy"] < 1.0  # some points are predicted hidden
+    assert gap == full and list(gap) == list(full)
+
+
 # ------------------------------------------------------------------ determinism
 def test_same_inputs_same_seed_same_arrays(inputs, mogaf_parts, tmp_path):
     again = run_forecast_group(

@@ -1,4 +1,4 @@
-"""PSNR / SSIM and their DyCheck-masked versions, against hand values and brute force."""
+"""PSNR / SSIM and their DyCheck-masked versions, and GaussianPrediction's SSIM, against hand values and brute force."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from mogaf.errors import MogafError
-from mogaf.metrics import gaussian_window, masked_mean, mpsnr, mssim, psnr, ssim
+from mogaf.metrics import gaussian_window, masked_mean, mpsnr, mssim, psnr, ssim, ssim_padded
 
 C1 = 0.01**2
 C2 = 0.03**2
@@ -143,6 +143,27 @@ def test_ssim_matches_plain_2d_gaussian_definition(rng):
     assert ssim(x, y) == pytest.approx(smap.mean(), abs=1e-12)
     assert ssim(x, y) < 0.9  # the noise is visible to SSIM
     assert ssim(x, y) == pytest.approx(ssim(y, x), abs=1e-12)
+
+
+def test_ssim_padded_is_a_2d_convolution_of_the_zero_padded_images(rng):
+    """GaussianPrediction's metrics.py (3DGS's loss_utils.ssim): torch conv2d
+    with a 11x11 Gaussian (sigma 1.5) and zero padding 5, per channel, the
+    mean of the whole map; here in float64 with the window written out."""
+    x = rng.random((17, 26, 3))
+    y = np.clip(x + 0.2 * rng.standard_normal(x.shape), 0, 1)
+    g = np.exp(-((np.arange(11) - 5.0) ** 2) / (2 * 1.5**2))
+    g /= g.sum()
+    window = torch.from_numpy(np.outer(g, g))[None, None].repeat(3, 1, 1, 1)
+
+    def blur(z):
+        return torch.nn.functional.conv2d(torch.from_numpy(z).permute(2, 0, 1)[None], window, padding=5, groups=3)
+
+    mu0, mu1 = blur(x), blur(y)
+    s00, s11, s01 = blur(x * x) - mu0**2, blur(y * y) - mu1**2, blur(x * y) - mu0 * mu1
+    smap = (2 * mu0 * mu1 + C1) * (2 * s01 + C2) / ((mu0**2 + mu1**2 + C1) * (s00 + s11 + C2))
+    assert ssim_padded(x, y) == pytest.approx(float(smap.mean()), abs=1e-12)
+    assert ssim_padded(x, x) == pytest.approx(1.0, abs=1e-12)
+    assert abs(ssim_padded(x, y) - ssim(x, y)) > 1e-3  # not DyCheck's 'valid' SSIM
 
 
 def test_mssim_matches_partial_convolution_loops(rng):

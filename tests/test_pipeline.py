@@ -282,6 +282,45 @@ def test_evaluating_forecasts_side_by_side_writes_the_same_files(runs, tmp_path,
         assert (tmp_path / "renders" / name).read_bytes() == (ratio / "renders" / name).read_bytes(), name
 
 
+def test_masked_metrics_without_co_visibility_masks_say_so(runs, tmp_path, monkeypatch):
+    """The first run's forecasts evaluated as if its scene had no co-visibility
+    masks (as an iPhone capture without DyCheck's masks): mPSNR equals PSNR,
+    and metrics.json says why; the first run itself, which has them, says nothing."""
+    import yaml
+
+    from mogaf.config import deep_merge, with_defaults
+    from mogaf.scene import Scene
+    from mogaf.stages import evaluate
+
+    ratio = runs["first"] / RATIO
+    kept = json.loads((ratio / "metrics.json").read_text())
+    assert kept["protocol"] == "iphone" and "masked_metrics_over" not in kept
+    monkeypatch.setattr(Scene, "covisibility_masks", lambda self: None)
+    config = with_defaults(deep_merge(*(yaml.safe_load(Path(c).read_text()) for c in CONFIGS)))
+    evaluate(
+        scene=str(ratio.parent / "scene.h5"),
+        split=str(ratio / "split.h5"),
+        model=str(ratio / "refined.h5"),
+        groups=str(ratio / "groups.h5"),
+        reconstruction_quality=str(ratio / "reconstruction_quality" / "refined.h5"),
+        grouping_quality=str(ratio / "grouping_quality.h5"),
+        forecasts={m: str(ratio / "forecast" / f"{m}.h5") for m in ("mogaf", "frozen")},
+        benchmarks={},
+        out_metrics=str(tmp_path / "metrics.json"),
+        out_renders=str(tmp_path / "renders"),
+        params={**config["evaluate"], "video": False, "lpips": False},
+        variant="default",
+        ids={"dataset": "synthetic", "scene": "tiny"},
+    )
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["masked_metrics_over"] == "every pixel: the scene has no co-visibility masks"
+    for method in ("mogaf", "frozen"):
+        image = metrics["methods"][method]["image"]
+        assert image["mpsnr"] == pytest.approx(image["psnr"], abs=1e-9)
+        assert image["mpsnr"] != kept["methods"][method]["image"]["mpsnr"]
+        assert image["psnr"] == kept["methods"][method]["image"]["psnr"]
+
+
 # ---------------------------------------------------------------- the report, in a real browser
 REPORT_CATEGORIES = {"Tables", "Error vs run time", "Forecast videos", "Grouping and reconstruction quality"}
 # in a frame (a report page): every video and image loaded, and what the page holds

@@ -99,6 +99,10 @@ def run_evaluate_stage(
         log.warning("%s: %s: %s is left out of the metrics", scene, why, metric.upper())
     if left_out:
         result["metrics_left_out"] = left_out
+    if masked and masks is None:
+        # DyCheck's masked metrics need its co-visibility masks: without them they equal the plain ones
+        log.warning("%s: the scene has no co-visibility masks: mPSNR, mSSIM and mLPIPS are over every pixel", scene)
+        result["masked_metrics_over"] = "every pixel: the scene has no co-visibility masks"
     labels: dict[str, str] = {}
     side_by_side: dict[str, list[np.ndarray]] = {}  # uint8 renders for all_methods.mp4
     factor = enlargement(frames.width, int(p.video_min_width))

@@ -120,9 +120,11 @@ def tracking_section(
     P, T = gt3d.shape[:2]
     gt_vis = np.asarray(gt_fc.get("visible", np.ones((P, T), bool)), bool)
     pred2d = gt2d = pred_vis = None
+    steps_2d = None  # the forecast steps the 2D metrics score: those the training camera has a frame of
     if "tracks2d" in gt_fc and split.frame_ids["train_future"].size:
         frames = load_frames(scene_h5, split, "train_future")
         by_t = {int(t): f for f, t in enumerate(frames.time_index)}
+        steps_2d = np.array([int(t) in by_t for t in split.forecast_timesteps])
         pred2d = np.zeros((P, T, 2))
         pred_vis = np.zeros((P, T), bool)
         for i, t in enumerate(split.forecast_timesteps):
@@ -143,16 +145,34 @@ def tracking_section(
             surface = depth[row, col]
             pred_vis[:, i] = inside & (z <= surface * (1.0 + float(settings.visibility_tolerance)))
         gt2d = np.asarray(gt_fc["tracks2d"], np.float64)
-    res = M.tracking_metrics(
-        gt_vis=gt_vis,
-        pred_vis=pred_vis,
-        pred_3d=pred3d,
-        gt_3d=gt3d,
-        pred_2d=pred2d,
-        gt_2d=gt2d,
-        scale=float(settings.tracking_scale),
-        aj_thresholds=tuple(settings.aj_thresholds),
-        pck_thresholds=tuple(settings.delta_thresholds),
-        strict=False,
-    )
+    common = {
+        "gt_vis": gt_vis,
+        "aj_thresholds": tuple(settings.aj_thresholds),
+        "pck_thresholds": tuple(settings.delta_thresholds),
+        "strict": False,
+    }
+    if steps_2d is None or steps_2d.all():
+        res = M.tracking_metrics(
+            pred_vis=pred_vis,
+            pred_3d=pred3d,
+            gt_3d=gt3d,
+            pred_2d=pred2d,
+            gt_2d=gt2d,
+            scale=float(settings.tracking_scale),
+            **common,
+        )
+    else:
+        # A step the training camera has no frame of has no predicted 2D track:
+        # the 2D metrics leave it out (none at all where no step has a frame).
+        res = M.tracking_metrics(pred_3d=pred3d, gt_3d=gt3d, scale=float(settings.tracking_scale), **common)
+        if steps_2d.any():
+            res.update(
+                M.tracking_metrics(
+                    pred_vis=pred_vis,
+                    pred_2d=pred2d,
+                    gt_2d=gt2d,
+                    eval_mask=np.broadcast_to(steps_2d[None, :], (P, T)),
+                    **common,
+                )
+            )
     return {k: (None if v is None else float(v)) for k, v in res.items()}, quick

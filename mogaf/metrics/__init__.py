@@ -6,7 +6,7 @@ Shape-of-Motion and TAP-Vid for tracking). torch is imported only when LPIPS
 is used.
 """
 
-from mogaf.metrics.image import gaussian_window, masked_mean, mpsnr, mssim, psnr, ssim
+from mogaf.metrics.image import gaussian_window, masked_mean, mpsnr, mssim, psnr, ssim, ssim_padded
 from mogaf.metrics.lpips import (
     convert_lpips_sdist,
     get_lpips_model,
@@ -32,6 +32,7 @@ __all__ = [
     "mpsnr",
     "ssim",
     "mssim",
+    "ssim_padded",
     "gaussian_window",
     "convert_lpips_sdist",
     "default_weights_path",

@@ -15,7 +15,8 @@ Shape-of-Motion evaluation, `flow3d/metrics.py`, uses the same ones):
   value of 1). Without a mask ``m = 1`` everywhere, i.e. the usual PSNR on the
   mean squared error over all pixels and channels. Identical images give
   ``+inf``.
-* SSIM / mSSIM: see `ssim`.
+* SSIM / mSSIM: see `ssim`. `ssim_padded` is the SSIM of GaussianPrediction's
+  evaluation (3DGS's zero-padded window), the D-NeRF protocol's.
 
 DyCheck evaluates 8-bit-quantised images (``round(255 x) / 255``); quantise
 before calling to reproduce its numbers. Per-frame values are averaged over
@@ -36,7 +37,7 @@ from scipy.ndimage import correlate1d
 from mogaf.errors import MogafError
 from mogaf.metrics.content_cache import ContentCache, content_key
 
-__all__ = ["masked_mean", "psnr", "mpsnr", "ssim", "mssim", "gaussian_window"]
+__all__ = ["masked_mean", "psnr", "mpsnr", "ssim", "mssim", "ssim_padded", "gaussian_window"]
 
 
 def _as_numpy(x, what: str) -> np.ndarray:
@@ -285,6 +286,45 @@ def ssim(
     c2 = (k2 * max_val) ** 2
     ssim_map = ((2 * mu01 + c1) * (2 * s01 + c2)) / ((mu00 + mu11 + c1) * (s00 + s11 + c2))
     return float(ssim_map.mean())
+
+
+def ssim_padded(
+    img0,
+    img1,
+    *,
+    max_val: float = 1.0,
+    filter_size: int = 11,
+    filter_sigma: float = 1.5,
+    k1: float = 0.01,
+    k2: float = 0.03,
+) -> float:
+    """SSIM as GaussianPrediction's `metrics.py` computes it (3DGS's
+    `utils/loss_utils.ssim`): the Gaussian window of `ssim`, but applied at
+    every pixel with the image zero-padded by half a window ('same' size), the
+    variances and covariance used as they come (no clamping), and the mean of
+    the map over all H x W x C entries, borders included::
+
+        ssim = (2 mu0 mu1 + c1)(2 (G(x0 x1) - mu0 mu1) + c2)
+               / ((mu0^2 + mu1^2 + c1)(G(x0^2) - mu0^2 + G(x1^2) - mu1^2 + c2))
+
+    The D-NeRF protocol (MuJoCo) reports this SSIM, as the paper's D-NeRF
+    table does; the iPhone protocol reports DyCheck's (`ssim`)."""
+    a, b = _pair(img0, img1)
+    taps = gaussian_window(filter_size, filter_sigma)
+
+    def blur(z: np.ndarray) -> np.ndarray:
+        # a separable kernel on a zero-padded image: a zero-padded 1-D pass per axis
+        return correlate1d(
+            correlate1d(z, taps, axis=1, mode="constant", cval=0.0), taps, axis=0, mode="constant", cval=0.0
+        )
+
+    mu0, mu1 = blur(a), blur(b)
+    mu00, mu11, mu01 = mu0 * mu0, mu1 * mu1, mu0 * mu1
+    c1 = (k1 * max_val) ** 2
+    c2 = (k2 * max_val) ** 2
+    num = (2 * mu01 + c1) * (2 * (blur(a * b) - mu01) + c2)
+    den = (mu00 + mu11 + c1) * (blur(a * a) - mu00 + blur(b * b) - mu11 + c2)
+    return float((num / den).mean())
 
 
 def mssim(img0, img1, mask, **kwargs) -> float:

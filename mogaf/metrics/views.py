@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from .image import mpsnr, mssim, psnr, ssim
+from .image import mpsnr, mssim, psnr, ssim, ssim_padded
 from .lpips import MIN_SIZE as LPIPS_MIN_SIZE
 from .lpips import lpips, mlpips
 
@@ -32,13 +32,15 @@ def image_metrics(
 ) -> dict[str, float]:
     """PSNR, SSIM (and LPIPS); with `masked` (DyCheck's iPhone protocol) also
     their co-visible versions, over `mask` or, without one, every pixel.
-    What images this small cannot have is left out (`metrics_left_out`)."""
+    SSIM is DyCheck's under the iPhone protocol, GaussianPrediction's
+    (`ssim_padded`) under the D-NeRF one. What images this small cannot have
+    is left out (`metrics_left_out`)."""
     left_out = metrics_left_out(gt.shape[0], gt.shape[1], use_lpips)
     use_ssim = "ssim" not in left_out
     use_lpips = use_lpips and "lpips" not in left_out
     out = {"psnr": psnr(pred, gt)}
     if use_ssim:
-        out["ssim"] = ssim(pred, gt)
+        out["ssim"] = ssim(pred, gt) if masked else ssim_padded(pred, gt)
     if use_lpips:
         out["lpips"] = lpips(pred, gt)
     if masked:

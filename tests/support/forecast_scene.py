@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from mogaf.artefact import write_artefact
+from mogaf.camera import project
 from mogaf.grouping.core import Groups
 from mogaf.representation import GaussianSet, Model4D, save_model
 from mogaf.scene import SPLIT_CODES, Scene, save_scene
@@ -49,18 +50,29 @@ def world(seed: int = 0):
     return pos, quats, velocity
 
 
-def write_scene(folder: Path, *, with_gt: bool, still_gt: bool = False) -> tuple[Path, Path]:
+def _camera(cam: int) -> tuple[np.ndarray, np.ndarray]:
+    """K and w2c of camera `cam` (0: the training camera, 1: the held-out one), the same at every step."""
+    w2c = np.eye(4)
+    w2c[:3, 3] = [0.1 * cam, 0.0, 10.0]
+    return np.array([[10.0, 0, 2], [0, 10.0, 2], [0, 0, 1]]), w2c
+
+
+def write_scene(
+    folder: Path, *, with_gt: bool, still_gt: bool = False, tracks2d: bool = False, no_train_frame_at: int = -1
+) -> tuple[Path, Path]:
     """scene.h5 and split.h5 of world(); `with_gt`: ground-truth points riding
-    the rigid group, `still_gt`: and points resting on the static group."""
+    the rigid group, `still_gt`: and points resting on the static group,
+    `tracks2d`: and their 2D tracks in the training camera (0), visible at
+    every step; `no_train_frame_at`: a time step the training camera has no frame of."""
     pos, _, _ = world()
     names, K, w2c, time, tidx, cams, splits = [], [], [], [], [], [], []
     for t in range(T):
         for cam in (0, 1):
+            if cam == 0 and t == no_train_frame_at:
+                continue
             names.append(f"{cam}_{t:05d}")
-            K.append([[10.0, 0, 2], [0, 10.0, 2], [0, 0, 1]])
-            m = np.eye(4)
-            m[:3, 3] = [0.1 * cam, 0.0, 10.0]
-            w2c.append(m)
+            K.append(_camera(cam)[0])
+            w2c.append(_camera(cam)[1])
             time.append(t / (T - 1))
             tidx.append(t)
             cams.append(cam)
@@ -73,6 +85,10 @@ def write_scene(folder: Path, *, with_gt: bool, still_gt: bool = False) -> tuple
         if still_gt:
             resting = pos[members(STATIC)].astype(np.float64) + np.array([0.0, 0.01, 0.0])
             gt["points3d"] = np.concatenate([gt["points3d"], resting])
+        if tracks2d:
+            P = gt["points3d"].shape[0]
+            gt["tracks2d"] = np.stack([project(gt["points3d"][:, t], *_camera(0))[0] for t in range(T)], axis=1)
+            gt["visible"] = np.ones((P, T), bool)
     scene = Scene(
         dataset="test",
         name="fc",
