@@ -36,6 +36,7 @@ from mogaf.split import read_split
 from support.forecast_scene import (
     N_PER,
     NONRIGID,
+    RATIO,
     RIGID,
     RIGID_VELOCITY,
     STATIC,
@@ -477,6 +478,57 @@ def test_2d_tracking_scores_only_the_steps_the_training_camera_has_a_frame_of(in
     gap = tracking_section(model, fc, str(gap_h5), gap_split, EVAL_PARAMS)[0]
     assert full["aj"] < 1.0 and full["occlusion_accuracy"] < 1.0  # some points are predicted hidden
     assert gap == full and list(gap) == list(full)
+
+
+def _scene_moved_at(folder: Path, inputs, steps) -> tuple[Path, Path, Path]:
+    """scene.h5, split.h5 and priors.h5 of the inputs' scene with its cameras
+    moved, its images changed and its ground truth shifted at time `steps`."""
+    import dataclasses
+
+    from mogaf.scene import load_scene, save_scene
+    from mogaf.split import split_scene, write_split
+
+    scene = load_scene(inputs["scene"], with_ground_truth=True)
+    at = np.isin(scene.time_index, steps)
+    w2c, images = scene.w2c.copy(), scene.images.copy()
+    w2c[at, :3, 3] += [4.0, -3.0, 2.0]
+    images[at] = 200
+    gt = {"points3d": scene.ground_truth["points3d"].copy()}
+    gt["points3d"][:, steps] += 1.0
+    moved = dataclasses.replace(scene, w2c=w2c, images=images, ground_truth=gt)
+    folder.mkdir()
+    scene_h5 = save_scene(folder / "scene.h5", moved, config_digest="fc-test")
+    split_h5 = write_split(folder / "split.h5", split_scene(scene_h5, RATIO))
+    return scene_h5, split_h5, write_priors(folder / "priors.h5", scene_h5, split_h5)
+
+
+def test_the_forecast_reads_nothing_of_the_future(inputs, tmp_path):
+    """Cameras, images and ground truth changed at the forecast steps leave the
+    structured MoGaF forecast (which reads the observed cameras) as it is;
+    the same change at the observed steps moves it (so the check can fail)."""
+
+    def forecast(name: str, scene_h5, split_h5, priors_h5) -> dict[str, np.ndarray]:
+        out = run_forecast_group(
+            str(inputs["model"]),
+            str(inputs["groups"]),
+            str(split_h5),
+            str(tmp_path / f"{name}.h5"),
+            MOGAF_FAST,
+            method="mogaf",
+            job="all",
+            seed=0,
+            scene_h5=str(scene_h5),
+            priors_h5=str(priors_h5),
+        )
+        return _arrays(out)
+
+    clean = forecast("clean", inputs["scene"], inputs["split"], inputs["priors"])
+    future = forecast("future", *_scene_moved_at(tmp_path / "future", inputs, np.arange(T_OBS, T)))
+    assert clean.keys() == future.keys()
+    for k in clean:
+        np.testing.assert_array_equal(clean[k], future[k], err_msg=k)
+    observed = forecast("observed", *_scene_moved_at(tmp_path / "observed", inputs, np.arange(T_OBS)))
+    assert not np.array_equal(clean["means"], observed["means"])
 
 
 # ------------------------------------------------------------------ determinism
