@@ -144,6 +144,11 @@ def test_ode_step_cap_during_training_is_flagged():
     np.testing.assert_allclose(np.linalg.norm(res.poses[..., 3:], axis=-1), 1.0, atol=1e-12)
 
 
+def test_a_zero_quaternion_normalises_to_the_identity():
+    q = np.array([[0.0, 0.0, 0.0, 0.0], [0.0, 3.0, 0.0, 4.0], [2.0, 0.0, 0.0, 0.0]])
+    assert quat.normalize(q).tolist() == [[1.0, 0.0, 0.0, 0.0], [0.0, 0.6, 0.0, 0.8], [1.0, 0.0, 0.0, 0.0]]
+
+
 def test_unit_quaternions_after_long_constant_twist():
     traj = STRESS_SETS["spin_near_pi"](n_gaussians=8, n_frames=6)
     res = fit_and_rollout("constant_velocity", traj, 5000)

@@ -123,8 +123,9 @@ class StructuredSettings:
     )
     trend_window: int = setting(
         8,
-        "values the linear_trend and damped_trend candidates fit their line through (2 = constant velocity per "
-        "series). Enough that the reconstruction's least accurate last frames move the line little, few enough to "
+        "values the linear_trend and damped_trend candidates fit their line through (2 = each series' last step; "
+        "a rigid group's series are its centroid and rotation, so that line is not its twist: constant_velocity "
+        "continues that). Enough that the reconstruction's least accurate last frames move the line little, few enough to "
         "follow recent changes of motion (docs/forecasting.md)",
         minimum=2,
     )

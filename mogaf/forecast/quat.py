@@ -11,9 +11,12 @@ import numpy as np
 
 
 def normalize(q: np.ndarray) -> np.ndarray:
+    """Unit quaternions; a zero one (no rotation to keep) becomes the identity,
+    as `mogaf.representation.normalize_quat` makes it."""
     q = np.asarray(q, dtype=np.float64)
     n = np.linalg.norm(q, axis=-1, keepdims=True)
-    return q / np.where(n > 0.0, n, 1.0)
+    unit = q / np.where(n > 0.0, n, 1.0)
+    return np.where(n > 0.0, unit, np.array([1.0, 0.0, 0.0, 0.0]))
 
 
 def conj(q: np.ndarray) -> np.ndarray:
