@@ -178,6 +178,40 @@ def test_reseeding_moves_grown_gaussians_but_never_seeded_ones():
     assert list(l2) == [0, 1, 1, 1] and list(s2) == [SEED, SEED, GROW, SEED] and list(q2) == [0.5, 0.0, 0.5, 0.0]
 
 
+@pytest.mark.parametrize(
+    ("grow_after_last", "expected"),
+    [
+        (True, ["seed a", "grow", "seed b", "grow", "vote"]),
+        (False, ["seed a", "grow", "seed a", "grow", "seed b", "vote"]),
+    ],
+)
+def test_grouping_steps_in_algorithm_3s_order_or_ours(scene_far, monkeypatch, grow_after_last, expected):
+    """Algorithm 3 (grow_after_last_keyframe: false, config/paper.yaml): seed the
+    first keyframe, then for every keyframe (the first again) grow and seed,
+    then vote; ours grows once more after the last keyframe's seeding."""
+    import mogaf.grouping.ours as ours
+
+    sc = scene_far
+    a, b = 0, len(sc.frames.time_index) - 1
+    assert not np.array_equal(sc.masks[a], sc.masks[b])
+    steps: list[str] = []
+    for name, label in (("mask_gaussians", None), ("region_grow", "grow"), ("knn_vote", "vote")):
+        original = getattr(ours, name)
+
+        def traced(*args, _original=original, _label=label, **kwargs):
+            # mask_gaussians(means, mask, ...) seeds: which keyframe's mask it is given
+            steps.append(_label or ("seed a" if np.array_equal(args[1], sc.masks[a]) else "seed b"))
+            return _original(*args, **kwargs)
+
+        monkeypatch.setattr(ours, name, traced)
+    params = {"method": "ours", "grow_after_last_keyframe": grow_after_last}
+    labels, _, _ = ours.group_ours(
+        sc.model, sc.masks, sc.frames, sc.instances.ids, params, frame_order=np.array([a, b])
+    )
+    assert steps == expected
+    assert np.all(labels >= 0)
+
+
 @pytest.mark.parametrize("which", ["scene_far", "scene_close"])
 def test_reseed_grown_still_recovers_two_objects(which, request):
     sc = request.getfixturevalue(which)

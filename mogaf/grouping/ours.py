@@ -252,7 +252,7 @@ def group_ours(
     max_iters = int(params.grow_max_iters)
     votes = np.zeros((N, J), np.int64) if params.mask_majority else None
 
-    def seed_at(f: int) -> None:
+    def seed_at(f: int, count_votes: bool = True) -> None:
         idx, inst = mask_gaussians(
             np.asarray(traj[:, frames.time_index[f]], dtype=np.float64),
             masks[f],
@@ -262,15 +262,25 @@ def group_ours(
             float(params.front_fraction),
             int(params.front_patches),
         )
-        if votes is not None:
+        if votes is not None and count_votes:
             votes[:] += np.bincount(idx * J + inst, minlength=N * J).reshape(N, J)
         diag["seeded"].append(seed(labels, stage, idx, inst, queried if params.reseed_grown else None))
 
-    seed_at(int(order[0]))
-    for f in order[1:]:
+    def grow() -> None:
         diag["grow_iterations"].append(region_grow(feats, tree, labels, J, radius, queried, stage, max_iters))
-        seed_at(int(f))
-    diag["grow_iterations"].append(region_grow(feats, tree, labels, J, radius, queried, stage, max_iters))
+
+    seed_at(int(order[0]))
+    if params.grow_after_last_keyframe:
+        # ours: grow, seed the next keyframe; and grow once more after the last one
+        for f in order[1:]:
+            grow()
+            seed_at(int(f))
+        grow()
+    else:
+        # Algorithm 3: every keyframe in turn, the first again, grows and then seeds; then the vote
+        for i, f in enumerate(order):
+            grow()
+            seed_at(int(f), count_votes=i > 0)
     if votes is not None:
         diag["mask_majority_moved"] = mask_majority_identity(labels, stage, votes)
     before = labels < 0

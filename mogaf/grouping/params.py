@@ -64,6 +64,11 @@ class GroupingSettings:
         'the first assignment (Algorithm 3\'s "seed & merge" is a union, which leaves the conflict undecided). Off by '
         "default: it repairs growth leaking across object contacts but lowers the ARI on the synthetic scene",
     )
+    grow_after_last_keyframe: bool = setting(
+        True,
+        "ours, not in the paper: True = one more growing pass after the last keyframe's seeding, so the Gaussians "
+        "it seeds grow before the vote; Algorithm 3 votes right after that seeding (False, config/paper.yaml)",
+    )
     mask_majority: bool = setting(
         False,
         "ours, not in the paper: True = after the last growing pass, a Gaussian that was among a mask's front "

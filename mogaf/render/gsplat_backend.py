@@ -3,8 +3,11 @@
 Maps `mogaf.render.rasterize` onto `gsplat.rasterization` with the same
 conventions: one camera, `render_mode="RGB+ED"` (expected depth as the last
 channel), `packed=False` (so `meta["means2d"]` is (1, N, 2)), background
-composited by us. Differences from the CPU backends: gsplat clamps alpha at
-0.999 (ours 0.99, the 3DGS value), so pixels where o * exp(-sigma) > 0.99 differ.
+composited by us. Differences from the CPU backends: gsplat 1.5 clamps alpha
+at 0.999 (ours 0.99, the 3DGS value, as gsplat's development branch), so
+pixels where o * exp(-sigma) > 0.99 differ. Projection (the Jacobian's
+field-of-view clamp, eps2d), culling, radii, pixel centres, the 1/255
+threshold, the 1e-4 transmittance stop and expected depth are gsplat's.
 """
 
 from __future__ import annotations
