@@ -23,6 +23,7 @@ from mogaf.report.glance import END, START, glance_table, replace_section, write
 from mogaf.report.runtime import collect_points, pareto_front, write_runtime_report
 from mogaf.report.table_format import MISSING
 from mogaf.report.tables import (
+    AVERAGE_NOTE,
     METHOD_LABELS,
     TABLE_NAMES,
     build_tables,
@@ -203,11 +204,12 @@ def test_iphone_table_numbers_missing_cells_and_average(metrics_files):
     assert a[2:] == ["17.12", "0.6123", "0.3512", "15.50", "0.5500", "0.4200"]
     # scene b has no frozen result: dashes among the present cells
     assert b[2:] == ["18.99", "0.7011", "0.3000", MISSING, MISSING, MISSING]
-    # averages: means of the rows' values (the missing cell is left out)
+    # averages: means of the rows' values; frozen, without scene b, has none (one scene's would not compare)
     assert avg[2] == f"{(17.123456 + 18.987654) / 2:.2f}"
     assert avg[3] == f"{(0.612345 + 0.701111) / 2:.4f}"
     assert avg[4] == f"{(0.351234 + 0.300049) / 2:.4f}"
-    assert avg[5:] == ["15.50", "0.5500", "0.4200"]
+    assert avg[5:] == [MISSING, MISSING, MISSING]
+    assert AVERAGE_NOTE in t.notes
     md = t.markdown()
     assert "| 60% | iphone/b | 18.99 | 0.7011 | 0.3000 | – | – | – |" in md and NO_RESULT not in md
     # no method here ran off its defaults

@@ -78,6 +78,17 @@ def _mean(values: list[float | None]) -> float | None:
     return sum(vals) / len(vals) if vals else None
 
 
+AVERAGE_NOTE = (
+    "Average: – where a method has no value for some scene of the row's ratio (its mean would be over other scenes)."
+)
+
+
+def _complete_mean(values: list[float | None]) -> float | None:
+    """The mean of one method's values over a table's scenes, or None when a
+    scene has none: an average over fewer scenes would not compare."""
+    return None if any(v is None for v in values) else _mean(values)
+
+
 def _metric(result: dict[str, Any], method: str, metric: str) -> float | None:
     m = result.get("methods", {}).get(method)
     if not m:
@@ -206,10 +217,10 @@ def _layout_table(results: list[dict[str, Any]], layout: str, metrics: tuple[str
                 + [fmt(_metric(r, m, x), x) for m in methods for x in metrics]
             )
         if len(group) > 1:
-            t.rows.append(
-                [f"{ratio:.0%}", "Average"]
-                + [fmt(_mean([_metric(r, m, x) for r in group]), x) for m in methods for x in metrics]
-            )
+            cells = [_complete_mean([_metric(r, m, x) for r in group]) for m in methods for x in metrics]
+            t.rows.append([f"{ratio:.0%}", "Average"] + [fmt(v, x) for v, x in zip(cells, metrics * len(methods))])
+            if any(v is None for v in cells) and AVERAGE_NOTE not in t.notes:
+                t.notes.append(AVERAGE_NOTE)
     t.notes.append(
         "GSPred's original 4D-GS-based column of the paper is not reproduced here (it needs the 4D-GS deformation field); its forecaster runs on our representation as GSPred-SoM."
     )
