@@ -86,6 +86,17 @@ def test_fake_iphone_cameras_put_marker_on_its_pixel(fake_iphone_scene):
     assert len({tuple(v) for v in markers.values()}) > 3  # the marker moves across views
 
 
+def test_colmap_aligned_disparity_needs_its_scale(tmp_path):
+    root = fake_iphone(tmp_path / "s", num_times=3, val_cameras=0, colmap_scale=None)
+    with pytest.raises(MogafError, match=r"aligned_depth_anything_colmap/2x.*COLMAP reconstruction.*colmap/scale\.npy"):
+        read_scene("iphone", root, dataset="fake", scene="s", options={})
+    (root / "flow3d_preprocessed" / "colmap").mkdir()
+    for bad in (np.array([1.0, 2.0]), np.array(0.0), np.array(np.nan)):
+        np.save(root / "flow3d_preprocessed" / "colmap" / "scale.npy", bad)
+        with pytest.raises(MogafError, match=r"scale\.npy.*one finite positive number"):
+            read_scene("iphone", root, dataset="fake", scene="s", options={})
+
+
 def test_fake_iphone_layout_and_priors(tmp_path):
     root = fake_iphone(tmp_path / "s", num_times=5, val_cameras=2, track_points=3)
     scene = read_scene("iphone", root, dataset="fake", scene="s", options={})
@@ -104,6 +115,10 @@ def test_fake_iphone_layout_and_priors(tmp_path):
     # Disparity of the train frames.
     disp = scene.shipped["disparity"]
     assert list(disp["frame"]) == list(train) and disp["values"].shape == (5, 12, 16)
+    # aligned to SoM's COLMAP reconstruction: divided by its scale.npy (2) to the camera jsons' units
+    som_disp = root / "flow3d_preprocessed" / "aligned_depth_anything_colmap" / "2x"
+    for row, f in enumerate(train):
+        np.testing.assert_allclose(disp["values"][row], np.load(som_disp / f"{scene.frame_names[f]}.npy") / 2.0)
     assert list(disp["time_index"]) == list(scene.time_index[train])
     # Keypoints: pixel indices + 0.5; invisible ones are zero.
     kp = scene.shipped["keypoints"]

@@ -164,6 +164,7 @@ def fake_iphone(
     covisible: bool = True,
     keypoints: bool = True,
     som: bool = True,
+    colmap_scale: float | None = 2.0,
     track_points: int = 3,
     rgba: bool = True,
 ) -> Path:
@@ -243,6 +244,9 @@ def fake_iphone(
                     d.mkdir(parents=True, exist_ok=True)
                     np.save(d / f"{name}.npy", rng.uniform(0.2, 1.0, (h, w)).astype(np.float32))
     names = [n for s in splits.values() for n in s["frame_names"]]
+    if som and colmap_scale is not None:
+        root.joinpath("flow3d_preprocessed", "colmap").mkdir(parents=True, exist_ok=True)
+        np.save(root / "flow3d_preprocessed" / "colmap" / "scale.npy", np.array(colmap_scale))
     if som and track_points:
         d = root / "flow3d_preprocessed" / "2d_tracks" / f"{scale}x"
         d.mkdir(parents=True, exist_ok=True)

@@ -31,6 +31,9 @@ Shape-of-Motion files read (under flow3d_preprocessed/):
                                        with one instance "foreground" (id 1)
   aligned_<som_depth>/<S>x/<name>.npy  disparity (SoM inverts it to depth),
                                        som_depth default depth_anything_colmap
+  colmap/scale.npy                     for a som_depth ending in _colmap: SoM's
+                                       COLMAP-to-camera-json length factor; the
+                                       disparity is divided by it (required)
   2d_tracks/<S>x/<q>_<t>.npy           (P, 4) TAPIR tracks of the points
                                        queried in train frame q, seen in
                                        train frame t: x, y, occlusion logit,

@@ -345,8 +345,33 @@ def _load_disparity(frames: _Frames, S: int, opts: _Options, time_index: np.ndar
         values[i] = _load_npy(ddir / f"{names[rows[i]]}.npy", (frames.h, frames.w), "disparity")
 
     _run(load_disp, len(rows), opts.workers)
+    source = f"{SOM}/aligned_{som_depth}/{S}x (disparity, aligned by Shape-of-Motion)"
+    if som_depth.endswith("_colmap"):
+        # Aligned to Shape-of-Motion's COLMAP reconstruction, whose unit is not the camera jsons':
+        # lengths there times colmap/scale.npy are the jsons' (its evaluate_iphone.py scales so).
+        scale = _colmap_scale(frames.scene_dir / SOM / "colmap" / "scale.npy", ddir)
+        values /= np.float32(scale)
+        source += f", divided by {SOM}/colmap/scale.npy ({scale:g}) to the camera jsons' units"
     shipped["disparity"] = {"frame": np.array(rows, np.int64), "time_index": time_index[rows], "values": values}
-    meta["disparity_source"] = f"{SOM}/aligned_{som_depth}/{S}x (disparity, aligned by Shape-of-Motion)"
+    meta["disparity_source"] = source
+
+
+def _colmap_scale(path: Path, disparity_dir: Path) -> float:
+    """Shape-of-Motion's COLMAP-to-camera-json length factor: one finite positive number."""
+    if not path.is_file():
+        raise input_error(
+            disparity_dir,
+            f"is aligned to Shape-of-Motion's COLMAP reconstruction, whose unit needs {path} "
+            "(Shape-of-Motion's iPhone scenes ship it); or name a disparity in the camera jsons' units "
+            "with the dataset option som_depth",
+        )
+    try:
+        value = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise input_error(path, f"cannot be read as a .npy array ({exc})") from None
+    if np.size(value) != 1 or not np.isfinite(value).all() or float(np.ravel(value)[0]) <= 0:
+        raise input_error(path, f"must hold one finite positive number, holds {np.ravel(value)[:3]!r}")
+    return float(np.ravel(value)[0])
 
 
 def _load_tracks(frames: _Frames, S: int, opts: _Options, time_index: np.ndarray, shipped: dict, meta: dict) -> None:
