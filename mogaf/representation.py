@@ -6,7 +6,10 @@ blend of B shared SE(3) motion bases (paper, "Preliminary", Eq. 4-5):
     mu_g(t) = R_g(t) mu_g + t_g(t),      R_g(t)' = R_g(t) R_g
 The blend is done, as in Shape-of-Motion, on the continuous-6D rotation and
 translation of each basis, followed by Gram-Schmidt; background Gaussians
-are static.
+are static. Our 6D vector is a rotation's first two rows (Shape-of-Motion's:
+its first two columns): the same rotations round trip, but a blend of
+different bases Gram-Schmidts to a slightly different rotation (0.03 deg for
+bases 0.1 rad apart).
 
 recon.h5 / refined.h5 layout (stages "recon" and "refine"):
   fg/means (N,3)           canonical means

@@ -96,7 +96,9 @@ class ReconSettings:
     w_mask: float = setting(1.0, "losses (SoM LossesConfig)")
     w_depth: float = setting(0.5, "SoM w_depth_reg (disparity L1, 0.98 quantile)")
     w_depth_grad: float = setting(1.0, "SoM w_depth_grad")
-    w_track: float = setting(2.0, "SoM w_track")
+    w_track: float = setting(
+        2.0, "SoM w_track (SoM's w_depth_const term, the tracks' rendered depth against the depth prior, is not used)"
+    )
     w_smooth_bases: float = setting(
         10.0,
         "weight of the motion bases' smoothness (acceleration) prior. CPU: stronger than SoM's 0.1, since a CPU run "
@@ -166,13 +168,18 @@ class ReconSettings:
     reset_opacity_every: int = setting(
         0, "0 = never; CPU (SoM: every 30 controls = 3000 steps, after our run ends)", minimum=0
     )
-    stop_control_fraction: float = setting(0.8, "SoM stops at 4000 / 5000 steps")
+    stop_control_fraction: float = setting(
+        0.8, "ours: SoM stops at step 4000, of its 5000-step learning-rate schedule but of runs of 15-30k steps"
+    )
     densify_grad_threshold: float = setting(0.0002, "SoM densify_xys_grad_threshold (NDC units)")
     densify_scale_threshold: float = setting(0.01, "SoM, x scene extent")
-    densify_screen_threshold: float = setting(0.05, "SoM")
+    densify_screen_threshold: float = setting(
+        0.05,
+        "SoM's value; SoM never updates the screen radii it compares (an out-of-place index_put), so it never acts there",
+    )
     cull_opacity_threshold: float = setting(0.1, "SoM")
     cull_scale_threshold: float = setting(0.5, "SoM, x scene extent")
-    cull_screen_threshold: float = setting(0.15, "SoM")
+    cull_screen_threshold: float = setting(0.15, "SoM's value (inactive in SoM, as densify_screen_threshold)")
     # ---- bookkeeping
     log_every: int = setting(25, "bookkeeping", minimum=1)
     checkpoint_every: int = setting(200, "bookkeeping", minimum=1)

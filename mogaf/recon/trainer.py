@@ -111,6 +111,7 @@ class Trainer(TrainerSchedule, FrameLosses):
         if self.motion_source == "identity":
             for k in ("motion.rot6d", "motion.transl"):
                 self.base_lr[k] *= params.lr_motion_identity_boost
+        # eps 1e-15 as 3DGS's and gsplat's trainers (SoM keeps torch's 1e-8): tiny per-Gaussian gradients still step
         self.optimizers = {
             name: Adam([p], lr=self.base_lr[name], eps=1e-15) for name, p in self.model.named_tensors().items()
         }
