@@ -258,6 +258,23 @@ def check_variant_name(name: str) -> None:
         raise MogafError(f"ablation variant name '{name}' must be letters, digits, '_', '-' or '.'")
 
 
+# Read once for the whole workflow or by the per-scene stages a variant shares
+# (synthesize, ingest: the scene itself), never per variant: a variant setting
+# one would be silently ignored.
+NOT_PER_VARIANT = ("cache_dir", "ablations_file", "demo", "grid", "datasets", "rigidity", "synthetic", "report")
+
+
+def check_variant_overrides(name: str, overrides: Mapping[str, Any]) -> None:
+    """Refuse a variant that overrides what no variant can change."""
+    fixed = [key for key in NOT_PER_VARIANT if key in (overrides or {})]
+    if fixed:
+        raise MogafError(
+            f"ablation variant '{name}' overrides {', '.join(fixed)}: the scene and the workflow are the same for "
+            "every variant (synthesize and ingest run once per scene); put it in a config file layered with "
+            "--configfile instead"
+        )
+
+
 def load_yaml(path: str | os.PathLike) -> dict[str, Any]:
     import yaml
 

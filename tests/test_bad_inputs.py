@@ -592,6 +592,28 @@ def test_conflicting_forecaster_settings_are_refused_before_any_job(tmp_path):
     assert f"{ablations}: variant 'margin': forecast.mogaf.structured: backtest_margin applies" in out
 
 
+def test_a_variant_cannot_change_the_scene_or_the_workflow(tmp_path, in_repo, capsys):
+    """synthesize and ingest run once per scene, and the grid, demo and
+    datasets once per workflow: a variant overriding them (here the rigidity
+    table ingest applies) would be silently the default run. Refused by name,
+    under Snakemake and on the command line."""
+    ablations = tmp_path / "ablations.yaml"
+    ablations.write_text(
+        "variants:\n  relabel:\n    description: x\n    overrides: {rigidity: {'box*': nonrigid}, recon: {iterations: 5}}\n"
+    )
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(f"ablations_file: {ablations}\n")
+    line = f"{ablations}: ablation variant 'relabel' overrides rigidity: the scene and the workflow are the same"
+    res = _snakemake(["-n", "-c1", "--configfile", str(CONFIG), str(cfg)], tmp_path)
+    assert res.returncode == 1 and line in res.stdout + res.stderr
+    merged = tmp_path / "merged.yaml"
+    merged.write_text(yaml.safe_dump({**yaml.safe_load(CONFIG.read_text()), "ablations_file": str(ablations)}))
+    args = ["split", "--scene-h5", "x.h5", "--out", str(tmp_path / "o.h5"), "--ratio", "0.6"]
+    assert _cli_error(capsys, *args, "--configfile", str(merged), "--variant", "relabel").startswith(
+        f"mogaf: error: {line}"
+    )
+
+
 def test_an_unknown_forecast_job_layout_is_one_line_naming_its_file(tmp_path):
     """forecast.jobs takes the layouts mogaf.forecast.params.JOB_LAYOUTS lists
     (the schema's enum is generated from them), refused before any job runs."""

@@ -99,12 +99,13 @@ def _load_ablations():
         raise WorkflowError(str(exc))
     _validate(data, ABLATION_SCHEMA, [(str(path), data)])
     for name in data.get("variants", {}):
+        overrides = data["variants"][name].get("overrides") or {}
         try:
             mcfg.check_variant_name(name)
+            mcfg.check_variant_overrides(name, overrides)
         except MogafError as exc:
-            raise WorkflowError(str(exc))
+            raise WorkflowError(f"{path}: {exc}")
         # A variant's merged config must satisfy the same schema.
-        overrides = data["variants"][name].get("overrides") or {}
         variant = mcfg.variant_config(config, data["variants"], name)
         _validate(variant, SCHEMA, [*_config_layers(), (f"{path}: variant '{name}'", overrides)])
         _check_relations(variant, f"{path}: variant '{name}': ")
