@@ -100,6 +100,27 @@ def scene_config(config: Mapping[str, Any], dataset: str, scene: str) -> dict[st
     return deep_merge(merged, (ds.get("scene_overrides") or {}).get(scene) or {})
 
 
+def _leaf_paths(node: Any, prefix: tuple = ()) -> list[tuple]:
+    if isinstance(node, Mapping) and node:
+        return [path for key, value in node.items() for path in _leaf_paths(value, (*prefix, key))]
+    return [prefix]
+
+
+def variant_keys_set_for_scene(
+    config: Mapping[str, Any], overrides: Mapping[str, Any], dataset: str, scene: str
+) -> list[str]:
+    """The variant's settings (dotted) that the dataset's overrides or the
+    scene's scene_overrides set too: those win (scene_config merges them
+    last), so the variant does not change them for this scene."""
+    ds = dataset_config(config, dataset)
+    layers = [ds.get("overrides") or {}, (ds.get("scene_overrides") or {}).get(scene) or {}]
+    return [
+        ".".join(map(str, keys))
+        for keys in _leaf_paths(overrides or {})
+        if keys and any(depth_set(layer, list(keys)) == len(keys) for layer in layers)
+    ]
+
+
 def ingest_options(config: Mapping[str, Any], dataset: str, scene: str) -> dict[str, Any]:
     ds = dataset_config(config, dataset)
     options = dict(ds.get("options") or {})

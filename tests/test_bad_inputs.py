@@ -614,6 +614,29 @@ def test_a_variant_cannot_change_the_scene_or_the_workflow(tmp_path, in_repo, ca
     )
 
 
+def test_a_variant_a_scene_override_outranks_is_a_warning(tmp_path):
+    """The dataset's overrides and scene_overrides are merged over a variant's:
+    a variant setting a key they set does not change it for that scene, and
+    the workflow says so when the variant is asked for."""
+    shipped = yaml.safe_load((REPO / "config" / "ablations.yaml").read_text())
+    shipped["variants"]["fewer"] = {"description": "x", "overrides": {"recon": {"iterations": 5}}}
+    ablations = tmp_path / "ablations.yaml"
+    ablations.write_text(yaml.safe_dump(shipped))
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(
+        f"ablations_file: {ablations}\n"
+        "datasets: {synthetic: {scene_overrides: {default: {recon: {iterations: 7}}}}}\n"
+    )
+    target = "results/synthetic/default/ratio0.6/ablation/fewer/metrics.json"
+    res = _snakemake(["-n", "-c1", target, "--configfile", str(CONFIG), str(cfg)], tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    line = (
+        f"{ablations}: variant 'fewer': recon.iterations does not change synthetic/default: "
+        "the dataset's overrides or scene_overrides set it, and they win"
+    )
+    assert (res.stdout + res.stderr).count(line) == 1
+
+
 def test_an_unknown_forecast_job_layout_is_one_line_naming_its_file(tmp_path):
     """forecast.jobs takes the layouts mogaf.forecast.params.JOB_LAYOUTS lists
     (the schema's enum is generated from them), refused before any job runs."""

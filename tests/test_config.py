@@ -128,6 +128,27 @@ def test_scene_overrides_and_paths():
     assert mcfg.scene_dir(BASE, "iphone", "apple") == "data/iphone/apple"
 
 
+def test_variant_keys_a_scene_override_sets_are_named():
+    """scene_config merges the dataset's overrides and the scene's
+    scene_overrides over a variant: the variant's keys they set are named
+    (the workflow warns), those they do not set are not."""
+    import copy
+
+    cfg = copy.deepcopy(BASE)
+    cfg["datasets"]["synthetic"]["overrides"] = {"recon": {"iterations": 7}}
+    cfg["datasets"]["synthetic"]["scene_overrides"] = {"default": {"grouping": {"rigid_override": {"cube": 0}}}}
+    overrides = {
+        "recon": {"iterations": 5, "sh_degree": 1},
+        "grouping": {"rigid_override": {"cube": 1, "box": 0}},
+        "forecast": {"mogaf": {"iterations": 3}},
+    }
+    named = mcfg.variant_keys_set_for_scene(cfg, overrides, "synthetic", "default")
+    assert named == ["recon.iterations", "grouping.rigid_override.cube"]
+    assert mcfg.variant_keys_set_for_scene(cfg, overrides, "synthetic", "hard") == ["recon.iterations"]
+    merged = mcfg.scene_config(mcfg.variant_config(cfg, {"v": {"overrides": overrides}}, "v"), "synthetic", "default")
+    assert merged["recon"]["iterations"] == 7 and merged["grouping"]["rigid_override"] == {"cube": 0, "box": 0}
+
+
 def test_rigidity_table():
     table = BASE["rigidity"]
     assert mcfg.rigidity_of("sphere_1", table) == 1

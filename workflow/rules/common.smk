@@ -182,6 +182,13 @@ def scene_cfg(wildcards, variant=None):
     variant = variant if variant is not None else variant_of(wildcards)
     for _, line in _VARIANT_INERT.get(variant, ()):
         _warn_once(f"{_ablations_path()}: variant '{variant}': {line}")
+    if variant:
+        overrides = VARIANTS.get(variant, {}).get("overrides") or {}
+        for key in mcfg.variant_keys_set_for_scene(config, overrides, wildcards.dataset, wildcards.scene):
+            _warn_once(
+                f"{_ablations_path()}: variant '{variant}': {key} does not change {wildcards.dataset}/"
+                f"{wildcards.scene}: the dataset's overrides or scene_overrides set it, and they win"
+            )
     merged = mcfg.variant_config(config, VARIANTS, variant)
     return mcfg.scene_config(merged, wildcards.dataset, wildcards.scene)
 
