@@ -248,10 +248,10 @@ def test_rerun_after_kill_is_byte_identical(runs):
     assert a == b
 
 
-def test_evaluating_forecasts_side_by_side_writes_the_same_files(runs, tmp_path, monkeypatch):
-    """The first run evaluated on one core; its forecasts evaluated again with
-    three measured at once (MOGAF_CORES=3) give the same metrics.json and
-    renders, byte for byte."""
+def _evaluate_again(runs, out: Path, methods, **params) -> bytes:
+    """The first run's forecasts of `methods` evaluated again into `out`
+    (metrics.json, renders/), evaluate's settings changed by `params`; the
+    new metrics.json."""
     import yaml
 
     from mogaf.config import deep_merge, with_defaults
@@ -259,7 +259,6 @@ def test_evaluating_forecasts_side_by_side_writes_the_same_files(runs, tmp_path,
 
     ratio = runs["first"] / RATIO
     config = with_defaults(deep_merge(*(yaml.safe_load(Path(c).read_text()) for c in CONFIGS)))
-    monkeypatch.setenv("MOGAF_CORES", "3")
     evaluate(
         scene=str(ratio.parent / "scene.h5"),
         split=str(ratio / "split.h5"),
@@ -267,15 +266,24 @@ def test_evaluating_forecasts_side_by_side_writes_the_same_files(runs, tmp_path,
         groups=str(ratio / "groups.h5"),
         reconstruction_quality=str(ratio / "reconstruction_quality" / "refined.h5"),
         grouping_quality=str(ratio / "grouping_quality.h5"),
-        forecasts={m: str(ratio / "forecast" / f"{m}.h5") for m in METHODS},
+        forecasts={m: str(ratio / "forecast" / f"{m}.h5") for m in methods},
         benchmarks={},
-        out_metrics=str(tmp_path / "metrics.json"),
-        out_renders=str(tmp_path / "renders"),
-        params=config["evaluate"],
+        out_metrics=str(out / "metrics.json"),
+        out_renders=str(out / "renders"),
+        params={**config["evaluate"], **params},
         variant="default",
         ids={"dataset": "synthetic", "scene": "tiny"},
     )
-    assert (tmp_path / "metrics.json").read_bytes() == (ratio / "metrics.json").read_bytes()
+    return (out / "metrics.json").read_bytes()
+
+
+def test_evaluating_forecasts_side_by_side_writes_the_same_files(runs, tmp_path, monkeypatch):
+    """The first run evaluated on one core; its forecasts evaluated again with
+    three measured at once (MOGAF_CORES=3) give the same metrics.json and
+    renders, byte for byte."""
+    ratio = runs["first"] / RATIO
+    monkeypatch.setenv("MOGAF_CORES", "3")
+    assert _evaluate_again(runs, tmp_path, METHODS) == (ratio / "metrics.json").read_bytes()
     renders = sorted(p for p in _files(ratio / "renders") if p.name != ".snakemake_timestamp")  # Snakemake's own
     assert renders and sorted(_files(tmp_path / "renders")) == renders
     for name in renders:
@@ -286,33 +294,12 @@ def test_masked_metrics_without_co_visibility_masks_say_so(runs, tmp_path, monke
     """The first run's forecasts evaluated as if its scene had no co-visibility
     masks (as an iPhone capture without DyCheck's masks): mPSNR equals PSNR,
     and metrics.json says why; the first run itself, which has them, says nothing."""
-    import yaml
-
-    from mogaf.config import deep_merge, with_defaults
     from mogaf.scene import Scene
-    from mogaf.stages import evaluate
 
-    ratio = runs["first"] / RATIO
-    kept = json.loads((ratio / "metrics.json").read_text())
+    kept = json.loads((runs["first"] / RATIO / "metrics.json").read_text())
     assert kept["protocol"] == "iphone" and "masked_metrics_over" not in kept
     monkeypatch.setattr(Scene, "covisibility_masks", lambda self: None)
-    config = with_defaults(deep_merge(*(yaml.safe_load(Path(c).read_text()) for c in CONFIGS)))
-    evaluate(
-        scene=str(ratio.parent / "scene.h5"),
-        split=str(ratio / "split.h5"),
-        model=str(ratio / "refined.h5"),
-        groups=str(ratio / "groups.h5"),
-        reconstruction_quality=str(ratio / "reconstruction_quality" / "refined.h5"),
-        grouping_quality=str(ratio / "grouping_quality.h5"),
-        forecasts={m: str(ratio / "forecast" / f"{m}.h5") for m in ("mogaf", "frozen")},
-        benchmarks={},
-        out_metrics=str(tmp_path / "metrics.json"),
-        out_renders=str(tmp_path / "renders"),
-        params={**config["evaluate"], "video": False, "lpips": False},
-        variant="default",
-        ids={"dataset": "synthetic", "scene": "tiny"},
-    )
-    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    metrics = json.loads(_evaluate_again(runs, tmp_path, ("mogaf", "frozen"), video=False, lpips=False))
     assert metrics["masked_metrics_over"] == "every pixel: the scene has no co-visibility masks"
     for method in ("mogaf", "frozen"):
         image = metrics["methods"][method]["image"]
