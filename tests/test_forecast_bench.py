@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -279,3 +280,26 @@ def test_cli_flags_are_checked_before_any_training(tmp_path, capsys):
     (tmp_path / "afile").write_text("")
     assert bench.main(["--sets", "static", "--json", str(tmp_path / "afile" / "rows.json")]) == 1
     assert "rows.json: cannot be written" in capsys.readouterr().err
+
+
+def test_the_synthetic_sources_cache_is_keyed_by_the_generators_code(tmp_path, monkeypatch):
+    """A scene cached by other generator code is generated again: the cache
+    folder carries a digest of mogaf/synth's sources, which a changed file changes."""
+    from mogaf.bench import _forecast_sources as sources
+
+    (tmp_path / "generate.py").write_text("A = 1\n")
+    (tmp_path / "notes.txt").write_text("not code")
+    before = sources.source_digest(tmp_path)
+    (tmp_path / "notes.txt").write_text("still not code")
+    assert sources.source_digest(tmp_path) == before
+    (tmp_path / "generate.py").write_text("A = 2\n")
+    assert sources.source_digest(tmp_path) != before
+    folders = []
+    monkeypatch.setattr(sources, "cache_dir", lambda *parts: folders.append(parts) or tmp_path / "cache")
+    monkeypatch.setattr("mogaf.synth.generate.generate_scene", lambda root, params: (_ for _ in ()).throw(RuntimeError))
+    with pytest.raises(RuntimeError):
+        sources.synthetic_scene_sets("default")
+    import mogaf.synth
+
+    code = sources.source_digest(Path(mogaf.synth.__file__).parent)
+    assert folders == [("bench_forecast", f"synthetic_default_{code}")]

@@ -8,8 +8,11 @@ synthetic_hard, synthetic_articulated, synthetic_bounce: use them as
 
 from __future__ import annotations
 
+import hashlib
 import importlib
+import os
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,18 +38,29 @@ def _local_rotations(points: np.ndarray, k: int = 8) -> np.ndarray:
     return quat.make_continuous(matrix_to_quat_numpy(R), axis=1)
 
 
+def source_digest(folder: str | os.PathLike) -> str:
+    """A digest of the Python sources in `folder`: a scene cached by other
+    generator code is generated again, not read as it was."""
+    digest = hashlib.sha256()
+    for path in sorted(Path(folder).glob("*.py")):
+        digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()[:12]
+
+
 def synthetic_scene_sets(preset: str = "default") -> dict[str, np.ndarray]:
     """Ground-truth trajectories of the embedded synthetic scene, one set per
     object (the group-wise setting): (P_obj, T, 7) [surface point, rotation].
     Rotations: the object pose for rigid objects, the local best rigid fit of
     the point's neighbourhood for non-rigid ones. The scene is generated into
-    the cache once."""
+    the cache once per version of the generator's code (mogaf/synth)."""
     import json as _json
 
+    import mogaf.synth
     from mogaf.representation import matrix_to_quat_numpy  # local: it imports h5py (artefacts)
     from mogaf.synth.generate import generate_scene  # local: mogaf.synth imports cv2, which only this path needs
 
-    root = cache_dir("bench_forecast", f"synthetic_{preset}")
+    code = source_digest(Path(mogaf.synth.__file__).parent)
+    root = cache_dir("bench_forecast", f"synthetic_{preset}_{code}")
     if not (root / "mogaf_gt" / "points3d.npy").exists():
         generate_scene(root, {"preset": preset})
     gt = root / "mogaf_gt"
