@@ -197,9 +197,10 @@ def test_still_part_stays_still_beside_a_moving_part():
 
 def test_still_part_of_a_rigid_flagged_group_stays_still_and_the_body_stays_rigid():
     """A grouping that joins a resting part to a moving box (MuJoCo scene4):
-    the resting members keep their last pose, the body's motion is fitted on
-    the moving members alone and carried to them rigidly; the coherence
-    figures see a rigid body and a still part, both near zero."""
+    the resting members keep their last pose, the body's motion (fitted on
+    the whole group, as mogaf/forecast/group_motion.py says) is carried to the
+    moving members rigidly; the coherence figures see a rigid body and a
+    still part, both near zero."""
     rng = np.random.default_rng(2)
     moving = rigid_box(64, 30)
     rest = np.repeat(
