@@ -91,7 +91,7 @@ def test_colmap_aligned_disparity_needs_its_scale(tmp_path):
     with pytest.raises(MogafError, match=r"aligned_depth_anything_colmap/2x.*COLMAP reconstruction.*colmap/scale\.npy"):
         read_scene("iphone", root, dataset="fake", scene="s", options={})
     (root / "flow3d_preprocessed" / "colmap").mkdir()
-    for bad in (np.array([1.0, 2.0]), np.array(0.0), np.array(np.nan)):
+    for bad in (np.array([1.0, 2.0]), np.array(0.0), np.array(np.nan), np.array("2")):
         np.save(root / "flow3d_preprocessed" / "colmap" / "scale.npy", bad)
         with pytest.raises(MogafError, match=r"scale\.npy.*one finite positive number"):
             read_scene("iphone", root, dataset="fake", scene="s", options={})

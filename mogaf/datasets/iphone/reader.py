@@ -369,7 +369,8 @@ def _colmap_scale(path: Path, disparity_dir: Path) -> float:
         value = np.load(path, allow_pickle=False)
     except (OSError, ValueError) as exc:
         raise input_error(path, f"cannot be read as a .npy array ({exc})") from None
-    if np.size(value) != 1 or not np.isfinite(value).all() or float(np.ravel(value)[0]) <= 0:
+    numeric = np.issubdtype(np.asarray(value).dtype, np.number)
+    if not numeric or np.size(value) != 1 or not np.isfinite(value).all() or float(np.ravel(value)[0]) <= 0:
         raise input_error(path, f"must hold one finite positive number, holds {np.ravel(value)[:3]!r}")
     return float(np.ravel(value)[0])
 
