@@ -353,6 +353,7 @@ def test_tables_leave_out_what_was_not_run(tmp_path):
     assert [label for label, _ in d.spans] == ["", METHOD_LABELS["mogaf"]]
     assert d.columns == ["Obs. ratio", "Scene", "PSNR↑", "SSIM↑", "LPIPS↓"]
     assert [r[1] for r in d.rows] == ["dnerf/c", "dnerf/d", "Average"]
+    assert AVERAGE_NOTE not in d.notes  # frozen, pruned, has no value at all: no dash to explain
     # group-wise ablation: only the variant that ran has a row (HC has none)
     g = groupwise_table(load_metrics(files), ABLATIONS)
     assert [r[0] for r in g.rows] == ["LW (1 results)"]

@@ -217,9 +217,12 @@ def _layout_table(results: list[dict[str, Any]], layout: str, metrics: tuple[str
                 + [fmt(_metric(r, m, x), x) for m in methods for x in metrics]
             )
         if len(group) > 1:
-            cells = [_complete_mean([_metric(r, m, x) for r in group]) for m in methods for x in metrics]
+            values = [[_metric(r, m, x) for r in group] for m in methods for x in metrics]
+            cells = [_complete_mean(v) for v in values]
             t.rows.append([f"{ratio:.0%}", "Average"] + [fmt(v, x) for v, x in zip(cells, metrics * len(methods))])
-            if any(v is None for v in cells) and AVERAGE_NOTE not in t.notes:
+            # said where a dash stands beside values (a column of no value at all is pruned)
+            partial = any(None in v and any(x is not None for x in v) for v in values)
+            if partial and AVERAGE_NOTE not in t.notes:
                 t.notes.append(AVERAGE_NOTE)
     t.notes.append(
         "GSPred's original 4D-GS-based column of the paper is not reproduced here (it needs the 4D-GS deformation field); its forecaster runs on our representation as GSPred-SoM."
