@@ -284,16 +284,16 @@ def test_cli_flags_are_checked_before_any_training(tmp_path, capsys):
 
 def test_the_synthetic_sources_cache_is_keyed_by_the_generators_code(tmp_path, monkeypatch):
     """A scene cached by other generator code is generated again: the cache
-    folder carries a digest of mogaf/synth's sources, which a changed file changes."""
+    folder carries code_digest of mogaf/synth, which a changed .py file changes."""
     from mogaf.bench import _forecast_sources as sources
 
     (tmp_path / "generate.py").write_text("A = 1\n")
     (tmp_path / "notes.txt").write_text("not code")
-    before = sources.source_digest(tmp_path)
+    before = sources.code_digest(tmp_path)
     (tmp_path / "notes.txt").write_text("still not code")
-    assert sources.source_digest(tmp_path) == before
+    assert sources.code_digest(tmp_path) == before
     (tmp_path / "generate.py").write_text("A = 2\n")
-    assert sources.source_digest(tmp_path) != before
+    assert sources.code_digest(tmp_path) != before
     folders = []
     monkeypatch.setattr(sources, "cache_dir", lambda *parts: folders.append(parts) or tmp_path / "cache")
     monkeypatch.setattr("mogaf.synth.generate.generate_scene", lambda root, params: (_ for _ in ()).throw(RuntimeError))
@@ -301,5 +301,5 @@ def test_the_synthetic_sources_cache_is_keyed_by_the_generators_code(tmp_path, m
         sources.synthetic_scene_sets("default")
     import mogaf.synth
 
-    code = sources.source_digest(Path(mogaf.synth.__file__).parent)
+    code = sources.code_digest(Path(mogaf.synth.__file__).parent)
     assert folders == [("bench_forecast", f"synthetic_default_{code}")]

@@ -38,13 +38,15 @@ def _local_rotations(points: np.ndarray, k: int = 8) -> np.ndarray:
     return quat.make_continuous(matrix_to_quat_numpy(R), axis=1)
 
 
-def source_digest(folder: str | os.PathLike) -> str:
-    """A digest of the Python sources in `folder`: a scene cached by other
-    generator code is generated again, not read as it was."""
-    digest = hashlib.sha256()
-    for path in sorted(Path(folder).glob("*.py")):
-        digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
-    return digest.hexdigest()[:12]
+def code_digest(root: str | os.PathLike | None = None) -> str:
+    """A digest (16 hex digits of sha256) of the Python sources under `root`
+    (default: the mogaf package): the code a --json file's rows were computed
+    by, or the generator code a cached scene was made by."""
+    root = Path(__file__).resolve().parents[1] if root is None else Path(root)
+    h = hashlib.sha256()
+    for path in sorted(p for p in root.rglob("*.py") if p.is_file()):  # not an editor's dangling link
+        h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
 
 
 def synthetic_scene_sets(preset: str = "default") -> dict[str, np.ndarray]:
@@ -59,7 +61,7 @@ def synthetic_scene_sets(preset: str = "default") -> dict[str, np.ndarray]:
     from mogaf.representation import matrix_to_quat_numpy  # local: it imports h5py (artefacts)
     from mogaf.synth.generate import generate_scene  # local: mogaf.synth imports cv2, which only this path needs
 
-    code = source_digest(Path(mogaf.synth.__file__).parent)
+    code = code_digest(Path(mogaf.synth.__file__).parent)  # other generator code: the scene made again
     root = cache_dir("bench_forecast", f"synthetic_{preset}_{code}")
     if not (root / "mogaf_gt" / "points3d.npy").exists():
         generate_scene(root, {"preset": preset})

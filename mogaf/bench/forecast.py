@@ -35,7 +35,6 @@ paper budget from another; --only keeps the rows of the sets it names.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import sys
 import time
@@ -68,22 +67,13 @@ from ._forecast_report import (  # noqa: F401  (read_rows, summary_table, per_st
 )
 from ._forecast_sources import (  # noqa: F401  (the synthetic_* --source functions re-exported)
     _load_source,
+    code_digest,
     synthetic_articulated,
     synthetic_bounce,
     synthetic_default,
     synthetic_hard,
     synthetic_scene_sets,
 )
-
-
-def code_digest() -> str:
-    """A digest (16 hex digits of sha256) of the mogaf package's Python
-    sources: the code a --json file's rows were computed by."""
-    root = Path(__file__).resolve().parents[1]
-    h = hashlib.sha256()
-    for path in sorted(p for p in root.rglob("*.py") if p.is_file()):  # not an editor's dangling link
-        h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
-    return h.hexdigest()[:16]
 
 
 def split(traj: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
