@@ -16,7 +16,7 @@ import copy
 import fnmatch
 import os
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -100,10 +100,14 @@ def scene_config(config: Mapping[str, Any], dataset: str, scene: str) -> dict[st
     return deep_merge(merged, (ds.get("scene_overrides") or {}).get(scene) or {})
 
 
-def _leaf_paths(node: Any, prefix: tuple = ()) -> list[tuple]:
-    if isinstance(node, Mapping) and node:
-        return [path for key, value in node.items() for path in _leaf_paths(value, (*prefix, key))]
-    return [prefix]
+def leaves(node: Any, prefix: tuple = ()) -> Iterator[tuple[tuple, Any]]:
+    """(keys, value) of every value below nested mappings that is not itself
+    a mapping (an empty mapping holds none)."""
+    if isinstance(node, Mapping):
+        for key, value in node.items():
+            yield from leaves(value, (*prefix, key))
+    else:
+        yield prefix, node
 
 
 def variant_keys_set_for_scene(
@@ -116,8 +120,8 @@ def variant_keys_set_for_scene(
     layers = [ds.get("overrides") or {}, (ds.get("scene_overrides") or {}).get(scene) or {}]
     return [
         ".".join(map(str, keys))
-        for keys in _leaf_paths(overrides or {})
-        if keys and any(depth_set(layer, list(keys)) == len(keys) for layer in layers)
+        for keys, _ in leaves(overrides or {})
+        if any(depth_set(layer, list(keys)) == len(keys) for layer in layers)
     ]
 
 

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from ..artefact import atomic_path
+from ..config import leaves
 from ..errors import MogafError, input_error
 from .glance import _methods, best_text
 from .metrics_files import METRIC_SECTIONS, checked_records, load_metrics, read_json, result_key
@@ -297,21 +298,16 @@ MEASURED_METHOD_SECTIONS = tuple(s for s in METRIC_SECTIONS if s != "runtime")
 def measured_values(result: dict[str, Any]) -> dict[str, Any]:
     """A result's measured values as {"section.key": value} (methods: "method.section.key")."""
     out: dict[str, Any] = {}
-
-    def flat(prefix: str, value: Any) -> None:
-        if isinstance(value, dict):
-            for k, v in value.items():
-                flat(f"{prefix}.{k}", v)
-        else:
-            out[prefix] = value
-
-    for section in MEASURED_SECTIONS:
-        if section in result:
-            flat(section, result[section])
-    for method, sections in result["methods"].items():
-        for section in MEASURED_METHOD_SECTIONS:
-            if section in sections:
-                flat(f"{method}.{section}", sections[section])
+    parts = [((section,), result[section]) for section in MEASURED_SECTIONS if section in result]
+    parts += [
+        ((method, section), sections[section])
+        for method, sections in result["methods"].items()
+        for section in MEASURED_METHOD_SECTIONS
+        if section in sections
+    ]
+    for prefix, node in parts:
+        for keys, value in leaves(node, prefix):
+            out[".".join(map(str, keys))] = value
     return out
 
 
