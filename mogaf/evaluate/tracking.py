@@ -151,28 +151,9 @@ def tracking_section(
         "pck_thresholds": tuple(settings.delta_thresholds),
         "strict": False,
     }
-    if steps_2d is None or steps_2d.all():
-        res = M.tracking_metrics(
-            pred_vis=pred_vis,
-            pred_3d=pred3d,
-            gt_3d=gt3d,
-            pred_2d=pred2d,
-            gt_2d=gt2d,
-            scale=float(settings.tracking_scale),
-            **common,
-        )
-    else:
-        # A step the training camera has no frame of has no predicted 2D track:
-        # the 2D metrics leave it out (none at all where no step has a frame).
-        res = M.tracking_metrics(pred_3d=pred3d, gt_3d=gt3d, scale=float(settings.tracking_scale), **common)
-        if steps_2d.any():
-            res.update(
-                M.tracking_metrics(
-                    pred_vis=pred_vis,
-                    pred_2d=pred2d,
-                    gt_2d=gt2d,
-                    eval_mask=np.broadcast_to(steps_2d[None, :], (P, T)),
-                    **common,
-                )
-            )
+    res = M.tracking_metrics(pred_3d=pred3d, gt_3d=gt3d, scale=float(settings.tracking_scale), **common)
+    if steps_2d is not None and steps_2d.any():
+        # a step the training camera has no frame of has no predicted 2D track: the 2D metrics leave it out
+        mask = np.broadcast_to(steps_2d[None, :], (P, T))
+        res.update(M.tracking_metrics(pred_vis=pred_vis, pred_2d=pred2d, gt_2d=gt2d, eval_mask=mask, **common))
     return {k: (None if v is None else float(v)) for k, v in res.items()}, quick
