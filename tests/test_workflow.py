@@ -108,6 +108,20 @@ def test_unknown_names(tmp_path, target, message):
     assert message in res.stdout + res.stderr
 
 
+def test_a_scene_the_config_lacks_is_one_line_even_with_its_artefacts_on_disk(tmp_path):
+    """A family scene's forecast targeted without config/family.yaml: its groups.h5
+    (the group checkpoint's output) is on disk, so Snakemake looks no further
+    upstream; the forecast job used to start with its inputs unresolved and die
+    in a traceback."""
+    groups = tmp_path / "results" / "synthetic" / "f00_stop" / "ratio0.6" / "groups.h5"
+    groups.parent.mkdir(parents=True)
+    groups.write_bytes(b"")
+    res = snakemake(["-n", "results/synthetic/f00_stop/ratio0.6/forecast/mogaf.h5"], tmp_path)
+    assert res.returncode != 0, res.stdout
+    assert "unknown scene 'f00_stop' of dataset 'synthetic'" in res.stdout + res.stderr
+    assert "rule forecast:" not in res.stdout
+
+
 def test_sweep_shares_upstream_stages(tmp_path):
     res = snakemake(["-n", "sweep_groupwise"], tmp_path)
     assert res.returncode == 0, res.stderr

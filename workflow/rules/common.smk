@@ -279,8 +279,15 @@ def job_file(kind, stage, wildcards, **extra):
     return _fill(mreg.job_path(kind, stage), wildcards, _variant_prefix(stage, wildcards, **extra), **extra)
 
 
+@_workflow_error
 def checkpoint_output(stage, wildcards):
-    """This variant's artefact of checkpoint rule `stage`, once it has run."""
+    """This variant's artefact of checkpoint rule `stage`, once it has run.
+
+    The scene is checked first: for a scene the config does not list but
+    whose checkpoint artefact is on disk (made under another config),
+    Snakemake takes the checkpoint for not yet run and would start the job
+    with its inputs unresolved, a traceback instead of the one-line error."""
+    mcfg.check_scene(config, wildcards.dataset, wildcards.scene)
     values = {**dict(wildcards.items()), "prefix": _variant_prefix(stage, wildcards)}
     names = [name for _, name, _, _ in string.Formatter().parse(mreg.rule_output(stage)) if name]
     return getattr(checkpoints, mreg.spec(stage).rule).get(**{name: values[name] for name in names}).output[0]
