@@ -308,7 +308,9 @@ def load_scene(
     """Load scene.h5, optionally only the frames listed in `frames`.
 
     Stages after `split` must pass the frame ids their split gives them (see
-    mogaf.split.load_frames); only those rows are read from disk.
+    mogaf.split.load_frames); only those rows are returned (the reader
+    decompresses whole HDF5 chunks, which may hold other frames' rows, and
+    discards those rows before anything else sees them).
     """
     p = Path(path)
     with open_artefact(p, SCENE_STAGE) as fh:

@@ -257,7 +257,8 @@ def _read_sorted_rows(ds: h5py.Dataset, rows: np.ndarray) -> tuple[np.ndarray, n
 
 
 def read_rows(fh: h5py.File, key: str, rows: np.ndarray) -> np.ndarray:
-    """Read only `rows` (first axis) of dataset `key`, checking finiteness."""
+    """Only `rows` (first axis) of dataset `key`, checked finite (the chunks
+    holding them are decompressed whole; their other rows are discarded)."""
     path = Path(fh.filename)
     if key not in fh:
         raise input_error(path, f"has no entry '{key}'")
