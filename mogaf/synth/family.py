@@ -39,7 +39,7 @@ KINDS: tuple[tuple[str, str, Any], ...] = (
     ),
     (
         "bounce",
-        "the thrown sphere lands and bounces after the split",
+        "the thrown sphere lands and bounces after the 0.6 split (the landing is set in seconds: in a long scene 0.8 observes it)",
         lambda r: {"sphere_launch_vz": round(float(r.uniform(1.15, 1.3)), 3)},
     ),
     (
