@@ -75,10 +75,7 @@ def _ablations(cfg: dict[str, Any], configfile: str) -> dict[str, Any]:
     if schema is not None and (schema.parent / ABLATIONS_SCHEMA_NAME).is_file():
         _check_against(data, mcfg.load_yaml(schema.parent / ABLATIONS_SCHEMA_NAME), str(path))
     for name, variant in (data.get("variants") or {}).items():
-        try:
-            mcfg.check_variant_overrides(name, (variant or {}).get("overrides") or {})
-        except MogafError as exc:
-            raise MogafError(f"{path}: {exc}") from None
+        mcfg.check_variant(path, name, (variant or {}).get("overrides") or {})
     return data
 
 

@@ -300,6 +300,16 @@ def check_variant_overrides(name: str, overrides: Mapping[str, Any]) -> None:
         )
 
 
+def check_variant(path: str | os.PathLike, name: str, overrides: Mapping[str, Any]) -> None:
+    """One variant of the ablations file `path`: its name and what it overrides
+    (the workflow and the CLI check every variant so); an error names `path`."""
+    try:
+        check_variant_name(name)
+        check_variant_overrides(name, overrides)
+    except MogafError as exc:
+        raise MogafError(f"{os.fspath(path)}: {exc}") from None
+
+
 def load_yaml(path: str | os.PathLike) -> dict[str, Any]:
     import yaml
 

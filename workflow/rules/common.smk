@@ -101,10 +101,9 @@ def _load_ablations():
     for name in data.get("variants", {}):
         overrides = data["variants"][name].get("overrides") or {}
         try:
-            mcfg.check_variant_name(name)
-            mcfg.check_variant_overrides(name, overrides)
+            mcfg.check_variant(path, name, overrides)
         except MogafError as exc:
-            raise WorkflowError(f"{path}: {exc}")
+            raise WorkflowError(str(exc))
         # A variant's merged config must satisfy the same schema.
         variant = mcfg.variant_config(config, data["variants"], name)
         _validate(variant, SCHEMA, [*_config_layers(), (f"{path}: variant '{name}'", overrides)])
