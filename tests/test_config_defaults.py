@@ -171,7 +171,7 @@ def test_layered_configs_and_ablation_variants_validate():
     import mogaf.config as mcfg
 
     base = load_config()
-    for overlay in ("paper.yaml", "demo.yaml", "mujoco.yaml", "baselines_steps.yaml", "demo_seeds.yaml"):
+    for overlay in ("paper.yaml", "demo.yaml", "mujoco.yaml", "baselines_steps.yaml", "demo_seeds.yaml", "family.yaml"):
         validate(mcfg.deep_merge(base, mcfg.load_yaml(REPO / "config" / overlay)))  # overlays the docs name
     variants = mcfg.load_yaml(REPO / "config" / "ablations.yaml")["variants"]
     for name in variants:
@@ -199,6 +199,35 @@ def test_the_paper_config_keeps_the_papers_grouping_and_the_variant_restores_it(
     assert load_settings(joined["grouping"]).mask_majority is False
     assert load_settings(majority["grouping"]).mask_majority is True
     assert load_settings(majority["grouping"]).split_still_members == "unlabelled"  # one change per variant
+
+
+def test_family_draws_layer_adds_draws_of_family_scenes_and_changes_nothing_else():
+    """config/family_draws.yaml over the family adds draws of three of its
+    scenes, each the family scene's settings with another generator seed,
+    and changes no other setting, so the family's own runs are not rerun."""
+    import mogaf.config as mcfg
+
+    family = mcfg.deep_merge(
+        mcfg.deep_merge(load_config(), mcfg.load_yaml(REPO / "config" / "demo.yaml")),
+        mcfg.load_yaml(REPO / "config" / "family.yaml"),
+    )
+    draws = mcfg.deep_merge(family, mcfg.load_yaml(REPO / "config" / "family_draws.yaml"))
+    validate(draws)
+    scenes = family["datasets"]["synthetic"]["scenes"]
+    added = [s for s in draws["datasets"]["synthetic"]["scenes"] if s not in scenes]
+    assert draws["datasets"]["synthetic"]["scenes"][: len(scenes)] == scenes and len(added) == 9
+    seeds = set()
+    for name in added:
+        base = name.rsplit("_d", 1)[0]
+        own = dict(draws["synthetic"][name])
+        seeds.add(own.pop("seed"))
+        assert own == {k: v for k, v in family["synthetic"][base].items() if k != "seed"}, name
+    assert len(seeds) == len(added) and not seeds & {family["synthetic"][s]["seed"] for s in scenes if s != "default"}
+    for key in set(draws) | set(family):
+        if key not in ("datasets", "synthetic"):
+            assert draws.get(key) == family.get(key), key
+    for name in family["synthetic"]:
+        assert draws["synthetic"][name] == family["synthetic"][name], name
 
 
 def test_demo_seeds_layer_adds_scenes_and_leaves_the_demo_as_it_is():
